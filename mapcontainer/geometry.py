@@ -1,0 +1,279 @@
+"""Rigid-body geometry and the pinhole camera, with analytic Jacobians.
+
+Conventions (README "Frames and units"):
+
+* ``T_a_b`` is a 4x4 homogeneous transform that maps points from frame b into frame a,
+  ``p_a = T_a_b @ p_b``; ``R_a_b`` is its rotation. Compositions chain:
+  ``T_map_cam = T_map_body @ T_body_cam``.
+* Map frame: local ENU, metres, z up. Body frame: x forward, y left, z up (ISO 8855).
+  Camera frame: x right, y down, z forward (OpenCV).
+* A pose is the 6-vector ``[x, y, z, roll, pitch, yaw]`` of the body in the map frame with
+  ``R_map_body = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (intrinsic z-y'-x''). This is the paper's
+  6-DoF parameterisation p_c = (C_x, C_y, C_z, phi, theta, psi) and the order the wire
+  covariance uses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "R_BODY_CAM",
+    "CameraIntrinsics",
+    "camera_extrinsic",
+    "inverse",
+    "matrix_to_pose",
+    "matrix_to_rpy",
+    "point_line_distance",
+    "pose_to_matrix",
+    "project_line",
+    "project_points",
+    "project_points_jac",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "rpy_to_matrix",
+    "rpy_to_matrix_jac",
+    "se3",
+    "skew",
+    "so3_exp",
+    "so3_log",
+    "transform_points",
+    "wrap_angle",
+]
+
+# Columns are the camera axes expressed in the body frame: camera x (right) = -y_body,
+# camera y (down) = -z_body, camera z (forward) = +x_body.
+R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def wrap_angle(a):
+    """Wrap angle(s) to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def skew(v) -> np.ndarray:
+    """[v]x such that skew(v) @ w == np.cross(v, w)."""
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def rpy_to_matrix_jac(roll: float, pitch: float, yaw: float):
+    """R and its partial derivatives dR/droll, dR/dpitch, dR/dyaw (each 3x3)."""
+    Rx, Ry, Rz = rot_x(roll), rot_y(pitch), rot_z(yaw)
+    # d/da Rx(a) = Rx(a) [e_x]x, and likewise for y, z.
+    dRx = Rx @ skew((1.0, 0.0, 0.0))
+    dRy = Ry @ skew((0.0, 1.0, 0.0))
+    dRz = Rz @ skew((0.0, 0.0, 1.0))
+    return Rz @ Ry @ Rx, Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx
+
+
+def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`rpy_to_matrix` (pitch in [-pi/2, pi/2])."""
+    R = np.asarray(R, dtype=float)
+    pitch = np.arcsin(np.clip(-R[2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[2, 1], R[2, 2])
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    return np.array([roll, pitch, yaw])
+
+
+def so3_exp(w) -> np.ndarray:
+    """Rodrigues' formula: the rotation matrix of rotation vector w (rad)."""
+    w = np.asarray(w, dtype=float)
+    theta = float(np.linalg.norm(w))
+    W = skew(w)
+    if theta < 1e-9:
+        return np.eye(3) + W + 0.5 * W @ W
+    return np.eye(3) + np.sin(theta) / theta * W + (1.0 - np.cos(theta)) / theta**2 * W @ W
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of R (inverse of :func:`so3_exp` for angles below pi)."""
+    R = np.asarray(R, dtype=float)
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos_theta)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-9:
+        return 0.5 * v
+    if np.pi - theta < 1e-6:
+        # Near pi: axis from the symmetric part.
+        A = (R + np.eye(3)) / 2.0
+        axis = A[:, int(np.argmax(np.diag(A)))]
+        axis = axis / np.linalg.norm(axis)
+        return theta * axis
+    return theta / (2.0 * np.sin(theta)) * v
+
+
+def se3(R: np.ndarray, t) -> np.ndarray:
+    """4x4 homogeneous transform from rotation R and translation t."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float)
+    return T
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform: T_b_a from T_a_b."""
+    R, t = T[:3, :3], T[:3, 3]
+    return se3(R.T, -R.T @ t)
+
+
+def pose_to_matrix(pose) -> np.ndarray:
+    """T_map_body from the 6-vector [x, y, z, roll, pitch, yaw]."""
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (6,):
+        raise ValueError(f"pose must have shape (6,), got {pose.shape}")
+    return se3(rpy_to_matrix(*pose[3:]), pose[:3])
+
+
+def matrix_to_pose(T: np.ndarray) -> np.ndarray:
+    """[x, y, z, roll, pitch, yaw] from T_map_body."""
+    return np.concatenate([T[:3, 3], matrix_to_rpy(T[:3, :3])])
+
+
+def transform_points(T: np.ndarray, p) -> np.ndarray:
+    """Apply T_a_b to points p_b of shape (N, 3) (or (3,)), giving p_a."""
+    p = np.asarray(p, dtype=float)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def camera_extrinsic(x: float, y: float, z: float, pitch: float = 0.0) -> np.ndarray:
+    """T_body_cam for a forward-looking camera at body position (x, y, z), tilted down by ``pitch`` rad."""
+    return se3(rot_y(pitch) @ R_BODY_CAM, (x, y, z))
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics (pixels) and image size; no distortion (images are rectified)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        return (
+            (uv[:, 0] >= margin)
+            & (uv[:, 0] <= self.width - 1 - margin)
+            & (uv[:, 1] >= margin)
+            & (uv[:, 1] <= self.height - 1 - margin)
+        )
+
+    def scaled(self, factor: float) -> CameraIntrinsics:
+        """The same camera at another resolution (e.g. 0.5 for a half-size lane mask)."""
+        return CameraIntrinsics(
+            self.fx * factor,
+            self.fy * factor,
+            (self.cx + 0.5) * factor - 0.5,
+            (self.cy + 0.5) * factor - 0.5,
+            int(round(self.width * factor)),
+            int(round(self.height * factor)),
+        )
+
+
+def project_points(intr: CameraIntrinsics, T_cam_map: np.ndarray, p_map):
+    """Pinhole projection u = K R [I | -C] X (paper, camera model Pi).
+
+    Returns pixel coordinates ``uv`` (N, 2) and depths ``z_cam`` (N,); points with
+    ``z_cam <= 0`` are behind the camera and their ``uv`` is meaningless.
+    """
+    p_cam = transform_points(T_cam_map, np.asarray(p_map, dtype=float).reshape(-1, 3))
+    z = p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = intr.fx * p_cam[:, 0] / z + intr.cx
+        v = intr.fy * p_cam[:, 1] / z + intr.cy
+    return np.stack([u, v], axis=1), z
+
+
+def project_points_jac(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_map):
+    """Projection of map points by a camera on a body at ``pose`` = [x, y, z, roll, pitch, yaw].
+
+    pi_P(p_map, pose): p_body = R^T (p_map - t), p_cam = R_body_cam^T (p_body - t_body_cam),
+    u = fx X/Z + cx, v = fy Y/Z + cy.
+
+    Returns ``uv`` (N, 2), ``z_cam`` (N,), ``J_pose`` (N, 2, 6) = d uv / d pose and
+    ``J_point`` (N, 2, 3) = d uv / d p_map.
+    """
+    pose = np.asarray(pose, dtype=float)
+    p_map = np.asarray(p_map, dtype=float).reshape(-1, 3)
+    R, dR_roll, dR_pitch, dR_yaw = rpy_to_matrix_jac(*pose[3:])
+    R_cb = T_body_cam[:3, :3].T
+    d = p_map - pose[:3]
+    p_body = d @ R
+    p_cam = (p_body - T_body_cam[:3, 3]) @ R_cb.T
+    X, Y, Z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = 1.0 / Z
+        uv = np.stack([intr.fx * X * inv_z + intr.cx, intr.fy * Y * inv_z + intr.cy], axis=1)
+        n = len(p_map)
+        J_proj = np.zeros((n, 2, 3))
+        J_proj[:, 0, 0] = intr.fx * inv_z
+        J_proj[:, 0, 2] = -intr.fx * X * inv_z**2
+        J_proj[:, 1, 1] = intr.fy * inv_z
+        J_proj[:, 1, 2] = -intr.fy * Y * inv_z**2
+    # d p_body / d [t, roll, pitch, yaw]  (N, 3, 6)
+    dpb = np.empty((n, 3, 6))
+    dpb[:, :, :3] = -R.T
+    dpb[:, :, 3] = d @ dR_roll
+    dpb[:, :, 4] = d @ dR_pitch
+    dpb[:, :, 5] = d @ dR_yaw
+    J_cam = R_cb @ dpb  # (N, 3, 6)
+    J_pose = J_proj @ J_cam
+    J_point = J_proj @ (R_cb @ R.T)
+    return uv, Z, J_pose, J_point
+
+
+def project_line(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, P1, P2):
+    """pi_L: project a 3-D segment (P1, P2) to l = (u1, v1, u2, v2) with d l / d pose (4, 6).
+
+    Both endpoints must be in front of the camera (check the returned depths).
+    """
+    uv, z, J_pose, _ = project_points_jac(intr, pose, T_body_cam, np.stack([P1, P2]))
+    return uv.reshape(4), z, J_pose.reshape(4, 6)
+
+
+def point_line_distance(A, B, m):
+    """Signed distance of image point(s) m to the infinite line through A and B, and d dist / d m.
+
+    This is the term of the paper's D_L: |(M1 - M2) x (m - M1)| / ||M1 - M2|| without the
+    absolute value, so that it is differentiable. ``m`` may be (2,) or (N, 2); the gradient
+    with respect to m is the unit normal n of the line (the same for every point).
+    """
+    A = np.asarray(A, dtype=float)
+    B = np.asarray(B, dtype=float)
+    d = B - A
+    length = float(np.hypot(d[0], d[1]))
+    if length < 1e-9:
+        raise ValueError(f"degenerate line: endpoints {A} and {B} coincide")
+    normal = np.array([-d[1], d[0]]) / length
+    dist = (np.asarray(m, dtype=float) - A) @ normal
+    return dist, normal

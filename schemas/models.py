@@ -1,0 +1,305 @@
+"""The wire contract: every message Map Container puts on the bus or the V2X link.
+
+All values are SI (metres, seconds, radians, m/s, rad/s) unless a field's name says otherwise.
+Frames: ``*_map`` local ENU of the HD map, ``*_body`` vehicle body (x forward, y left, z up).
+A pose is ``[x, y, z, roll, pitch, yaw]`` of the body in the map frame with
+R_map_body = Rz(yaw) Ry(pitch) Rx(roll); pose covariances are over those six numbers in that order.
+Covariances travel as the row-major upper triangle of the symmetric matrix (21 values for 6x6,
+6 values for 3x3: xx, xy, xz, yy, yz, zz).
+
+Evolution rule: add optional fields only (with a default), never change a field's meaning or
+units; readers ignore fields they do not know. A breaking change bumps SCHEMA_VERSION.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from .arrays import F16, F32, I16, U8, U32, cov_from_upper, cov_to_upper
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "CameraInfo",
+    "Envelope",
+    "FusedState",
+    "GnssFix",
+    "GroundTruth",
+    "HealthStatus",
+    "LandmarkClass",
+    "LocalizationQuality",
+    "ObjectClass",
+    "ObjectObservations",
+    "Odometry",
+    "RawObservations",
+    "SensorFrame",
+    "VehiclePrior",
+]
+
+SCHEMA_VERSION = 1
+
+# Limits that keep a hostile payload from allocating without bound.
+MAX_OBJECTS = 1024
+MAX_LANDMARKS = 4096
+MAX_MASK_BYTES = 4 * 1024 * 1024
+NAME_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
+
+
+class ObjectClass(IntEnum):
+    """Class codes of detected objects (uint8 on the wire)."""
+
+    UNKNOWN = 0
+    PEDESTRIAN = 1
+    VEHICLE = 2
+    CYCLIST = 3
+
+
+class LandmarkClass(IntEnum):
+    """Class codes of camera landmark detections (uint8 on the wire)."""
+
+    TRAFFIC_LIGHT = 1
+    SIGN = 2
+    LAMP = 3
+
+
+def _check_pd(name: str, upper: np.ndarray) -> None:
+    """Raise ValueError unless every matrix given by its upper triangle is positive definite."""
+    if upper.size == 0:
+        return
+    mats = cov_from_upper(upper.astype(np.float64))
+    try:
+        np.linalg.cholesky(mats)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"{name} is not positive definite") from None
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False, ser_json_bytes="base64")
+
+
+class Envelope(_Model):
+    """Fields every message carries."""
+
+    schema_version: int = Field(SCHEMA_VERSION, description="wire contract version; readers reject others")
+    fleet: str = Field(pattern=NAME_PATTERN, description="name of the run; every key is namespaced by it")
+    sender: str = Field(pattern=NAME_PATTERN, description="id of the producing vehicle or service")
+    seq: int = Field(ge=0, lt=2**63, description="per-sender sequence number, +1 per message")
+    t_meas: float = Field(description="scenario time the content is valid for (s)")
+    t_sent: float = Field(description="scenario time the sender published the message (s)")
+
+
+# --------------------------------------------------------------------------------- parts
+
+
+class CameraInfo(_Model):
+    """Pinhole intrinsics (pixels) and the camera's mounting on the body."""
+
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    width: int = Field(gt=0, le=16384)
+    height: int = Field(gt=0, le=16384)
+    T_body_cam: F32(4, 4) = Field(description="maps camera-frame points to the body frame")
+
+
+class GnssFix(_Model):
+    """A GNSS position fix converted to the map frame."""
+
+    p_map: F32(3) = Field(description="antenna position, map frame (m)")
+    sigma_h_m: float = Field(gt=0, description="receiver-reported horizontal 1-sigma (m)")
+    sigma_v_m: float = Field(gt=0, description="receiver-reported vertical 1-sigma (m)")
+
+
+class Odometry(_Model):
+    """Wheel odometry and gyro."""
+
+    speed: float = Field(description="forward speed (m/s)")
+    yaw_rate: float = Field(description="yaw rate about body z (rad/s)")
+
+
+class ObjectObservations(_Model):
+    """One frame's object detections in the observer's body frame (not tracks)."""
+
+    p_body_cm: I16(None, 3) = Field(
+        default_factory=lambda: np.zeros((0, 3), np.int16),
+        description="position in the body frame, centimetres (int16: +-327 m at 1 cm, as in the ETSI CPM)",
+    )
+    cov: F16(None, 6) = Field(
+        default_factory=lambda: np.zeros((0, 6), np.float16),
+        description="3x3 position covariance per object, upper triangle (m^2), float16",
+    )
+    cls: U8(None) = Field(
+        default_factory=lambda: np.zeros(0, np.uint8), description="ObjectClass code per object"
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        n = len(self.p_body_cm)
+        if n > MAX_OBJECTS:
+            raise ValueError(f"{n} objects exceed the limit of {MAX_OBJECTS}")
+        if len(self.cov) != n or len(self.cls) != n:
+            raise ValueError(f"objects: {n} positions but {len(self.cov)} covariances and {len(self.cls)} classes")
+        _check_pd("object covariance", self.cov)
+        return self
+
+    def __len__(self) -> int:
+        return len(self.p_body_cm)
+
+    @property
+    def p_body(self) -> np.ndarray:
+        """Positions in metres (N, 3)."""
+        return self.p_body_cm.astype(np.float64) / 100.0
+
+    @classmethod
+    def from_metres(cls, p_body, cov, obj_cls) -> ObjectObservations:
+        """Build from positions in metres (rounded to 1 cm) and (N, 3, 3) or (N, 6) covariances."""
+        p = np.asarray(p_body, dtype=float).reshape(-1, 3)
+        cov = np.asarray(cov, dtype=float)
+        if cov.ndim == 3:
+            cov = cov_to_upper(cov)
+        return cls(p_body_cm=np.round(p * 100.0), cov=cov.reshape(-1, 6), cls=np.asarray(obj_cls).reshape(-1))
+
+
+class LocalizationQuality(_Model):
+    """How the vehicle's self-localization went this frame."""
+
+    mode: Literal["map_matching", "fallback"] = Field(
+        description="map_matching: a converged camera/HD-map solution; fallback: GNSS + odometry only"
+    )
+    n_points: int = Field(0, ge=0, description="point landmark inliers")
+    n_poles: int = Field(0, ge=0, description="pole landmark inliers")
+    n_lane: int = Field(0, ge=0, description="lane samples within the distance cap")
+    cost: float = Field(0.0, ge=0, description="final normalised cost (chi^2 per residual)")
+
+
+# ------------------------------------------------------------------------------ messages
+
+
+class Observations(Envelope):
+    """Raw sensor content of one camera frame (shared by SensorFrame and RawObservations)."""
+
+    camera: CameraInfo
+    points_uv: F32(None, 2) = Field(
+        default_factory=lambda: np.zeros((0, 2), np.float32), description="point landmark detections (px)"
+    )
+    points_cls: U8(None) = Field(
+        default_factory=lambda: np.zeros(0, np.uint8), description="LandmarkClass code per point"
+    )
+    poles_uv: F32(None, 4) = Field(
+        default_factory=lambda: np.zeros((0, 4), np.float32),
+        description="pole segment detections u1, v1, u2, v2 (px)",
+    )
+    lane_mask_png: bytes = Field(
+        b"", max_length=MAX_MASK_BYTES, description="8-bit PNG lane segmentation, 255 = marking; b'' if none"
+    )
+    gnss: GnssFix | None = None
+    odometry: Odometry | None = None
+    objects: ObjectObservations = Field(default_factory=ObjectObservations)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        n = len(self.points_uv)
+        if n > MAX_LANDMARKS or len(self.poles_uv) > MAX_LANDMARKS:
+            raise ValueError(f"more than {MAX_LANDMARKS} landmark detections")
+        if len(self.points_cls) != n:
+            raise ValueError(f"{n} point detections but {len(self.points_cls)} classes")
+        if self.lane_mask_png and not self.lane_mask_png.startswith(b"\x89PNG\r\n\x1a\n"):
+            raise ValueError("lane_mask_png is not a PNG")
+        return self
+
+
+class SensorFrame(Observations):
+    """World -> vehicle (on-board bus): one frame of the vehicle's own sensors."""
+
+
+class RawObservations(Observations):
+    """Vehicle -> host in centralized mode: everything the host needs to localize the vehicle."""
+
+
+class VehiclePrior(Envelope):
+    """Vehicle -> host in distributed mode: self-localization and this frame's detections."""
+
+    pose: F32(6) = Field(description="[x, y, z, roll, pitch, yaw] of the body in the map frame")
+    pose_cov: F32(21) = Field(description="6x6 pose covariance, upper triangle")
+    v_map: F32(3) = Field(description="body velocity in the map frame (m/s)")
+    quality: LocalizationQuality
+    objects: ObjectObservations = Field(default_factory=ObjectObservations)
+
+    @model_validator(mode="after")
+    def _pd(self):
+        _check_pd("pose covariance", self.pose_cov)
+        return self
+
+
+class FusedState(Envelope):
+    """Host -> anyone: the fused driving environment at t_meas."""
+
+    vehicle_ids: list[str] = Field(default_factory=list, max_length=MAX_OBJECTS)
+    vehicle_pose: F32(None, 6) = Field(default_factory=lambda: np.zeros((0, 6), np.float32))
+    vehicle_pose_cov: F32(None, 21) = Field(default_factory=lambda: np.zeros((0, 21), np.float32))
+    object_id: U32(None) = Field(default_factory=lambda: np.zeros(0, np.uint32), description="stable global ids")
+    object_cls: U8(None) = Field(default_factory=lambda: np.zeros(0, np.uint8))
+    object_p_map: F32(None, 3) = Field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    object_v_map: F32(None, 3) = Field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    object_cov: F32(None, 6) = Field(
+        default_factory=lambda: np.zeros((0, 6), np.float32), description="position covariance, upper triangle"
+    )
+    messages_fused: int = Field(0, ge=0, description="messages in the window this state was solved from")
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        v = len(self.vehicle_ids)
+        if len(self.vehicle_pose) != v or len(self.vehicle_pose_cov) != v:
+            raise ValueError(f"{v} vehicle ids but {len(self.vehicle_pose)} poses, {len(self.vehicle_pose_cov)} covs")
+        n = len(self.object_id)
+        if n > MAX_OBJECTS or any(len(a) != n for a in (self.object_cls, self.object_p_map, self.object_v_map, self.object_cov)):
+            raise ValueError("object arrays differ in length")
+        _check_pd("vehicle pose covariance", self.vehicle_pose_cov)
+        _check_pd("object covariance", self.object_cov)
+        return self
+
+
+class GroundTruth(Envelope):
+    """World -> evaluator: the true state at t_meas (never used for estimation)."""
+
+    vehicle_ids: list[str] = Field(default_factory=list, max_length=MAX_OBJECTS)
+    vehicle_pose: F32(None, 6) = Field(default_factory=lambda: np.zeros((0, 6), np.float32))
+    vehicle_v_map: F32(None, 3) = Field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    obstacle_id: U32(None) = Field(default_factory=lambda: np.zeros(0, np.uint32))
+    obstacle_cls: U8(None) = Field(default_factory=lambda: np.zeros(0, np.uint8))
+    obstacle_p_map: F32(None, 3) = Field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    obstacle_v_map: F32(None, 3) = Field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    obstacle_yaw: F32(None) = Field(default_factory=lambda: np.zeros(0, np.float32))
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        v = len(self.vehicle_ids)
+        if len(self.vehicle_pose) != v or len(self.vehicle_v_map) != v:
+            raise ValueError("vehicle arrays differ in length")
+        n = len(self.obstacle_id)
+        if n > MAX_OBJECTS or any(
+            len(a) != n for a in (self.obstacle_cls, self.obstacle_p_map, self.obstacle_v_map, self.obstacle_yaw)
+        ):
+            raise ValueError("obstacle arrays differ in length")
+        return self
+
+
+class HealthStatus(Envelope):
+    """Every service -> health CLI: periodic status and the reply to a health query."""
+
+    role: str = Field(pattern=NAME_PATTERN)
+    state: Literal["ok", "degraded", "failed"]
+    uptime_s: float = Field(ge=0)
+    msgs_in_per_s: float = Field(0.0, ge=0)
+    msgs_out_per_s: float = Field(0.0, ge=0)
+    bytes_in_per_s: float = Field(0.0, ge=0)
+    bytes_out_per_s: float = Field(0.0, ge=0)
+    latency_ms_p50: float | None = Field(None, ge=0, description="processing latency per message (ms)")
+    latency_ms_p99: float | None = Field(None, ge=0)
+    rejects: dict[str, int] = Field(default_factory=dict, description="rejected inputs by reason")
+    last_error: str | None = None
+    figures: dict[str, float] = Field(default_factory=dict, description="role figures, e.g. fused_objects")

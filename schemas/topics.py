@@ -1,0 +1,79 @@
+"""The topic registry: every key expression, the model it carries and its nominal rate.
+
+Publishers, subscribers, the health CLI and the docs all read this one table. Templates use
+``{fleet}`` (the run's namespace) and role placeholders; :meth:`Topic.key` fills them and
+:meth:`Topic.pattern` turns the unfilled ones into Zenoh ``*`` chunks.
+"""
+
+from __future__ import annotations
+
+import re
+import string
+from dataclasses import dataclass
+
+from pydantic import BaseModel
+
+from .models import FusedState, GroundTruth, HealthStatus, RawObservations, SensorFrame, VehiclePrior
+
+__all__ = ["TOPICS", "Topic", "topic"]
+
+_CHUNK = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+@dataclass(frozen=True)
+class Topic:
+    name: str
+    template: str
+    model: type[BaseModel] | None  # None: a liveliness token, no payload
+    rate_hz: float | None  # nominal publish rate per key; None: on demand
+    description: str
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        return tuple(f for _, f, _, _ in string.Formatter().parse(self.template) if f)
+
+    def key(self, **values: str) -> str:
+        """The concrete key expression; every placeholder must be given a single safe chunk."""
+        missing = set(self.fields) - values.keys()
+        if missing:
+            raise ValueError(f"topic {self.name!r} needs {sorted(missing)}")
+        for k, v in values.items():
+            if not _CHUNK.match(str(v)):
+                raise ValueError(f"{k}={v!r} is not a valid key chunk (letters, digits, '_' or '-')")
+        return self.template.format(**values)
+
+    def pattern(self, **values: str) -> str:
+        """A key expression with ``*`` for every placeholder not given (for subscribers)."""
+        filled = {f: values.get(f, "*") for f in self.fields}
+        for k, v in values.items():
+            if not _CHUNK.match(str(v)):
+                raise ValueError(f"{k}={v!r} is not a valid key chunk")
+        return self.template.format(**filled)
+
+
+TOPICS: tuple[Topic, ...] = (
+    Topic("sensors", "mc/{fleet}/sim/{vid}/sensors", SensorFrame, 10.0,
+          "world -> vehicle: one camera frame with GNSS, odometry and object detections (on-board bus)"),
+    Topic("truth", "mc/{fleet}/sim/truth", GroundTruth, 10.0, "world -> evaluator: ground truth"),
+    Topic("prior_tx", "mc/{fleet}/v2x/tx/{src}/prior", VehiclePrior, 10.0,
+          "vehicle -> channel emulator: distributed-mode prior"),
+    Topic("raw_tx", "mc/{fleet}/v2x/tx/{src}/raw", RawObservations, 10.0,
+          "vehicle -> channel emulator: centralized-mode raw observations"),
+    Topic("prior_rx", "mc/{fleet}/v2x/rx/{dst}/{src}/prior", VehiclePrior, 10.0,
+          "channel emulator -> receiver {dst}: a prior from {src} after the link model"),
+    Topic("raw_rx", "mc/{fleet}/v2x/rx/{dst}/{src}/raw", RawObservations, 10.0,
+          "channel emulator -> receiver {dst}: raw observations from {src} after the link model"),
+    Topic("fused", "mc/{fleet}/host/{hid}/fused", FusedState, 10.0, "host -> anyone: the fused environment"),
+    Topic("health", "mc/{fleet}/health/{role}/{id}", HealthStatus, 1.0,
+          "every service: periodic status put, and a queryable on the same key"),
+    Topic("alive", "mc/{fleet}/alive/{role}/{id}", None, None, "every service: liveliness token"),
+)
+
+_BY_NAME = {t.name: t for t in TOPICS}
+
+
+def topic(name: str) -> Topic:
+    try:
+        return _BY_NAME[name]
+    except KeyError:
+        raise KeyError(f"unknown topic {name!r}; known: {sorted(_BY_NAME)}") from None
