@@ -72,7 +72,7 @@ def decode(data: bytes, model: type[M]) -> M | Rejection:
     if not isinstance(obj, dict):
         return Rejection("malformed", f"top level is {type(obj).__name__}, not a map")
     version = obj.get("schema_version")
-    if version != SCHEMA_VERSION:
+    if type(version) is not int or version != SCHEMA_VERSION:  # an int: neither True nor 1.0
         return Rejection("schema_version", f"schema_version {version!r}, this reader knows {SCHEMA_VERSION}")
     try:
         return model.model_validate(obj)

@@ -38,7 +38,7 @@ class Topic:
         if missing:
             raise ValueError(f"topic {self.name!r} needs {sorted(missing)}")
         for k, v in values.items():
-            if not _CHUNK.match(str(v)):
+            if not _CHUNK.fullmatch(str(v)):
                 raise ValueError(f"{k}={v!r} is not a valid key chunk (letters, digits, '_' or '-')")
         return self.template.format(**values)
 
@@ -46,7 +46,7 @@ class Topic:
         """A key expression with ``*`` for every placeholder not given (for subscribers)."""
         filled = {f: values.get(f, "*") for f in self.fields}
         for k, v in values.items():
-            if not _CHUNK.match(str(v)):
+            if not _CHUNK.fullmatch(str(v)):
                 raise ValueError(f"{k}={v!r} is not a valid key chunk")
         return self.template.format(**filled)
 

@@ -1,0 +1,121 @@
+"""Actors: vehicles that follow lane centre lines and pedestrians that walk walkable paths.
+
+Every actor's reference point is the centre of its footprint on the ground (the body origin of
+a connected vehicle); its extent is an oriented box standing on the ground.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas import ObjectClass
+
+from ..hdmap.model import Polyline
+
+__all__ = ["ActorState", "LaneFollower", "PathWalker", "box_corners"]
+
+_YAW_BASE_M = 1.0  # yaw from the chord over +-1 m: smooth across the polyline's 1 m vertices
+
+
+@dataclass(frozen=True)
+class ActorState:
+    """The true state of one actor at one instant (map frame)."""
+
+    id: str
+    cls: ObjectClass
+    p_map: np.ndarray  # (3,) footprint centre on the ground
+    yaw: float
+    v_map: np.ndarray  # (3,)
+    yaw_rate: float
+    size: np.ndarray  # (3,) length, width, height
+
+    @property
+    def speed(self) -> float:
+        return float(np.hypot(self.v_map[0], self.v_map[1]))
+
+    @property
+    def pose(self) -> np.ndarray:
+        """[x, y, z, roll, pitch, yaw] (flat ground: roll = pitch = 0)."""
+        return np.array([*self.p_map, 0.0, 0.0, self.yaw])
+
+
+class _PathActor:
+    """State from an arc-length function s(t) along a polyline (subclasses define s(t))."""
+
+    cls: ObjectClass
+
+    def __init__(self, actor_id: str, line: Polyline, size):
+        self.id = actor_id
+        self.line = line
+        self.size = np.asarray(size, dtype=float)
+
+    def arc(self, t: float) -> tuple[float, float]:
+        """Arc length and signed speed along the line at time t."""
+        raise NotImplementedError
+
+    def _yaw(self, s: float, direction: float) -> float:
+        d = self.line.point_at(s + _YAW_BASE_M) - self.line.point_at(s - _YAW_BASE_M)
+        if direction < 0:
+            d = -d
+        return float(np.arctan2(d[1], d[0]))
+
+    def state(self, t: float, dt: float = 0.05) -> ActorState:
+        s, v = self.arc(t)
+        direction = 1.0 if v >= 0 else -1.0
+        yaw = self._yaw(s, direction)
+        s_a, v_a = self.arc(t - dt)
+        s_b, v_b = self.arc(t + dt)
+        yaw_a = self._yaw(s_a, 1.0 if v_a >= 0 else -1.0)
+        yaw_b = self._yaw(s_b, 1.0 if v_b >= 0 else -1.0)
+        yaw_rate = float(np.angle(np.exp(1j * (yaw_b - yaw_a)))) / (2 * dt)
+        heading = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        return ActorState(self.id, self.cls, self.line.point_at(s), yaw, heading * abs(v), yaw_rate, self.size)
+
+
+class LaneFollower(_PathActor):
+    """A vehicle on a lane centre line: s(t) = s0 + v t + (A T / 2 pi) sin(2 pi t / T + phase).
+
+    Its speed v + A cos(2 pi t / T + phase) varies slowly around v (never negative if A <= v).
+    """
+
+    cls = ObjectClass.VEHICLE
+
+    def __init__(self, actor_id, line, s0, speed, amp, period, phase, size):
+        super().__init__(actor_id, line, size)
+        self.s0, self.v, self.amp, self.period, self.phase = s0, speed, min(amp, speed), period, phase
+
+    def arc(self, t: float) -> tuple[float, float]:
+        w = 2 * np.pi / self.period
+        s = self.s0 + self.v * t + self.amp / w * (np.sin(w * t + self.phase) - np.sin(self.phase))
+        return float(s), float(self.v + self.amp * np.cos(w * t + self.phase))
+
+
+class PathWalker(_PathActor):
+    """A pedestrian: loops along a closed path, walks to and fro along an open one (a crossing)."""
+
+    cls = ObjectClass.PEDESTRIAN
+
+    def __init__(self, actor_id, line, s0, speed, direction, size=(0.6, 0.6, 1.75)):
+        super().__init__(actor_id, line, size)
+        self.s0, self.v = s0, speed * direction
+
+    def arc(self, t: float) -> tuple[float, float]:
+        s = self.s0 + self.v * t
+        if self.line.closed:
+            return s, self.v
+        # Triangle wave between the two ends of the crossing.
+        L = self.line.length
+        phase = np.mod(s, 2 * L)
+        return (float(phase), self.v) if phase < L else (float(2 * L - phase), -self.v)
+
+
+def box_corners(state: ActorState) -> np.ndarray:
+    """The 8 corners (8, 3) of an actor's box in the map frame."""
+    l, w, h = state.size
+    x = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * l / 2
+    y = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * w / 2
+    z = np.array([0, 0, 0, 0, 1, 1, 1, 1]) * h
+    c, s = np.cos(state.yaw), np.sin(state.yaw)
+    return np.column_stack([c * x - s * y, s * x + c * y, z]) + state.p_map

@@ -1,0 +1,307 @@
+"""Simulated sensors of a connected vehicle: camera, GNSS, odometry and an object detector.
+
+Each sensor owns its random generator, so a vehicle's measurements depend only on the seed and
+the true trajectories. Parameters and their units: configs/sensors/default.yaml.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from schemas import LandmarkClass
+
+from .. import geometry as geo
+from ..hdmap.model import HDMap
+from .actors import ActorState, box_corners
+from .config import CameraConfig, DetectorConfig, GnssConfig, OdometryConfig
+
+__all__ = ["Camera", "CameraObservation", "Gnss", "ObjectDetector", "Odometry", "occluded"]
+
+_POLE_SAMPLES = 16
+_LANE_SPACING_M = 0.5
+_SOLID_RUN_M = 5.0
+
+
+def occluded(origin, targets, boxes: list[ActorState], exclude: np.ndarray | None = None) -> np.ndarray:
+    """Which of the segments origin -> target (N, 3) pass through any actor box (slab test).
+
+    ``exclude`` (N, len(boxes)) marks boxes that cannot occlude a target (its own box, the observer's).
+    """
+    targets = np.asarray(targets, dtype=float).reshape(-1, 3)
+    hit = np.zeros(len(targets), dtype=bool)
+    origin = np.asarray(origin, dtype=float)
+    for m, box in enumerate(boxes):
+        c, s = np.cos(box.yaw), np.sin(box.yaw)
+        R_T = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        o = R_T @ (origin - box.p_map)
+        d = (targets - origin) @ R_T.T
+        lo = np.array([-box.size[0] / 2, -box.size[1] / 2, 0.0])
+        hi = np.array([box.size[0] / 2, box.size[1] / 2, box.size[2]])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - o) / d
+            t2 = (hi - o) / d
+        parallel = np.abs(d) < 1e-12
+        inside = (o >= lo) & (o <= hi)
+        tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=1)
+        tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=1)
+        h = (tmax >= tmin) & (tmin > 1e-6) & (tmin < 1.0 - 1e-6)
+        if exclude is not None:
+            h &= ~exclude[:, m]
+        hit |= h
+    return hit
+
+
+@dataclass(frozen=True)
+class CameraObservation:
+    points_uv: np.ndarray  # (N, 2)
+    points_cls: np.ndarray  # (N,) LandmarkClass codes
+    point_ids: np.ndarray  # (N,) map feature id, -1 for clutter
+    poles_uv: np.ndarray  # (M, 4)
+    pole_ids: np.ndarray  # (M,) map feature id, -1 for clutter
+    lane_mask: np.ndarray  # (H, W) uint8, 255 = lane marking
+
+
+class Camera:
+    """A calibrated pinhole camera with landmark and lane-marking detectors."""
+
+    def __init__(self, cfg: CameraConfig, hdmap: HDMap, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        self.intr = geo.CameraIntrinsics(
+            cfg.f_px, cfg.f_px, (cfg.width - 1) / 2, (cfg.height - 1) / 2, cfg.width, cfg.height
+        )
+        self.T_body_cam = geo.camera_extrinsic(*cfg.mount_xyz_m, pitch=cfg.pitch_rad)
+        cls_code = {"traffic_light": LandmarkClass.TRAFFIC_LIGHT, "sign": LandmarkClass.SIGN}
+        self._pt_xyz = np.array([f.p_map for f in hdmap.points]).reshape(-1, 3)
+        self._pt_cls = np.array([cls_code[f.cls] for f in hdmap.points], dtype=np.uint8)
+        self._pt_id = np.array([f.id for f in hdmap.points], dtype=int)
+        self._pole_base = np.array([f.base for f in hdmap.poles]).reshape(-1, 3)
+        self._pole_top = np.array([f.top for f in hdmap.poles]).reshape(-1, 3)
+        self._pole_id = np.array([f.id for f in hdmap.poles], dtype=int)
+        # Lane segments between consecutive painted samples; a "run" is one dash or 5 m of a solid line.
+        a, b, run = [], [], []
+        n_runs = 0
+        for line in hdmap.lane_lines:
+            s = np.arange(0.0, line.polyline.length, _LANE_SPACING_M)
+            if line.kind == "dashed":
+                period = line.dash_m + line.gap_m
+                s = s[np.mod(s, period) < line.dash_m - 1e-9]
+                run_of = np.floor(s / period).astype(int)
+            else:
+                run_of = np.floor(s / _SOLID_RUN_M).astype(int)
+            p = line.polyline.point_at(s)
+            step = np.diff(s)
+            ok = step < 1.5 * _LANE_SPACING_M
+            a.append(p[:-1][ok])
+            b.append(p[1:][ok])
+            run.append(run_of[:-1][ok] + n_runs)
+            n_runs += int(run_of.max(initial=0)) + 1
+        self._lane_a = np.vstack(a) if a else np.zeros((0, 3))
+        self._lane_b = np.vstack(b) if b else np.zeros((0, 3))
+        self._lane_run = np.concatenate(run) if run else np.zeros(0, int)
+        self._n_runs = n_runs
+
+    def _p_detect(self, r: np.ndarray) -> np.ndarray:
+        c = self.cfg
+        return c.p_detect_near + (c.p_detect_far - c.p_detect_near) * np.clip(r / c.range_m, 0, 1)
+
+    def observe(self, pose, others: list[ActorState]) -> CameraObservation:
+        """One frame from a body at ``pose``; ``others`` are every actor except the observer."""
+        c, rng = self.cfg, self.rng
+        T_map_cam = geo.pose_to_matrix(pose) @ self.T_body_cam
+        T_cam_map = geo.inverse(T_map_cam)
+        cam_c = T_map_cam[:3, 3]
+
+        # Point landmarks.
+        uv, z = geo.project_points(self.intr, T_cam_map, self._pt_xyz)
+        r = np.linalg.norm(self._pt_xyz - cam_c, axis=1)
+        vis = (z > c.min_depth_m) & (r <= c.range_m)
+        vis[vis] &= self.intr.in_image(uv[vis])
+        vis[vis] &= ~occluded(cam_c, self._pt_xyz[vis], others)
+        det = vis & (rng.random(len(vis)) < self._p_detect(r))
+        pts = uv[det] + rng.normal(0.0, c.pixel_sigma_px, (int(det.sum()), 2))
+        pts_cls, pts_id = self._pt_cls[det], self._pt_id[det]
+
+        # Poles: the visible run of samples between base and top.
+        poles, pole_ids = [], []
+        if len(self._pole_id):
+            f = np.linspace(0.0, 1.0, _POLE_SAMPLES)
+            samples = self._pole_base[:, None] + f[None, :, None] * (self._pole_top - self._pole_base)[:, None]
+            flat = samples.reshape(-1, 3)
+            suv, sz = geo.project_points(self.intr, T_cam_map, flat)
+            ok = (sz > c.min_depth_m) & (np.linalg.norm(flat - cam_c, axis=1) <= c.range_m)
+            ok[ok] &= self.intr.in_image(suv[ok])
+            ok[ok] &= ~occluded(cam_c, flat[ok], others)
+            ok = ok.reshape(len(self._pole_id), _POLE_SAMPLES)
+            suv = suv.reshape(len(self._pole_id), _POLE_SAMPLES, 2)
+            r_pole = np.linalg.norm(self._pole_base - cam_c, axis=1)
+            for i in np.flatnonzero(ok.sum(axis=1) >= 2):
+                idx = np.flatnonzero(ok[i])
+                seg = np.concatenate([suv[i, idx[0]], suv[i, idx[-1]]])
+                if np.hypot(*(seg[2:] - seg[:2])) < 15.0 or rng.random() >= self._p_detect(r_pole[i]):
+                    continue
+                poles.append(seg + rng.normal(0.0, c.pixel_sigma_px, 4))
+                pole_ids.append(self._pole_id[i])
+
+        # Clutter.
+        n_cp = rng.poisson(c.clutter_points_per_frame)
+        if n_cp:
+            pts = np.vstack([pts, rng.uniform((0, 0), (c.width - 1, c.height - 1), (n_cp, 2))])
+            pts_cls = np.concatenate([pts_cls, rng.choice([LandmarkClass.TRAFFIC_LIGHT, LandmarkClass.SIGN], n_cp)])
+            pts_id = np.concatenate([pts_id, -np.ones(n_cp, int)])
+        for _ in range(rng.poisson(c.clutter_poles_per_frame)):
+            u, v = rng.uniform(0, c.width - 1), rng.uniform(0, c.height / 2)
+            poles.append(np.array([u, v + rng.uniform(30, 200), u + rng.normal(0, 3), v]))
+            pole_ids.append(-1)
+
+        return CameraObservation(
+            points_uv=np.asarray(pts, dtype=float).reshape(-1, 2),
+            points_cls=np.asarray(pts_cls, dtype=np.uint8),
+            point_ids=np.asarray(pts_id, dtype=int),
+            poles_uv=np.asarray(poles, dtype=float).reshape(-1, 4),
+            pole_ids=np.asarray(pole_ids, dtype=int),
+            lane_mask=self._lane_mask(T_cam_map, cam_c, others),
+        )
+
+    def _lane_mask(self, T_cam_map, cam_c, others: list[ActorState]) -> np.ndarray:
+        """Render the lane segmentation: projected painted markings, dropout, jitter, occlusion."""
+        c, rng = self.cfg, self.rng
+        mask = np.zeros((c.height, c.width), np.uint8)
+        near = np.linalg.norm(self._lane_a[:, :2] - cam_c[:2], axis=1) <= c.lane_range_m
+        kept_runs = rng.random(self._n_runs) >= c.lane_dropout
+        sel = near & kept_runs[self._lane_run]
+        a, b = self._lane_a[sel], self._lane_b[sel]
+        uv_a, z_a = geo.project_points(self.intr, T_cam_map, a)
+        uv_b, z_b = geo.project_points(self.intr, T_cam_map, b)
+        front = (z_a > c.min_depth_m) & (z_b > c.min_depth_m)
+        uv_a, uv_b = uv_a[front], uv_b[front]
+        z = 0.5 * (z_a[front] + z_b[front])
+        jitter = rng.normal(0.0, c.lane_pixel_sigma_px, (len(z), 2))
+        thick = np.clip(np.rint(c.f_px * c.lane_marking_width_m / z), 1, 40).astype(int)
+        pa = np.rint((uv_a + jitter) * 4).astype(np.int32)  # 2 fractional bits for cv2's shift
+        pb = np.rint((uv_b + jitter) * 4).astype(np.int32)
+        lim = 4 * 10 * max(c.width, c.height)
+        keep = (np.abs(pa) < lim).all(axis=1) & (np.abs(pb) < lim).all(axis=1)
+        for p, q, t in zip(pa[keep], pb[keep], thick[keep], strict=True):
+            cv2.line(mask, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 255, int(t), cv2.LINE_8, 2)
+        # Actors hide the road behind them.
+        for other in others:
+            if np.linalg.norm(other.p_map[:2] - cam_c[:2]) > c.lane_range_m + 5:
+                continue
+            uv, zc = geo.project_points(self.intr, T_cam_map, box_corners(other))
+            if np.any(zc < 0.2):
+                continue
+            hull = cv2.convexHull(np.rint(uv).astype(np.int32))
+            cv2.fillConvexPoly(mask, hull, 0)
+        return mask
+
+
+class Gnss:
+    """Fix = truth + white noise + Gauss-Markov bias + multipath episodes (horizontal jumps)."""
+
+    def __init__(self, cfg: GnssConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        self.bias = rng.normal(0.0, cfg.bias_sigma_m, 2)
+        self.jump = np.zeros(2)
+        self.jump_until = -np.inf
+
+    def measure(self, t: float, p_true, dt: float) -> tuple[np.ndarray, float, float]:
+        """(p_map fix, reported sigma_h, reported sigma_v) at time t; advances the error state by dt."""
+        c, rng = self.cfg, self.rng
+        phi = np.exp(-dt / c.bias_tau_s)
+        self.bias = phi * self.bias + np.sqrt(1 - phi**2) * c.bias_sigma_m * rng.normal(size=2)
+        if t >= self.jump_until:
+            self.jump = np.zeros(2)
+            if rng.random() < c.multipath_rate_per_s * dt:
+                ang = rng.uniform(0, 2 * np.pi)
+                self.jump = rng.uniform(*c.multipath_jump_m) * np.array([np.cos(ang), np.sin(ang)])
+                self.jump_until = t + rng.uniform(*c.multipath_duration_s)
+        err = np.concatenate([self.bias + self.jump + rng.normal(0, c.white_sigma_m, 2), [rng.normal(0, c.vertical_sigma_m)]])
+        return np.asarray(p_true, float) + err, c.reported_sigma_h_m, c.reported_sigma_v_m
+
+
+class Odometry:
+    """Wheel speed with a per-vehicle scale error, gyro yaw rate with a per-vehicle bias."""
+
+    def __init__(self, cfg: OdometryConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        self.scale = 1.0 + rng.normal(0.0, cfg.speed_scale_sigma)
+        self.yaw_bias = rng.normal(0.0, cfg.yaw_rate_bias_sigma_radps)
+
+    def measure(self, speed: float, yaw_rate: float) -> tuple[float, float]:
+        c, rng = self.cfg, self.rng
+        return (
+            float(speed * self.scale + rng.normal(0, c.speed_sigma_mps)),
+            float(yaw_rate + self.yaw_bias + rng.normal(0, c.yaw_rate_sigma_radps)),
+        )
+
+
+class ObjectDetector:
+    """Body-frame object positions with range-dependent noise, misses, false alarms and occlusion.
+
+    Noise model: along the line of sight sigma_r = a_r + b_r * r, across it sigma_t = a_t + b_t * r,
+    vertically sigma_z; the reported covariance is R diag(sigma_r^2, sigma_t^2, sigma_z^2) R^T with
+    R the rotation from line-of-sight axes to the body frame.
+    """
+
+    def __init__(self, cfg: DetectorConfig, sensor_xyz_body, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        self.sensor_body = np.asarray(sensor_xyz_body, dtype=float)
+
+    def covariance(self, p_body: np.ndarray) -> np.ndarray:
+        """Nominal (N, 3, 3) covariance of detections at body positions p_body (N, 3)."""
+        c = self.cfg
+        rel = p_body[:, :2] - self.sensor_body[:2]
+        r = np.linalg.norm(rel, axis=1)
+        beta = np.arctan2(rel[:, 1], rel[:, 0])
+        sr = c.sigma_radial_m[0] + c.sigma_radial_m[1] * r
+        st = c.sigma_tangential_m[0] + c.sigma_tangential_m[1] * r
+        u = np.stack([np.cos(beta), np.sin(beta), np.zeros_like(beta)], axis=1)
+        t = np.stack([-np.sin(beta), np.cos(beta), np.zeros_like(beta)], axis=1)
+        return (
+            sr[:, None, None] ** 2 * u[:, :, None] * u[:, None, :]
+            + st[:, None, None] ** 2 * t[:, :, None] * t[:, None, :]
+            + np.diag([0.0, 0.0, c.sigma_vertical_m**2])
+        )
+
+    def observe(self, observer: ActorState, targets: list[ActorState], occluders: list[ActorState]):
+        """Detections of ``targets`` by ``observer``: (p_body (K,3), cov (K,3,3), cls (K,), truth ids)."""
+        c, rng = self.cfg, self.rng
+        T_body_map = geo.inverse(geo.pose_to_matrix(observer.pose))
+        sensor_map = geo.transform_points(geo.pose_to_matrix(observer.pose), self.sensor_body)
+        p_tgt = np.array([s.p_map for s in targets]).reshape(-1, 3)
+        p_body = geo.transform_points(T_body_map, p_tgt)
+        rel = p_body[:, :2] - self.sensor_body[:2]
+        r = np.linalg.norm(rel, axis=1)
+        bearing = np.arctan2(rel[:, 1], rel[:, 0])
+        vis = (r <= c.range_m) & (np.abs(bearing) <= np.radians(c.fov_deg) / 2)
+        if vis.any():
+            centres = p_tgt + np.array([[0.0, 0.0, 1.0]]) * np.array([s.size[2] / 2 for s in targets])[:, None]
+            exclude = np.array([[o.id in (t.id, observer.id) for o in occluders] for t in targets]).reshape(
+                len(targets), len(occluders)
+            )
+            blocked = occluded(sensor_map, centres[vis], occluders, exclude[vis])
+            vis[np.flatnonzero(vis)[blocked]] = False
+        p_det = c.p_detect_near + (c.p_detect_far - c.p_detect_near) * np.clip(r / c.range_m, 0, 1)
+        det = vis & (rng.random(len(targets)) < p_det)
+        truth = p_body[det]
+        cov = self.covariance(truth)
+        noisy = truth + np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=truth.shape))
+        cls = np.array([targets[i].cls for i in np.flatnonzero(det)], dtype=np.uint8)
+        ids: list[str | None] = [targets[i].id for i in np.flatnonzero(det)]
+        n_fa = rng.poisson(c.false_alarms_per_frame)
+        if n_fa:
+            rr = rng.uniform(3.0, c.range_m, n_fa)
+            bb = rng.uniform(-np.radians(c.fov_deg) / 2, np.radians(c.fov_deg) / 2, n_fa)
+            fa = np.column_stack([rr * np.cos(bb), rr * np.sin(bb), np.zeros(n_fa)]) + self.sensor_body * [1, 1, 0]
+            noisy = np.vstack([noisy, fa])
+            cov = np.concatenate([cov, self.covariance(fa)])
+            cls = np.concatenate([cls, rng.choice([1, 2], n_fa).astype(np.uint8)])
+            ids += [None] * n_fa
+        return noisy, cov, cls, ids

@@ -1,0 +1,123 @@
+"""Export the wire contract as JSON Schema files (``schemas/json/``), for readers without our code.
+
+One file per message model, ``<snake_case_name>.json`` (pydantic's serialization-mode JSON Schema;
+array fields carry ``x-dtype`` and ``x-shape`` from :mod:`schemas.arrays`), plus ``topics.json``
+describing the topic registry. Output is deterministic (sorted keys, indent 2, trailing newline)
+so that a test can check the committed files are current: :func:`stale` lists the files that
+:func:`export` would change. Regenerate with ``mapc schemas export`` or ``python -m schemas.export``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel
+
+from .models import (
+    SCHEMA_VERSION,
+    FusedState,
+    GroundTruth,
+    HealthStatus,
+    RawObservations,
+    SensorFrame,
+    VehiclePrior,
+)
+from .topics import TOPICS
+
+__all__ = ["DEFAULT_DIR", "MODELS", "export", "render", "schema_filename", "stale"]
+
+DEFAULT_DIR = Path(__file__).parent / "json"
+
+MODELS: tuple[type[BaseModel], ...] = (
+    SensorFrame,
+    RawObservations,
+    VehiclePrior,
+    FusedState,
+    GroundTruth,
+    HealthStatus,
+)
+
+_WIRE_NOTE = (
+    "Wire format: a msgpack map keyed by field name; absent optional fields mean null/default; "
+    "fields marked format=binary (and bytes fields) travel as msgpack bin, arrays little-endian row-major "
+    "with x-dtype and x-shape. Readers ignore unknown fields. See schemas/README.md."
+)
+
+
+def schema_filename(model: type[BaseModel]) -> str:
+    """``FusedState`` -> ``fused_state.json``."""
+    return re.sub(r"(?<!^)(?=[A-Z])", "_", model.__name__).lower() + ".json"
+
+
+def _dumps(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, indent=2) + "\n"
+
+
+def _model_schema(model: type[BaseModel]) -> dict[str, Any]:
+    schema = model.model_json_schema(mode="serialization")
+    schema["$comment"] = _WIRE_NOTE
+    schema["x-schema-version"] = SCHEMA_VERSION
+    return schema
+
+
+def _topics_doc() -> dict[str, Any]:
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "topics": [
+            {
+                "name": t.name,
+                "key": t.template,
+                "model": t.model.__name__ if t.model is not None else None,
+                "rate_hz": t.rate_hz,
+                "description": t.description,
+            }
+            for t in TOPICS
+        ],
+    }
+
+
+def render() -> dict[str, str]:
+    """File name -> exact text that :func:`export` writes."""
+    files = {schema_filename(m): _dumps(_model_schema(m)) for m in MODELS}
+    files["topics.json"] = _dumps(_topics_doc())
+    return files
+
+
+def export(out_dir: Path = DEFAULT_DIR) -> list[Path]:
+    """Write every schema file into ``out_dir`` (created if needed); returns the paths written."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, text in render().items():
+        path = out_dir / name
+        path.write_text(text, encoding="utf-8")
+        written.append(path)
+    return written
+
+
+def stale(out_dir: Path = DEFAULT_DIR) -> list[str]:
+    """Names of the files in ``out_dir`` that are missing or differ from what :func:`export` writes."""
+    out_dir = Path(out_dir)
+    bad = []
+    for name, text in render().items():
+        path = out_dir / name
+        if not path.is_file() or path.read_text(encoding="utf-8") != text:
+            bad.append(name)
+    return bad
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m schemas.export [OUT_DIR]``: write the files and list them."""
+    args = sys.argv[1:] if argv is None else argv
+    out_dir = Path(args[0]) if args else DEFAULT_DIR
+    for path in export(out_dir):
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

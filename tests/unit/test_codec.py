@@ -1,0 +1,487 @@
+"""The msgpack codec: round trips for every message, rejections with their reason, evolution rule."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+from pydantic import BaseModel, ValidationError
+
+from mapcontainer.geometry import camera_extrinsic
+from schemas import (
+    REASONS,
+    SCHEMA_VERSION,
+    CameraInfo,
+    FusedState,
+    GnssFix,
+    GroundTruth,
+    HealthStatus,
+    LandmarkClass,
+    LocalizationQuality,
+    ObjectClass,
+    ObjectObservations,
+    Odometry,
+    RawObservations,
+    Rejection,
+    SensorFrame,
+    VehiclePrior,
+    decode,
+    encode,
+)
+from schemas.arrays import cov_from_upper, cov_to_upper
+from schemas.codec import MAX_MESSAGE_BYTES
+from schemas.models import MAX_LANDMARKS, MAX_MASK_BYTES
+
+README = Path(__file__).resolve().parents[2] / "schemas" / "README.md"
+
+# ------------------------------------------------------------------------------- builders
+
+
+def spd_upper(rng: np.random.Generator, n: int, count: int, scale: float = 0.1) -> np.ndarray:
+    """``count`` random symmetric positive-definite n x n matrices as (count, n(n+1)/2) upper triangles."""
+    a = rng.normal(size=(count, n, n)) * scale
+    cov = a @ np.swapaxes(a, 1, 2) + np.eye(n) * scale
+    return cov_to_upper(cov)
+
+
+def envelope(sender: str = "veh-1", seq: int = 7) -> dict[str, Any]:
+    return dict(fleet="test_fleet", sender=sender, seq=seq, t_meas=12.3, t_sent=12.345)
+
+
+def camera() -> CameraInfo:
+    return CameraInfo(
+        fx=1000.0, fy=1001.5, cx=639.5, cy=359.5, width=1280, height=720,
+        T_body_cam=camera_extrinsic(1.2, 0.0, 1.5, pitch=0.05),
+    )
+
+
+def objects(rng: np.random.Generator, n: int = 4) -> ObjectObservations:
+    p = rng.uniform(-40.0, 40.0, size=(n, 3))
+    return ObjectObservations.from_metres(p, spd_upper(rng, 3, n), rng.integers(0, 4, n))
+
+
+def lane_png() -> bytes:
+    mask = np.zeros((36, 64), np.uint8)
+    mask[20:, 10:12] = 255
+    ok, buf = cv2.imencode(".png", mask)
+    assert ok
+    return buf.tobytes()
+
+
+def observations(model: type, full: bool) -> SensorFrame | RawObservations:
+    rng = np.random.default_rng(1)
+    if not full:
+        return model(**envelope(), camera=camera())
+    return model(
+        **envelope(),
+        camera=camera(),
+        points_uv=rng.uniform(0, 720, size=(3, 2)),
+        points_cls=[LandmarkClass.TRAFFIC_LIGHT, LandmarkClass.SIGN, LandmarkClass.SIGN],
+        poles_uv=rng.uniform(0, 720, size=(2, 4)),
+        lane_mask_png=lane_png(),
+        gnss=GnssFix(p_map=[10.5, -3.25, 0.4], sigma_h_m=2.0, sigma_v_m=3.5),
+        odometry=Odometry(speed=8.3, yaw_rate=-0.02),
+        objects=objects(rng),
+    )
+
+
+def vehicle_prior(full: bool) -> VehiclePrior:
+    rng = np.random.default_rng(2)
+    return VehiclePrior(
+        **envelope(),
+        pose=[10.0, -20.5, 0.1, 0.01, -0.02, 1.5],
+        pose_cov=spd_upper(rng, 6, 1)[0],
+        v_map=[5.0, 1.0, 0.0],
+        quality=LocalizationQuality(mode="map_matching", n_points=3, n_poles=2, n_lane=140, cost=0.8)
+        if full
+        else LocalizationQuality(mode="fallback"),
+        objects=objects(rng, 5) if full else ObjectObservations(),
+    )
+
+
+def fused_state(full: bool) -> FusedState:
+    rng = np.random.default_rng(3)
+    if not full:
+        return FusedState(**envelope("host-0"))
+    v, n = 3, 6
+    return FusedState(
+        **envelope("host-0"),
+        vehicle_ids=["veh-1", "veh-2", "veh-3"],
+        vehicle_pose=rng.normal(size=(v, 6)),
+        vehicle_pose_cov=spd_upper(rng, 6, v),
+        object_id=np.arange(100, 100 + n),
+        object_cls=rng.integers(0, 4, n),
+        object_p_map=rng.normal(size=(n, 3)) * 30,
+        object_v_map=rng.normal(size=(n, 3)),
+        object_cov=spd_upper(rng, 3, n),
+        messages_fused=40,
+    )
+
+
+def ground_truth(full: bool) -> GroundTruth:
+    rng = np.random.default_rng(4)
+    if not full:
+        return GroundTruth(**envelope("world"))
+    v, n = 4, 14
+    return GroundTruth(
+        **envelope("world"),
+        vehicle_ids=[f"veh-{i}" for i in range(v)],
+        vehicle_pose=rng.normal(size=(v, 6)),
+        vehicle_v_map=rng.normal(size=(v, 3)),
+        obstacle_id=np.arange(n),
+        obstacle_cls=[ObjectClass.PEDESTRIAN] * 8 + [ObjectClass.VEHICLE] * 6,
+        obstacle_p_map=rng.normal(size=(n, 3)) * 50,
+        obstacle_v_map=rng.normal(size=(n, 3)),
+        obstacle_yaw=rng.uniform(-np.pi, np.pi, n),
+    )
+
+
+def health(full: bool) -> HealthStatus:
+    if not full:
+        return HealthStatus(**envelope("host-0"), role="host", state="ok", uptime_s=3.0)
+    return HealthStatus(
+        **envelope("host-0"), role="host", state="degraded", uptime_s=120.5,
+        msgs_in_per_s=40.0, msgs_out_per_s=10.0, bytes_in_per_s=2.1e4, bytes_out_per_s=5e3,
+        latency_ms_p50=4.5, latency_ms_p99=31.0, rejects={"non_finite": 2, "malformed": 1},
+        last_error="veh-3: schema_version 2", figures={"fused_objects": 14.0, "window_s": 1.0},
+    )
+
+
+CASES = {
+    "sensor_frame_full": lambda: observations(SensorFrame, True),
+    "sensor_frame_min": lambda: observations(SensorFrame, False),
+    "raw_observations_full": lambda: observations(RawObservations, True),
+    "raw_observations_min": lambda: observations(RawObservations, False),
+    "vehicle_prior_full": lambda: vehicle_prior(True),
+    "vehicle_prior_min": lambda: vehicle_prior(False),
+    "fused_state_full": lambda: fused_state(True),
+    "fused_state_min": lambda: fused_state(False),
+    "ground_truth_full": lambda: ground_truth(True),
+    "ground_truth_min": lambda: ground_truth(False),
+    "health_full": lambda: health(True),
+    "health_min": lambda: health(False),
+}
+
+
+def assert_same(a: Any, b: Any, where: str = "msg") -> None:
+    """Field-by-field equality; arrays must agree in dtype, shape and every value."""
+    assert type(a) is type(b), f"{where}: {type(a).__name__} != {type(b).__name__}"
+    if isinstance(a, BaseModel):
+        for name in type(a).model_fields:
+            assert_same(getattr(a, name), getattr(b, name), f"{where}.{name}")
+    elif isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape, f"{where}: {a.dtype}{a.shape} != {b.dtype}{b.shape}"
+        assert np.array_equal(a, b), f"{where}: values differ"
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            assert_same(a[k], b[k], f"{where}[{k!r}]")
+    elif isinstance(a, list):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert_same(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def as_map(msg: BaseModel) -> dict[str, Any]:
+    return msgpack.unpackb(encode(msg), raw=False)
+
+
+def pack(obj: Any) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+# ------------------------------------------------------------------------------ round trips
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_round_trip(case: str) -> None:
+    msg = CASES[case]()
+    data = encode(msg)
+    back = decode(data, type(msg))
+    assert not isinstance(back, Rejection), back
+    assert_same(msg, back)
+    assert encode(back) == data
+
+
+@pytest.mark.parametrize("case", ["sensor_frame_full", "vehicle_prior_full", "fused_state_full"])
+def test_arrays_are_little_endian_row_major_bin(case: str) -> None:
+    msg = CASES[case]()
+    raw = as_map(msg)
+    for name, info in type(msg).model_fields.items():
+        value = getattr(msg, name)
+        if isinstance(value, np.ndarray):
+            assert isinstance(raw[name], bytes), name
+            want = np.ascontiguousarray(value, dtype=value.dtype.newbyteorder("<")).tobytes(order="C")
+            assert raw[name] == want, name
+    assert "gnss" not in raw or isinstance(raw["gnss"], dict)
+
+
+def test_none_fields_are_left_out() -> None:
+    raw = as_map(observations(SensorFrame, full=False))
+    assert "gnss" not in raw and "odometry" not in raw
+    raw = as_map(health(full=False))
+    assert "latency_ms_p50" not in raw and "last_error" not in raw
+
+
+def test_objects_are_centimetres_int16_and_float16_cov() -> None:
+    obs = ObjectObservations.from_metres([[1.234, -5.0, 0.5]], np.eye(3)[None] * 0.04, [ObjectClass.PEDESTRIAN])
+    assert obs.p_body_cm.dtype == np.int16 and obs.p_body_cm.tolist() == [[123, -500, 50]]
+    assert obs.cov.dtype == np.float16
+    np.testing.assert_allclose(cov_from_upper(obs.cov)[0], np.eye(3) * 0.04, rtol=1e-3)
+    np.testing.assert_allclose(obs.p_body, [[1.23, -5.0, 0.5]])
+
+
+def test_covariance_upper_triangle_order() -> None:
+    cov = np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 5.0], [3.0, 5.0, 6.0]])
+    assert cov_to_upper(cov).tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]  # xx xy xz yy yz zz
+    assert np.array_equal(cov_from_upper(cov_to_upper(cov)), cov)
+
+
+# ------------------------------------------------------------------------------ rejections
+
+
+def rejected(data: Any, model: type[BaseModel], reason: str) -> Rejection:
+    out = decode(data, model)
+    assert isinstance(out, Rejection), f"expected a rejection ({reason}), decoded {type(out).__name__}"
+    assert out.reason in REASONS
+    assert out.reason == reason, out
+    assert not out
+    return out
+
+
+def with_changes(msg: BaseModel, *path_and_value: tuple[tuple[str, ...], Any]) -> bytes:
+    """Encoded ``msg`` with the msgpack map changed at the given key paths (value ``...`` deletes)."""
+    raw = as_map(msg)
+    for path, value in path_and_value:
+        node = raw
+        for key in path[:-1]:
+            node = node[key]
+        if value is ...:
+            del node[path[-1]]
+        else:
+            node[path[-1]] = value
+    return pack(raw)
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_truncated_bytes_are_malformed(case: str) -> None:
+    msg = CASES[case]()
+    data = encode(msg)
+    for cut in (0, 1, len(data) // 3, len(data) // 2, len(data) - 1):
+        rejected(data[:cut], type(msg), "malformed")
+
+
+@pytest.mark.parametrize("model", [SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus])
+def test_random_bytes_are_malformed(model: type[BaseModel]) -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        rejected(rng.bytes(int(rng.integers(1, 200))), model, "malformed")
+
+
+@pytest.mark.parametrize("top", [[1, 2, 3], 5, "fused", b"\x00", None, 1.5])
+def test_non_map_top_level_is_malformed(top: Any) -> None:
+    rejected(pack(top), FusedState, "malformed")
+
+
+def test_not_bytes_is_malformed() -> None:
+    rejected("not bytes", FusedState, "malformed")  # type: ignore[arg-type]
+
+
+def test_map_with_non_string_keys_is_malformed() -> None:
+    rejected(pack({1: 2, "schema_version": 1}), FusedState, "malformed")
+
+
+@pytest.mark.parametrize("version", [0, 2, SCHEMA_VERSION + 1, -1, "1", 1.0, True, None, [1], ...])
+def test_wrong_or_missing_schema_version(version: Any) -> None:
+    rejected(with_changes(fused_state(True), (("schema_version",), version)), FusedState, "schema_version")
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_float_field(bad: float) -> None:
+    rejected(with_changes(vehicle_prior(True), (("t_meas",), bad)), VehiclePrior, "non_finite")
+    rejected(with_changes(observations(SensorFrame, True), (("gnss", "sigma_h_m"), bad)), SensorFrame, "non_finite")
+    rejected(with_changes(health(True), (("figures", "fused_objects"), bad)), HealthStatus, "non_finite")
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_array(bad: float) -> None:
+    pose = np.array([1, 2, 3, 0, 0, bad], "<f4").tobytes()
+    rejected(with_changes(vehicle_prior(True), (("pose",), pose)), VehiclePrior, "non_finite")
+    msg = fused_state(True)
+    p = msg.object_p_map.copy()
+    p[2, 1] = bad
+    rejected(with_changes(msg, (("object_p_map",), p.astype("<f4").tobytes())), FusedState, "non_finite")
+    cov = observations(SensorFrame, True).objects.cov.copy()
+    cov[0, 0] = bad
+    rejected(
+        with_changes(observations(SensorFrame, True), (("objects", "cov"), cov.astype("<f2").tobytes())),
+        SensorFrame,
+        "non_finite",
+    )
+
+
+def test_non_positive_definite_covariances() -> None:
+    bad6 = cov_to_upper(np.diag([1.0, 1.0, 1.0, 1.0, 1.0, -0.1])).astype("<f4").tobytes()
+    rejected(with_changes(vehicle_prior(True), (("pose_cov",), bad6)), VehiclePrior, "not_positive_definite")
+    singular = cov_to_upper(np.ones((6, 6))).astype("<f4").tobytes()
+    rejected(with_changes(vehicle_prior(True), (("pose_cov",), singular)), VehiclePrior, "not_positive_definite")
+
+    msg = vehicle_prior(True)
+    cov = msg.objects.cov.copy()
+    cov[1] = cov_to_upper(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))  # eigenvalue -1
+    rejected(with_changes(msg, (("objects", "cov"), cov.astype("<f2").tobytes())), VehiclePrior, "not_positive_definite")
+
+    msg = fused_state(True)
+    cov = msg.object_cov.copy()
+    cov[0] = -cov[0]
+    rejected(with_changes(msg, (("object_cov",), cov.tobytes())), FusedState, "not_positive_definite")
+
+
+def test_mismatched_array_lengths() -> None:
+    msg = vehicle_prior(True)
+    rejected(with_changes(msg, (("objects", "cls"), msg.objects.cls[:-1].tobytes())), VehiclePrior, "invalid")
+    msg = fused_state(True)
+    rejected(with_changes(msg, (("object_v_map",), msg.object_v_map[:-1].tobytes())), FusedState, "invalid")
+    rejected(with_changes(msg, (("vehicle_ids",), ["veh-1"])), FusedState, "invalid")
+    msg = observations(SensorFrame, True)
+    rejected(with_changes(msg, (("points_cls",), b"\x01")), SensorFrame, "invalid")
+    msg = ground_truth(True)
+    rejected(with_changes(msg, (("obstacle_yaw",), msg.obstacle_yaw[:3].tobytes())), GroundTruth, "invalid")
+
+
+def test_wrong_bin_length() -> None:
+    msg = vehicle_prior(True)
+    rejected(with_changes(msg, (("pose",), np.zeros(5, "<f4").tobytes())), VehiclePrior, "invalid")  # 5 of 6
+    rejected(with_changes(msg, (("pose",), b"\x00" * 7)), VehiclePrior, "invalid")  # not whole float32s
+    rejected(with_changes(msg, (("objects", "p_body_cm"), b"\x00" * 10)), VehiclePrior, "invalid")  # 5 int16s
+    rejected(with_changes(fused_state(True), (("vehicle_pose_cov",), b"")), FusedState, "invalid")
+
+
+def test_out_of_range_int16_positions() -> None:
+    msg = vehicle_prior(True)
+    n = len(msg.objects)
+    too_far = [[40000, 0, 0]] + [[0, 0, 0]] * (n - 1)  # 400 m does not fit int16 centimetres
+    rejected(with_changes(msg, (("objects", "p_body_cm"), too_far)), VehiclePrior, "invalid")
+    with pytest.raises(ValidationError):
+        ObjectObservations.from_metres([[400.0, 0.0, 0.0]], np.eye(3)[None], [1])
+
+
+def test_missing_required_and_wrong_types() -> None:
+    rejected(with_changes(vehicle_prior(True), (("pose",), ...)), VehiclePrior, "invalid")
+    rejected(with_changes(vehicle_prior(True), (("quality",), "good")), VehiclePrior, "invalid")
+    rejected(with_changes(vehicle_prior(True), (("sender",), "veh/1")), VehiclePrior, "invalid")
+    rejected(with_changes(vehicle_prior(True), (("seq",), -1)), VehiclePrior, "invalid")
+    rejected(with_changes(health(True), (("state",), "sleepy")), HealthStatus, "invalid")
+    rejected(with_changes(observations(SensorFrame, True), (("lane_mask_png",), b"GIF89a")), SensorFrame, "invalid")
+
+
+def test_oversize_payloads() -> None:
+    rejected(b"\x80" + b"\x00" * MAX_MESSAGE_BYTES, FusedState, "too_large")
+    msg = observations(SensorFrame, True)
+    big_png = b"\x89PNG\r\n\x1a\n" + b"\x00" * MAX_MASK_BYTES
+    rejected(with_changes(msg, (("lane_mask_png",), big_png)), SensorFrame, "invalid")
+    many = MAX_LANDMARKS + 1
+    rejected(
+        with_changes(
+            msg,
+            (("points_uv",), np.zeros((many, 2), "<f4").tobytes()),
+            (("points_cls",), np.ones(many, "u1").tobytes()),
+        ),
+        SensorFrame,
+        "invalid",
+    )
+
+
+# ------------------------------------------------------------------------------- evolution
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_reader_ignores_unknown_fields(case: str) -> None:
+    """Evolution rule: a newer writer adds optional fields; this reader decodes and ignores them."""
+    msg = CASES[case]()
+    raw = as_map(msg)
+    raw["future_field"] = {"nested": [1, 2, 3], "blob": b"\x00\x01"}
+    raw["future_array"] = np.arange(4, dtype="<f4").tobytes()
+    if "objects" in raw:
+        raw["objects"]["future_extent_cm"] = b"\x00" * 6
+    back = decode(pack(raw), type(msg))
+    assert not isinstance(back, Rejection), back
+    assert_same(msg, back)
+    assert encode(back) == encode(msg)
+
+
+def test_reader_fills_defaults_of_optional_fields_an_older_writer_omits() -> None:
+    msg = vehicle_prior(True)
+    old = with_changes(msg, (("quality", "n_lane"), ...), (("quality", "cost"), ...), (("objects",), ...))
+    back = decode(old, VehiclePrior)
+    assert isinstance(back, VehiclePrior), back
+    assert back.quality.n_lane == 0 and back.quality.cost == 0.0 and len(back.objects) == 0
+    assert_same(back.pose, msg.pose)
+
+
+# ------------------------------------------------------------------- README decoding recipe
+
+# Copied verbatim from schemas/README.md ("Decoding without our code"); the test below checks
+# that the README still contains exactly this code and that it decodes our encoder's bytes.
+RECIPE = '''
+import msgpack
+import numpy as np
+
+
+def decode_fused_state(data: bytes) -> dict:
+    msg = msgpack.unpackb(data, raw=False)
+    if msg.get("schema_version") != 1:
+        raise ValueError(f"unsupported schema_version {msg.get('schema_version')!r}")
+
+    def arr(name, dtype, cols=None):  # msgpack bin -> little-endian, row-major array
+        a = np.frombuffer(msg.get(name, b""), dtype=np.dtype(dtype).newbyteorder("<"))
+        return a if cols is None else a.reshape(-1, cols)
+
+    def full_cov(upper, n):  # row-major upper triangle -> symmetric (N, n, n)
+        iu = np.triu_indices(n)
+        cov = np.zeros((len(upper), n, n))
+        cov[:, iu[0], iu[1]] = upper
+        cov[:, iu[1], iu[0]] = upper
+        return cov
+
+    return {
+        "t_meas": msg["t_meas"],
+        "vehicle_ids": msg.get("vehicle_ids", []),
+        "vehicle_pose": arr("vehicle_pose", "f4", 6),  # x, y, z (m), roll, pitch, yaw (rad)
+        "vehicle_pose_cov": full_cov(arr("vehicle_pose_cov", "f4", 21), 6),
+        "object_id": arr("object_id", "u4"),
+        "object_cls": arr("object_cls", "u1"),  # ObjectClass codes
+        "object_p_map": arr("object_p_map", "f4", 3),  # m, map frame (ENU)
+        "object_v_map": arr("object_v_map", "f4", 3),  # m/s, map frame
+        "object_cov": full_cov(arr("object_cov", "f4", 6), 3),  # m^2
+    }
+'''
+
+
+def test_readme_recipe_is_in_the_readme() -> None:
+    text = README.read_text(encoding="utf-8")
+    assert RECIPE.strip() in text, "schemas/README.md and the RECIPE copy in this test differ"
+
+
+@pytest.mark.parametrize("full", [True, False])
+def test_readme_recipe_decodes_our_fused_state(full: bool) -> None:
+    namespace: dict[str, Any] = {}
+    exec(RECIPE, namespace)  # noqa: S102 - the README's own code, run as a reader would
+    msg = fused_state(full)
+    out = namespace["decode_fused_state"](encode(msg))
+    assert out["t_meas"] == msg.t_meas
+    assert out["vehicle_ids"] == msg.vehicle_ids
+    for name in ("vehicle_pose", "object_id", "object_cls", "object_p_map", "object_v_map"):
+        assert np.array_equal(out[name], getattr(msg, name)), name
+        assert out[name].shape == getattr(msg, name).shape, name
+    assert np.array_equal(out["vehicle_pose_cov"], cov_from_upper(msg.vehicle_pose_cov))
+    assert np.array_equal(out["object_cov"], cov_from_upper(msg.object_cov))
+    if full:
+        assert np.all(np.linalg.eigvalsh(out["object_cov"]) > 0)
