@@ -1,0 +1,100 @@
+"""Pictures of a simulated episode: a bird's-eye view and a camera view per vehicle."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from schemas import LandmarkClass, ObjectClass  # noqa: E402
+
+from ..hdmap.model import HDMap  # noqa: E402
+from .actors import ActorState  # noqa: E402
+from .sensors import CameraObservation  # noqa: E402
+
+__all__ = ["draw_map", "render_birdseye", "render_camera_view"]
+
+_CLS_COLOR = {ObjectClass.PEDESTRIAN: "tab:orange", ObjectClass.VEHICLE: "tab:blue"}
+
+
+def draw_map(ax, hdmap: HDMap) -> None:
+    """Lane lines, walkable areas and landmarks on a matplotlib axis (map frame, metres)."""
+    for w in hdmap.walkable:
+        ax.fill(w.polygon[:, 0], w.polygon[:, 1], color="0.85" if w.kind == "sidewalk" else "khaki", lw=0)
+    for line in hdmap.lane_lines:
+        p = line.painted_samples(0.5)
+        ax.plot(p[:, 0], p[:, 1], ".", ms=0.6, color="0.2" if line.kind == "solid" else "0.5")
+    if hdmap.poles:
+        b = np.array([f.base for f in hdmap.poles])
+        ax.plot(b[:, 0], b[:, 1], "o", ms=4, color="tab:green", label="lamp")
+    for cls, marker, color in (("traffic_light", "^", "tab:red"), ("sign", "s", "tab:purple")):
+        p = np.array([f.p_map for f in hdmap.points if f.cls == cls]).reshape(-1, 3)
+        if len(p):
+            ax.plot(p[:, 0], p[:, 1], marker, ms=5, color=color, label=cls.replace("_", " "))
+
+
+def render_birdseye(
+    path: Path,
+    hdmap: HDMap,
+    tracks: dict[str, np.ndarray],
+    final: dict[str, ActorState],
+    connected: list[str],
+    fov_deg: float,
+    range_m: float,
+    title: str,
+) -> None:
+    """Map, every actor's trajectory (tracks: id -> (T, 2)), final boxes and the vehicles' fields of view."""
+    fig, ax = plt.subplots(figsize=(12, 7))
+    draw_map(ax, hdmap)
+    for aid, xy in tracks.items():
+        st = final[aid]
+        is_cv = aid in connected
+        color = "tab:red" if is_cv else _CLS_COLOR.get(st.cls, "k")
+        ax.plot(xy[:, 0], xy[:, 1], "-", lw=2.0 if is_cv else 0.8, color=color, alpha=0.8)
+        c, s = np.cos(st.yaw), np.sin(st.yaw)
+        l, w = st.size[0], st.size[1]
+        box = np.array([[l, w], [l, -w], [-l, -w], [-l, w], [l, w]]) / 2
+        ax.plot(st.p_map[0] + c * box[:, 0] - s * box[:, 1], st.p_map[1] + s * box[:, 0] + c * box[:, 1],
+                "-", color=color, lw=1.5)
+        if is_cv:
+            ang = st.yaw + np.radians(np.linspace(-fov_deg / 2, fov_deg / 2, 30))
+            wedge = np.vstack([st.p_map[:2], st.p_map[:2] + range_m * np.column_stack([np.cos(ang), np.sin(ang)]),
+                               st.p_map[:2]])
+            ax.fill(wedge[:, 0], wedge[:, 1], color="tab:red", alpha=0.08)
+            ax.annotate(aid, st.p_map[:2] + [2, 2], color="tab:red", fontsize=9)
+    ax.plot([], [], "-", color="tab:red", label="connected vehicle")
+    ax.plot([], [], "-", color="tab:blue", label="obstacle vehicle")
+    ax.plot([], [], "-", color="tab:orange", label="pedestrian")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def render_camera_view(path: Path, obs: CameraObservation, title: str) -> None:
+    """The camera image: lane mask, detected points (by class) and pole segments (clutter in grey)."""
+    h, w = obs.lane_mask.shape
+    img = np.full((h, w, 3), 40, np.uint8)
+    img[: h // 2] = (90, 60, 50)  # sky above the horizon (camera looks level by default)
+    img[obs.lane_mask > 0] = (255, 255, 255)
+    for seg, fid in zip(obs.poles_uv, obs.pole_ids, strict=True):
+        color = (0, 200, 0) if fid >= 0 else (150, 150, 150)
+        p, q = np.rint(seg[:2]).astype(int), np.rint(seg[2:]).astype(int)
+        cv2.line(img, tuple(int(v) for v in p), tuple(int(v) for v in q), color, 4)
+    colors = {LandmarkClass.TRAFFIC_LIGHT: (0, 0, 255), LandmarkClass.SIGN: (200, 0, 200)}
+    for uv, cls, fid in zip(obs.points_uv, obs.points_cls, obs.point_ids, strict=True):
+        color = colors.get(int(cls), (255, 255, 0)) if fid >= 0 else (150, 150, 150)
+        cv2.circle(img, (int(round(uv[0])), int(round(uv[1]))), 9, color, 3)
+    cv2.putText(img, title, (20, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (255, 255, 255), 2)
+    legend = "green: lamp pole  red: traffic light  magenta: sign  grey: clutter  white: lane mask"
+    cv2.putText(img, legend, (20, h - 20), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (230, 230, 230), 1)
+    cv2.imwrite(str(path), img)
