@@ -1,0 +1,47 @@
+"""Evaluation figures: RMSE (the paper's rms1 / rms2), NEES / ANEES with chi-square bands, percentiles."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+__all__ = ["anees_band", "nees", "percentile", "rmse"]
+
+
+def rmse(errors) -> float:
+    """sqrt(mean ||e||^2) over rows of ``errors`` (N, d) — the paper's eqs. rms1 and rms2.
+
+    For rms1 stack every vehicle i and run j at time t; for rms2 every target k and run j.
+    Returns NaN for no errors.
+    """
+    e = np.asarray(errors, dtype=float)
+    if e.size == 0:
+        return float("nan")
+    e = e.reshape(len(e), -1)
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+
+
+def nees(errors, covs) -> np.ndarray:
+    """Normalised estimation error squared e^T P^-1 e per row: errors (N, d), covs (N, d, d)."""
+    e = np.asarray(errors, dtype=float)
+    P = np.asarray(covs, dtype=float)
+    if e.ndim == 1:
+        e, P = e[None], P[None]
+    return np.einsum("ni,ni->n", e, np.linalg.solve(P, e[..., None])[..., 0])
+
+
+def anees_band(dof: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided band for the average of n independent NEES values of dimension dof.
+
+    n * ANEES ~ chi2(n * dof), so the band is chi2.ppf([a/2, 1 - a/2], n dof) / n.
+    """
+    if n <= 0:
+        raise ValueError(f"n must be positive, got {n}")
+    a = 1.0 - confidence
+    lo, hi = stats.chi2.ppf([a / 2, 1 - a / 2], n * dof) / n
+    return float(lo), float(hi)
+
+
+def percentile(values, q: float) -> float:
+    v = np.asarray(values, dtype=float)
+    return float(np.percentile(v, q)) if v.size else float("nan")
