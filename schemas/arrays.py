@@ -67,7 +67,8 @@ class ArraySpec:
                         "array_range", "values outside the {dtype} range", {"dtype": self.dtype.name}
                     )
             try:
-                arr = np.asarray(value, dtype=self.dtype)
+                with np.errstate(over="ignore", invalid="ignore"):  # overflow -> inf, rejected below
+                    arr = np.asarray(value, dtype=self.dtype)
             except (TypeError, ValueError) as exc:
                 raise PydanticCustomError("array_type", "not a numeric array: {err}", {"err": str(exc)}) from None
             if arr.size == 0 and None in self.shape:

@@ -57,8 +57,27 @@ def _dumps(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, indent=2) + "\n"
 
 
+def _wire_annotations(node: Any) -> None:
+    """Append the packing to array fields whose own description replaced the one from arrays.py.
+
+    ``bytes`` fields travel as msgpack bin, not base64 text: their format becomes ``binary``.
+    """
+    if isinstance(node, dict):
+        if node.get("type") == "string" and node.get("format") == "base64url":
+            node["format"] = "binary"
+        if "x-dtype" in node and "msgpack bin" not in node.get("description", ""):
+            packing = f"msgpack bin: {node['x-dtype']} little-endian, row-major, shape {node['x-shape']}"
+            node["description"] = f"{node['description']} ({packing})" if node.get("description") else packing
+        for value in node.values():
+            _wire_annotations(value)
+    elif isinstance(node, list):
+        for value in node:
+            _wire_annotations(value)
+
+
 def _model_schema(model: type[BaseModel]) -> dict[str, Any]:
     schema = model.model_json_schema(mode="serialization")
+    _wire_annotations(schema)
     schema["$comment"] = _WIRE_NOTE
     schema["x-schema-version"] = SCHEMA_VERSION
     return schema

@@ -194,7 +194,10 @@ class Observations(Envelope):
         description="pole segment detections u1, v1, u2, v2 (px)",
     )
     lane_mask_png: bytes = Field(
-        b"", max_length=MAX_MASK_BYTES, description="8-bit PNG lane segmentation, 255 = marking; b'' if none"
+        b"",
+        max_length=MAX_MASK_BYTES,
+        description="greyscale PNG (1-bit or 8-bit) lane segmentation at the camera's resolution, "
+        "non-zero = marking; b'' if none",
     )
     gnss: GnssFix | None = None
     odometry: Odometry | None = None

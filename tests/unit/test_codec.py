@@ -214,7 +214,7 @@ def test_round_trip(case: str) -> None:
 def test_arrays_are_little_endian_row_major_bin(case: str) -> None:
     msg = CASES[case]()
     raw = as_map(msg)
-    for name, info in type(msg).model_fields.items():
+    for name in type(msg).model_fields:
         value = getattr(msg, name)
         if isinstance(value, np.ndarray):
             assert isinstance(raw[name], bytes), name
@@ -231,7 +231,8 @@ def test_none_fields_are_left_out() -> None:
 
 
 def test_objects_are_centimetres_int16_and_float16_cov() -> None:
-    obs = ObjectObservations.from_metres([[1.234, -5.0, 0.5]], np.eye(3)[None] * 0.04, [ObjectClass.PEDESTRIAN])
+    cov = np.eye(3)[None] * 0.04
+    obs = ObjectObservations.from_metres([[1.234, -5.0, 0.5]], cov, [ObjectClass.PEDESTRIAN])
     assert obs.p_body_cm.dtype == np.int16 and obs.p_body_cm.tolist() == [[123, -500, 50]]
     assert obs.cov.dtype == np.float16
     np.testing.assert_allclose(cov_from_upper(obs.cov)[0], np.eye(3) * 0.04, rtol=1e-3)
@@ -278,7 +279,10 @@ def test_truncated_bytes_are_malformed(case: str) -> None:
         rejected(data[:cut], type(msg), "malformed")
 
 
-@pytest.mark.parametrize("model", [SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus])
+MODELS = [SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus]
+
+
+@pytest.mark.parametrize("model", MODELS)
 def test_random_bytes_are_malformed(model: type[BaseModel]) -> None:
     rng = np.random.default_rng(5)
     for _ in range(50):
@@ -306,7 +310,8 @@ def test_wrong_or_missing_schema_version(version: Any) -> None:
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_float_field(bad: float) -> None:
     rejected(with_changes(vehicle_prior(True), (("t_meas",), bad)), VehiclePrior, "non_finite")
-    rejected(with_changes(observations(SensorFrame, True), (("gnss", "sigma_h_m"), bad)), SensorFrame, "non_finite")
+    frame = observations(SensorFrame, True)
+    rejected(with_changes(frame, (("gnss", "sigma_h_m"), bad)), SensorFrame, "non_finite")
     rejected(with_changes(health(True), (("figures", "fused_objects"), bad)), HealthStatus, "non_finite")
 
 
@@ -329,19 +334,20 @@ def test_non_finite_array(bad: float) -> None:
 
 def test_non_positive_definite_covariances() -> None:
     bad6 = cov_to_upper(np.diag([1.0, 1.0, 1.0, 1.0, 1.0, -0.1])).astype("<f4").tobytes()
-    rejected(with_changes(vehicle_prior(True), (("pose_cov",), bad6)), VehiclePrior, "not_positive_definite")
+    npd = "not_positive_definite"
+    rejected(with_changes(vehicle_prior(True), (("pose_cov",), bad6)), VehiclePrior, npd)
     singular = cov_to_upper(np.ones((6, 6))).astype("<f4").tobytes()
-    rejected(with_changes(vehicle_prior(True), (("pose_cov",), singular)), VehiclePrior, "not_positive_definite")
+    rejected(with_changes(vehicle_prior(True), (("pose_cov",), singular)), VehiclePrior, npd)
 
     msg = vehicle_prior(True)
     cov = msg.objects.cov.copy()
     cov[1] = cov_to_upper(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))  # eigenvalue -1
-    rejected(with_changes(msg, (("objects", "cov"), cov.astype("<f2").tobytes())), VehiclePrior, "not_positive_definite")
+    rejected(with_changes(msg, (("objects", "cov"), cov.astype("<f2").tobytes())), VehiclePrior, npd)
 
     msg = fused_state(True)
     cov = msg.object_cov.copy()
     cov[0] = -cov[0]
-    rejected(with_changes(msg, (("object_cov",), cov.tobytes())), FusedState, "not_positive_definite")
+    rejected(with_changes(msg, (("object_cov",), cov.tobytes())), FusedState, npd)
 
 
 def test_mismatched_array_lengths() -> None:
@@ -379,7 +385,8 @@ def test_missing_required_and_wrong_types() -> None:
     rejected(with_changes(vehicle_prior(True), (("sender",), "veh/1")), VehiclePrior, "invalid")
     rejected(with_changes(vehicle_prior(True), (("seq",), -1)), VehiclePrior, "invalid")
     rejected(with_changes(health(True), (("state",), "sleepy")), HealthStatus, "invalid")
-    rejected(with_changes(observations(SensorFrame, True), (("lane_mask_png",), b"GIF89a")), SensorFrame, "invalid")
+    frame = observations(SensorFrame, True)
+    rejected(with_changes(frame, (("lane_mask_png",), b"GIF89a")), SensorFrame, "invalid")
 
 
 def test_oversize_payloads() -> None:
