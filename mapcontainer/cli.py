@@ -54,6 +54,13 @@ def _cmd_schemas_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_localization(args: argparse.Namespace) -> int:
+    from .bench import bench_localization
+
+    print(json.dumps(bench_localization(args.scenario, args.seeds, args.duration)))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapc", description="Map Container: map-based cooperative perception over V2X")
     sub = p.add_subparsers(dest="command", required=True)
@@ -70,6 +77,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", required=True, help="output directory")
     sim.add_argument("--fleet", default="sim", help="fleet name written into the messages")
     sim.set_defaults(func=_cmd_sim)
+
+    bench = sub.add_parser("bench", help="benchmarks that print one JSON line").add_subparsers(dest="sub", required=True)
+    bl = bench.add_parser("localization", help="map-matching accuracy, consistency and speed")
+    bl.add_argument("--scenario", default="paper-urban")
+    bl.add_argument("--seeds", type=int, default=3, help="independent episodes")
+    bl.add_argument("--duration", type=float, default=20.0, help="seconds per episode")
+    bl.set_defaults(func=_cmd_bench_localization)
 
     sch = sub.add_parser("schemas", help="the wire contract").add_subparsers(dest="sub", required=True)
     ex = sch.add_parser("export", help="write JSON Schema files (default: schemas/json/)")

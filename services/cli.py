@@ -1,20 +1,210 @@
 """The ``mapc`` entry point: the core commands of :mod:`mapcontainer.cli` plus the live-fleet ones.
 
 The core package never imports zenoh or ``services``; the commands that need a live Zenoh fleet
-(``fleet``, ``health``, live experiments) are registered here.
+(``fleet``, ``health``, live experiments) are registered here:
+
+``mapc fleet up [--scenario S] [--vehicles N] [--network P] [--duration S] [--fleet NAME]
+[--mode distributed|centralized] [--detach] [--dry-run]``, ``mapc fleet status [--json]``,
+``mapc fleet down [--fleet NAME]``, ``mapc health [--fleet NAME] [--json] [--watch]``.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import os
 import sys
+import time
 
 from mapcontainer.cli import build_parser, run
 
-__all__ = ["main"]
+__all__ = ["add_live_commands", "main"]
+
+
+def _runs_dir(args: argparse.Namespace) -> str:
+    return args.runs_dir or os.environ.get("MAPC_RUNS_DIR", "runs")
+
+
+# ------------------------------------------------------------------------------ fleet
+
+
+def _cmd_fleet_up(args: argparse.Namespace) -> int:
+    from .launcher.app import plan, settings_from_args
+    from .launcher.app import run as run_fleet
+    from .launcher.control import detach
+
+    s = settings_from_args(args)
+    specs = plan(s, "runs/<fleet>-<timestamp>", s.join or "tcp/127.0.0.1:<free port chosen at start>")
+    if args.dry_run:
+        doc = {
+            "params": s.params.model_dump(),
+            "rendezvous": s.listen,
+            "processes": [p.to_json() for p in specs],
+        }
+        if args.json:
+            print(json.dumps(doc, indent=2))
+        else:
+            print(f"fleet {s.params.fleet}: {json.dumps(s.params.model_dump())}")
+            for p in specs:
+                print(f"  [{p.start_order}] {p.name:<14} {' '.join(p.argv[1:])}")
+        return 0
+    if args.detach:
+        rc, info = detach(s)
+        if args.json:
+            print(json.dumps(info))
+        elif rc == 0:
+            print(
+                f"fleet {s.params.fleet} is up: rendezvous {', '.join(info.get('endpoints', []))}; "
+                f"run dir {info['run_dir']}; launcher pid {info['launcher_pid']}"
+            )
+        else:
+            print(
+                f"mapc: fleet {s.params.fleet} did not come up; see {info['run_dir']}/launcher.out and logs/",
+                file=sys.stderr,
+            )
+        return rc
+    return run_fleet(s)
+
+
+def _cmd_fleet_status(args: argparse.Namespace) -> int:
+    from .launcher.control import active_fleets
+
+    fleets = [f for f in active_fleets(_runs_dir(args)) if args.fleet is None or f["fleet"] == args.fleet]
+    if args.json:
+        print(json.dumps(fleets, indent=2))
+        return 0 if any(f["launcher_alive"] for f in fleets) else 1
+    if not fleets:
+        print("no fleet is running")
+        return 1
+    for f in fleets:
+        alive = "running" if f["launcher_alive"] else "STALE (launcher gone: `mapc fleet down` cleans up)"
+        print(f"fleet {f['fleet']}: {f['status']} / {alive}; launcher pid {f['launcher_pid']}")
+        print(f"  connect: {', '.join(f['endpoints'])}   (e.g. mapc health --fleet {f['fleet']})")
+        print(f"  run dir: {f['run_dir']}")
+        for p in f["processes"]:
+            up = "-" if p.get("uptime_s") is None else f"{p['uptime_s']:.0f}s"
+            print(
+                f"  {p['name']:<14} {p['state']:<9} pid {p.get('pid') or '-':<8} alive {str(p['alive']):<5} "
+                f"restarts {p['restarts']:<3} up {up}"
+            )
+    return 0 if any(f["launcher_alive"] for f in fleets) else 1
+
+
+def _cmd_fleet_down(args: argparse.Namespace) -> int:
+    from .launcher.control import down
+
+    rc, results = down(_runs_dir(args), args.fleet, timeout_s=args.timeout)
+    if args.json:
+        print(json.dumps(results))
+    elif not results:
+        print("no fleet is running" if args.fleet is None else f"fleet {args.fleet} is not running")
+    for r in results if not args.json else []:
+        left = f"; STILL RUNNING: {', '.join(r['left'])}" if r["left"] else "; no process left"
+        swept = f"; killed leftovers: {', '.join(r['swept'])}" if r["swept"] else ""
+        print(f"fleet {r['fleet']} down ({r['run_dir']}){swept}{left}")
+    return rc
+
+
+# ------------------------------------------------------------------------------ health
+
+
+def _cmd_health(args: argparse.Namespace) -> int:
+    from .health import exit_code, fleet_health, format_table
+    from .launcher.control import active_fleets
+    from .runtime import ZenohSettings, open_session
+
+    fleet, connect, expected = args.fleet, list(args.connect or []), []
+    if not connect and os.environ.get("MAPC_ZENOH_CONNECT"):
+        connect = os.environ["MAPC_ZENOH_CONNECT"].split(",")
+    running = [f for f in active_fleets(_runs_dir(args)) if f["launcher_alive"]]
+    match = [f for f in running if fleet is None or f["fleet"] == fleet]
+    if fleet is None and len(match) == 1:
+        fleet = match[0]["fleet"]
+    fleet = fleet or "local"
+    own = next((f for f in match if f["fleet"] == fleet), None)
+    if own is not None:
+        expected = [(p["role"], p["id"]) for p in own["processes"]]
+        if not connect:
+            connect = [e for e in own["endpoints"] if "127.0.0.1" in e] or own["endpoints"]
+    if not connect:
+        print(
+            f"mapc: no running fleet {fleet!r} found under {_runs_dir(args)}; give --connect ENDPOINT",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        session = open_session(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000))
+    except Exception as e:  # zenoh raises ZError when nothing listens at the endpoint
+        print(f"mapc: cannot reach {', '.join(connect)}: {e}", file=sys.stderr)
+        return 2
+    try:
+        while True:
+            views = fleet_health(session, fleet, expected, timeout_s=args.timeout)
+            rc = exit_code(views)
+            if args.json:
+                print(json.dumps([v.to_json() for v in views]), flush=True)
+            else:
+                if args.watch and sys.stdout.isatty():
+                    print("\x1b[2J\x1b[H", end="")
+                print(format_table(views, fleet) if views else f"fleet {fleet}: nothing answers", flush=True)
+            if not args.watch:
+                return rc
+            time.sleep(1.0)  # --watch: refresh once a second until Ctrl-C
+    except KeyboardInterrupt:
+        return rc if "rc" in locals() else 130
+    finally:
+        session.close()
+
+
+# ------------------------------------------------------------------------------ parser
+
+
+def add_live_commands(parser: argparse.ArgumentParser) -> None:
+    """Register ``fleet`` and ``health`` on the core parser's subcommands."""
+    from .launcher.app import add_fleet_args
+
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+
+    fleet = sub.add_parser("fleet", help="run the multi-process fleet on Zenoh").add_subparsers(
+        dest="sub", required=True
+    )
+    up = fleet.add_parser("up", help="start every service as its own process (deploy/fleet.yaml)")
+    add_fleet_args(up)
+    up.add_argument(
+        "--detach", action="store_true", help="run in the background; stop with `mapc fleet down`"
+    )
+    up.add_argument("--dry-run", action="store_true", help="print the processes and their command lines only")
+    up.add_argument("--json", action="store_true", help="JSON output (with --dry-run or --detach)")
+    up.set_defaults(func=_cmd_fleet_up)
+
+    st = fleet.add_parser("status", help="running fleets: processes and the Zenoh endpoints to connect to")
+    st.add_argument("--json", action="store_true")
+    st.add_argument("--fleet", default=None)
+    st.add_argument("--runs-dir", default=None)
+    st.set_defaults(func=_cmd_fleet_status)
+
+    dn = fleet.add_parser("down", help="stop a fleet (default: every running one) leaving no process behind")
+    dn.add_argument("--fleet", default=None)
+    dn.add_argument("--runs-dir", default=None)
+    dn.add_argument("--timeout", type=float, default=90.0, help="seconds to wait for the launcher")
+    dn.add_argument("--json", action="store_true")
+    dn.set_defaults(func=_cmd_fleet_down)
+
+    h = sub.add_parser(
+        "health", help="every service's health (exit 0 all ok, 1 degraded/missing, 2 nothing answers)"
+    )
+    h.add_argument("--fleet", default=None, help="fleet name (default: the one running fleet)")
+    h.add_argument("--connect", action="append", default=None, help="a Zenoh endpoint of the fleet")
+    h.add_argument("--json", action="store_true", help="a JSON list of services")
+    h.add_argument("--watch", action="store_true", help="refresh every second until Ctrl-C")
+    h.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for answers")
+    h.add_argument("--runs-dir", default=None)
+    h.set_defaults(func=_cmd_health)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    add_live_commands(parser)
     return run(parser, argv)
 
 

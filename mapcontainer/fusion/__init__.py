@@ -1,0 +1,17 @@
+"""Host container: reorder buffer, association, sliding-window factor graph (paper §III-D)."""
+
+from .association import Tracker, observations_to_map
+from .buffer import ReorderBuffer
+from .container import Container, IngestResult
+from .graph import FusionGraph
+from .params import FusionParams
+
+__all__ = [
+    "Container",
+    "FusionGraph",
+    "FusionParams",
+    "IngestResult",
+    "ReorderBuffer",
+    "Tracker",
+    "observations_to_map",
+]

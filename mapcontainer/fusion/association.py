@@ -1,0 +1,382 @@
+"""Association of body-frame detections to tracks and connected vehicles, and track management.
+
+Each message's detections are moved to the map frame with the sender's reported pose,
+
+    m = R z + t,     S_m = R S_z R^T + J S_pose J^T,     J = d m / d [x, y, z, roll, pitch, yaw]
+                                                            = [I, dR/droll z, dR/dpitch z, dR/dyaw z],
+
+and compared with (a) the other connected vehicles' reported positions at t_meas (extrapolated with
+their v_map) and (b) every live track predicted to t_meas with a constant-velocity Kalman filter
+(white-noise acceleration, the same PSDs as the factor graph). The cost is the Mahalanobis distance
+
+    d^2 = (m - c)^T (S_m + S_c)^-1 (m - c),
+
+gated at chi2_3(gate_probability); incompatible classes are not matched. One Hungarian assignment
+(scipy.optimize.linear_sum_assignment) per message solves the frame. A detection matched to a
+connected vehicle becomes a cross-localization constraint on that vehicle's pose; one matched to a
+confirmed track becomes an observation of it; one matched to a tentative track is held by it; the
+rest start tentative tracks. A tentative track is confirmed (and gets the next stable global id)
+once it has detections at ``birth_hits`` distinct instants; its held detections then enter the
+graph. Tentative tracks die after ``tentative_timeout_s`` without a detection, confirmed ones after
+``death_s``.
+
+The Kalman filter only gates and initialises; the estimates come from the factor graph, which
+overwrites the filter state after each solve (:meth:`Tracker.sync`).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+from scipy.optimize import linear_sum_assignment
+
+from schemas import ObjectClass
+
+from .. import geometry as geo
+from .buffer import time_key
+from .params import FusionParams
+
+__all__ = [
+    "Assignment",
+    "Detection",
+    "Track",
+    "Tracker",
+    "VehicleCandidate",
+    "classes_compatible",
+    "cv_predict",
+    "mahalanobis_matrix",
+    "observations_to_map",
+]
+
+_INFEASIBLE = 1e12
+
+
+def observations_to_map(pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray]:
+    """Map-frame positions (N, 3) and covariances (N, 3, 3) of body-frame detections.
+
+    ``pose`` = [x, y, z, roll, pitch, yaw] with covariance ``pose_cov`` (6, 6); ``p_body`` (N, 3) with
+    covariances ``cov_body`` (N, 3, 3). First-order propagation of both uncertainties (module docstring).
+    """
+    pose = np.asarray(pose, dtype=float)
+    p_body = np.asarray(p_body, dtype=float).reshape(-1, 3)
+    cov_body = np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
+    R, dR_r, dR_p, dR_y = geo.rpy_to_matrix_jac(*pose[3:])
+    m = p_body @ R.T + pose[:3]
+    J = np.empty((len(p_body), 3, 6))
+    J[:, :, :3] = np.eye(3)
+    J[:, :, 3] = p_body @ dR_r.T
+    J[:, :, 4] = p_body @ dR_p.T
+    J[:, :, 5] = p_body @ dR_y.T
+    S = R @ cov_body @ R.T + J @ np.asarray(pose_cov, dtype=float) @ J.transpose(0, 2, 1)
+    return m, 0.5 * (S + S.transpose(0, 2, 1))
+
+
+def mahalanobis_matrix(m, S_m, c, S_c) -> np.ndarray:
+    """d2[i, j] = (m_i - c_j)^T (S_m_i + S_c_j)^-1 (m_i - c_j) for (N, 3) / (K, 3) points and their covariances."""
+    m = np.asarray(m, dtype=float).reshape(-1, 3)
+    c = np.asarray(c, dtype=float).reshape(-1, 3)
+    if len(m) == 0 or len(c) == 0:
+        return np.zeros((len(m), len(c)))
+    diff = m[:, None, :] - c[None, :, :]
+    S = np.asarray(S_m, dtype=float)[:, None] + np.asarray(S_c, dtype=float)[None, :]
+    sol = np.linalg.solve(S, diff[..., None])[..., 0]
+    return np.einsum("nki,nki->nk", diff, sol)
+
+
+def classes_compatible(a: int, b: int) -> bool:
+    """Same class, or one of them unknown."""
+    return a == b or a == ObjectClass.UNKNOWN or b == ObjectClass.UNKNOWN
+
+
+def _psd(params: FusionParams, cls: int) -> np.ndarray:
+    horiz = params.accel_psd_pedestrian if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST) else params.accel_psd_vehicle
+    return np.array([horiz, horiz, params.accel_psd_vertical])
+
+
+def speed_prior(params: FusionParams, cls: int) -> float:
+    """Sigma of the zero-mean velocity prior of a new track of class ``cls`` (m/s)."""
+    if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST):
+        return params.speed_prior_pedestrian_mps
+    return params.speed_prior_vehicle_mps
+
+
+def cv_predict(x, P, dt: float, q_psd) -> tuple[np.ndarray, np.ndarray]:
+    """Constant-velocity prediction of state [p, v] by dt (may be negative) with WNOA PSD q per axis.
+
+    x' = F x, P' = F P F^T + Q(|dt|), F = [[I, dt I], [0, I]],
+    Q = [[q |dt|^3 / 3, q dt |dt| / 2], [q dt |dt| / 2, q |dt|]] per axis.
+    """
+    q = np.diag(np.asarray(q_psd, dtype=float))
+    F = np.eye(6)
+    F[:3, 3:] = dt * np.eye(3)
+    a = abs(dt)
+    Q = np.block([[q * a**3 / 3, q * dt * a / 2], [q * dt * a / 2, q * a]])
+    return F @ x, F @ P @ F.T + Q
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One body-frame detection of one message, with its map-frame position from the sender's prior."""
+
+    sender: str
+    t: float
+    index: int
+    p_body: np.ndarray
+    cov_body: np.ndarray
+    cls: int
+    p_map: np.ndarray
+    cov_map: np.ndarray
+
+
+@dataclass(frozen=True)
+class VehicleCandidate:
+    """A connected vehicle's reported position at a detection's time (for gating)."""
+
+    vid: str
+    p_map: np.ndarray
+    cov: np.ndarray
+
+
+@dataclass(frozen=True)
+class Assignment:
+    """What became of a detection: ``track`` (a confirmed track id) or ``vehicle`` (a connected vehicle id)."""
+
+    kind: str
+    target: int | str
+    det: Detection
+
+
+@dataclass
+class Track:
+    """A track's bookkeeping and its gating filter (state [p, v] at time t)."""
+
+    uid: int  # internal, from creation
+    x: np.ndarray
+    P: np.ndarray
+    t: float
+    t_last: float
+    t_first: float
+    id: int | None = None  # stable global id, from confirmation
+    cls_votes: Counter = field(default_factory=Counter)
+    hit_keys: set = field(default_factory=set)
+    frames: dict = field(default_factory=dict)  # (sender, time key) -> t of its detections
+    pending: list[Detection] = field(default_factory=list)
+
+    @property
+    def confirmed(self) -> bool:
+        return self.id is not None
+
+    @property
+    def cls(self) -> int:
+        return int(self.cls_votes.most_common(1)[0][0]) if self.cls_votes else int(ObjectClass.UNKNOWN)
+
+
+class Tracker:
+    """Tracks with stable ids; associates one message's detections at a time (module docstring)."""
+
+    def __init__(self, params: FusionParams):
+        self.params = params
+        self.gate = params.gate_chi2
+        self.vehicle_gate = float(stats.chi2.ppf(params.vehicle_gate_probability, 3))
+        self.exclusion_gate = float(stats.chi2.ppf(params.birth_exclusion_probability, 3))
+        self.merge_gate = float(stats.chi2.ppf(params.merge_probability, 3))
+        self._merge_streak: dict[tuple[int, int], int] = {}
+        self.tracks: dict[int, Track] = {}  # by uid
+        self._uid_of: dict[int, int] = {}  # global id -> uid
+        self._next_uid = 1
+        self._next_id = 1
+        self.counts: Counter[str] = Counter()
+
+    # ---------------------------------------------------------------- queries
+    def confirmed(self) -> dict[int, Track]:
+        """Confirmed tracks by global id."""
+        return {tr.id: tr for tr in self.tracks.values() if tr.id is not None}
+
+    def by_id(self, track_id: int) -> Track | None:
+        uid = self._uid_of.get(track_id)
+        return None if uid is None else self.tracks.get(uid)
+
+    def predict(self, tr: Track, t: float) -> tuple[np.ndarray, np.ndarray]:
+        return cv_predict(tr.x, tr.P, t - tr.t, _psd(self.params, tr.cls))
+
+    def predict_positions(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted positions (K, 3) and their covariances (K, 3, 3) of ``tracks`` at time t (vectorised)."""
+        x = np.array([tr.x for tr in tracks])
+        P = np.array([tr.P for tr in tracks])
+        dt = np.array([t - tr.t for tr in tracks])[:, None]
+        q = np.array([_psd(self.params, tr.cls) for tr in tracks])
+        p = x[:, :3] + dt * x[:, 3:]
+        d = dt[:, :, None]
+        Ppp = P[:, :3, :3] + d * (P[:, :3, 3:] + P[:, 3:, :3]) + d**2 * P[:, 3:, 3:]
+        Ppp = Ppp + q[:, :, None] * np.eye(3) * np.abs(d) ** 3 / 3.0
+        return p, Ppp
+
+    # ---------------------------------------------------------------- association
+    def associate(
+        self, dets: list[Detection], vehicles: list[VehicleCandidate]
+    ) -> tuple[list[Assignment], list[int]]:
+        """Assign one message's detections. Returns (assignments for the graph, ids of newly confirmed tracks).
+
+        Assignments to a newly confirmed track include its held detections (oldest first). A detection
+        left unassigned starts a tentative track unless it lies within the birth-exclusion gate of a
+        vehicle or track that no detection of this message took (then it is most likely that object,
+        seen with an unlucky error, and a second track for it would be a duplicate).
+        """
+        if not dets:
+            return [], []
+        t = dets[0].t
+        live = list(self.tracks.values())
+        n, nv, nt = len(dets), len(vehicles), len(live)
+        m = np.array([d.p_map for d in dets])
+        S_m = np.array([d.cov_map for d in dets])
+        cost = np.full((n, nv + nt), _INFEASIBLE)
+        d2_all = np.full((n, nv + nt), np.inf)
+        dc = np.array([d.cls for d in dets])[:, None]
+        if nv:
+            d2 = mahalanobis_matrix(m, S_m, [v.p_map for v in vehicles], [v.cov for v in vehicles])
+            compat = (dc == ObjectClass.VEHICLE) | (dc == ObjectClass.UNKNOWN)
+            d2_all[:, :nv] = np.where(compat, d2, np.inf)
+            cost[:, :nv] = np.where(d2_all[:, :nv] <= self.vehicle_gate, d2, _INFEASIBLE)
+        if nt:
+            p_pred, S_pred = self.predict_positions(live, t)
+            d2 = mahalanobis_matrix(m, S_m, p_pred, S_pred)
+            tc = np.array([tr.cls for tr in live])[None, :]
+            compat = (dc == tc) | (dc == ObjectClass.UNKNOWN) | (tc == ObjectClass.UNKNOWN)
+            d2_all[:, nv:] = np.where(compat, d2, np.inf)
+            cost[:, nv:] = np.where(d2_all[:, nv:] <= self.gate, d2, _INFEASIBLE)
+        rows, cols = linear_sum_assignment(cost)
+        matched: dict[int, int] = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < _INFEASIBLE}
+        taken = np.zeros(nv + nt, dtype=bool)
+        taken[list(matched.values())] = True
+
+        out: list[Assignment] = []
+        born: list[int] = []
+        for i, det in enumerate(dets):
+            j = matched.get(i)
+            if j is None:
+                if np.any(d2_all[i, ~taken] <= self.exclusion_gate):
+                    self.counts["birth_suppressed"] += 1
+                else:
+                    self._new_track(det)
+                    self.counts["new_tentative"] += 1
+            elif j < nv:
+                out.append(Assignment("vehicle", vehicles[j].vid, det))
+                self.counts["matched_vehicle"] += 1
+            else:
+                tr = live[j - nv]
+                self._update(tr, det)
+                if tr.confirmed:
+                    out.append(Assignment("track", tr.id, det))
+                    self.counts["matched_track"] += 1
+                else:
+                    tr.pending.append(det)
+                    self.counts["matched_tentative"] += 1
+                    if len(tr.hit_keys) >= self.params.birth_hits:
+                        tr.id = self._next_id
+                        self._uid_of[tr.id] = tr.uid
+                        self._next_id += 1
+                        born.append(tr.id)
+                        out.extend(Assignment("track", tr.id, d) for d in sorted(tr.pending, key=lambda d: d.t))
+                        tr.pending = []
+                        self.counts["confirmed"] += 1
+        return out, born
+
+    def _new_track(self, det: Detection) -> Track:
+        sv = speed_prior(self.params, det.cls)
+        P = np.zeros((6, 6))
+        P[:3, :3] = det.cov_map
+        P[3:, 3:] = np.diag([sv**2, sv**2, 0.01])
+        tr = Track(
+            uid=self._next_uid, x=np.concatenate([det.p_map, np.zeros(3)]), P=P, t=det.t, t_last=det.t, t_first=det.t
+        )
+        self._next_uid += 1
+        tr.cls_votes[det.cls] += 1
+        tr.hit_keys.add(time_key(det.t))
+        tr.frames[(det.sender, time_key(det.t))] = det.t
+        tr.pending.append(det)
+        self.tracks[tr.uid] = tr
+        return tr
+
+    def _update(self, tr: Track, det: Detection) -> None:
+        """Kalman update with the map-frame detection (skipped for detections older than the filter)."""
+        tr.cls_votes[det.cls] += 1
+        tr.hit_keys.add(time_key(det.t))
+        tr.frames[(det.sender, time_key(det.t))] = det.t
+        tr.t_last = max(tr.t_last, det.t)
+        tr.t_first = min(tr.t_first, det.t)
+        if det.t < tr.t:
+            return
+        x, P = self.predict(tr, det.t)
+        S = P[:3, :3] + det.cov_map
+        K = np.linalg.solve(S, P[:3, :]).T
+        x = x + K @ (det.p_map - x[:3])
+        P = P - K @ P[:3, :]
+        tr.x, tr.P, tr.t = x, 0.5 * (P + P.T), det.t
+
+    # ---------------------------------------------------------------- maintenance
+    def sync(self, track_id: int, t: float, x, P) -> None:
+        """Replace a confirmed track's filter state by the graph's estimate at time t."""
+        tr = self.by_id(track_id)
+        if tr is not None and t >= tr.t - 1e-9:
+            tr.x, tr.P, tr.t = np.asarray(x, dtype=float), np.asarray(P, dtype=float), float(t)
+
+    def merge_duplicates(self, t: float) -> list[int]:
+        """Delete confirmed tracks that duplicate an older one; returns the deleted global ids.
+
+        Two confirmed tracks of compatible classes are one object if, for ``merge_cycles`` consecutive
+        calls, both their positions and their velocities at t are within the merge gate
+        (Mahalanobis, chi2_3(merge_probability)) and no single sender frame ever detected both (one
+        frame's detections are distinct objects). The younger track (higher id) goes.
+        """
+        conf = [tr for tr in self.tracks.values() if tr.confirmed]
+        if len(conf) < 2:
+            self._merge_streak = {}
+            return []
+        x = np.array([cv_predict(tr.x, tr.P, t - tr.t, _psd(self.params, tr.cls))[0] for tr in conf])
+        P = np.array([cv_predict(tr.x, tr.P, t - tr.t, _psd(self.params, tr.cls))[1] for tr in conf])
+        d2p = mahalanobis_matrix(x[:, :3], P[:, :3, :3], x[:, :3], P[:, :3, :3])
+        d2v = mahalanobis_matrix(x[:, 3:], P[:, 3:, 3:], x[:, 3:], P[:, 3:, 3:])
+        close = (d2p <= self.merge_gate) & (d2v <= self.merge_gate)
+        streak: dict[tuple[int, int], int] = {}
+        gone: list[int] = []
+        for a, b in zip(*np.nonzero(np.triu(close, 1)), strict=True):
+            ta, tb = conf[a], conf[b]
+            if not classes_compatible(ta.cls, tb.cls) or ta.frames.keys() & tb.frames.keys():
+                continue
+            pair = (min(ta.id, tb.id), max(ta.id, tb.id))
+            streak[pair] = self._merge_streak.get(pair, 0) + 1
+        for pair, count in sorted(streak.items()):
+            if count >= self.params.merge_cycles and pair[0] not in gone and pair[1] not in gone:
+                gone.append(pair[1])
+        for tid in gone:
+            older = self.by_id(min(p for p in streak if tid in p)[0])
+            young = self.by_id(tid)
+            if older is not None and young is not None:
+                older.cls_votes.update(young.cls_votes)
+                older.hit_keys |= young.hit_keys
+            del self.tracks[self._uid_of.pop(tid)]
+            self.counts["merged"] += 1
+        self._merge_streak = {p: c for p, c in streak.items() if p[0] not in gone and p[1] not in gone}
+        return gone
+
+    def expire(self, t: float) -> list[int]:
+        """Drop tracks not detected for too long; returns the global ids of deleted confirmed tracks."""
+        dead = []
+        horizon = t - self.params.window_s
+        for tr in self.tracks.values():
+            if len(tr.frames) > 64:
+                tr.frames = {k: v for k, v in tr.frames.items() if v >= horizon}
+        for uid, tr in list(self.tracks.items()):
+            limit = self.params.death_s if tr.confirmed else self.params.tentative_timeout_s
+            if t - tr.t_last > limit:
+                del self.tracks[uid]
+                if tr.confirmed:
+                    dead.append(tr.id)
+                    del self._uid_of[tr.id]
+                    self.counts["deleted"] += 1
+                else:
+                    self.counts["tentative_dropped"] += 1
+        return dead

@@ -1,0 +1,292 @@
+"""The host container: validate -> reorder -> associate -> factor graph -> fused state (paper §III-D).
+
+A pure core: no I/O, no threads, time is an argument, deterministic for a given input sequence.
+The live host service and ``pipeline.py`` feed it bytes with :meth:`Container.ingest` and ask for the
+fused driving environment with :meth:`Container.fuse`.
+
+Where vehicle priors come from is pluggable: ``ingest`` decodes ``VehiclePrior`` by default (the
+distributed mode), a ``decoder`` given to the constructor can turn other payloads into priors (e.g. the
+centralized mode: RawObservations -> host-side map matcher -> VehiclePrior), and ``ingest_prior``
+takes an already-decoded prior.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas import FusedState, Rejection, VehiclePrior, decode
+from schemas.arrays import cov_from_upper, cov_to_upper
+
+from .. import geometry as geo
+from .association import Detection, Tracker, VehicleCandidate, observations_to_map
+from .buffer import ReorderBuffer
+from .graph import FusionGraph, SolveReport
+from .params import FusionParams
+from .poses import pose_cov_from_tangent, vector_from_pose3
+
+__all__ = ["Container", "FusionParams", "IngestResult"]
+
+Decoder = Callable[[bytes], "VehiclePrior | Rejection"]
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    """Whether a payload was taken; ``reason`` says why not (decoder reasons, duplicate, stale, future,
+    overflow, unknown_sender, fleet)."""
+
+    accepted: bool
+    reason: str | None = None
+
+
+def _decode_prior(payload: bytes) -> VehiclePrior | Rejection:
+    return decode(payload, VehiclePrior)
+
+
+def _make_pd(C: np.ndarray) -> np.ndarray:
+    """Symmetric, with eigenvalues floored (float32-safe) — a covariance the wire validator accepts."""
+    C = 0.5 * (C + C.T)
+    w, U = np.linalg.eigh(C)
+    floor = max(1e-12, 1e-7 * float(np.max(np.abs(w)))) if w.size else 1e-12
+    return (U * np.maximum(w, floor)) @ U.T
+
+
+class Container:
+    """The host's fusion core. See the module docstring; the estimator is described in :mod:`.graph`."""
+
+    def __init__(
+        self,
+        params: FusionParams,
+        fleet: str,
+        host_id: str,
+        known_senders: set[str] | None = None,
+        decoder: Decoder | None = None,
+    ):
+        self.params = params
+        self.fleet = fleet
+        self.host_id = host_id
+        self.known_senders = None if known_senders is None else set(known_senders)
+        self._decode = decoder or _decode_prior
+        self.buffer = ReorderBuffer(params.window_s, params.future_tolerance_s, params.max_pending)
+        self.graph = FusionGraph(params)
+        self.tracker = Tracker(params)
+        self._counts: Counter[str] = Counter()
+        self._rejected: Counter[str] = Counter()
+        self._seq = 0
+        self._last: SolveReport | None = None
+        self._last_cycle_ms = float("nan")
+
+    # ------------------------------------------------------------------ input
+    def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
+        """Decode and buffer one payload received at scenario time ``t_recv``. Never raises on bad input."""
+        self._counts["received"] += 1
+        msg = self._decode(payload)
+        if isinstance(msg, Rejection):
+            return self._reject(msg.reason)
+        if not isinstance(msg, VehiclePrior):
+            return self._reject("invalid")
+        return self._take(msg, t_recv)
+
+    def ingest_prior(self, prior: VehiclePrior, t_recv: float) -> IngestResult:
+        """Buffer an already-decoded prior (e.g. from a host-side map matcher)."""
+        if not isinstance(prior, VehiclePrior):
+            raise TypeError(f"ingest_prior takes a VehiclePrior, got {type(prior).__name__}")
+        self._counts["received"] += 1
+        return self._take(prior, t_recv)
+
+    def _take(self, msg: VehiclePrior, t_recv: float) -> IngestResult:
+        if msg.fleet != self.fleet:
+            return self._reject("fleet")
+        if self.known_senders is not None and msg.sender not in self.known_senders:
+            return self._reject("unknown_sender")
+        reason = self.buffer.push(msg, float(t_recv))
+        if reason is not None:
+            return self._reject(reason)
+        self._counts["accepted"] += 1
+        return IngestResult(True)
+
+    def _reject(self, reason: str) -> IngestResult:
+        self._rejected[reason] += 1
+        return IngestResult(False, reason)
+
+    # ------------------------------------------------------------------ fusion
+    def fuse(self, t: float) -> FusedState:
+        """Fuse everything received with t_meas <= t within the window; the state at time t."""
+        t0 = time.perf_counter()
+        t = float(t)
+        t_min = t - self.params.window_s
+        msgs = [m for m in self.buffer.pop_until(t)]
+        fresh = [m for m in msgs if m.t_meas >= t_min]
+        self._counts["expired"] += len(msgs) - len(fresh)
+        keys = []
+        for m in fresh:  # all poses first, so that detections can be matched to any vehicle of the instant
+            key = self.graph.add_vehicle_prior(m.sender, m.t_meas, m.pose, cov_from_upper(m.pose_cov), m.v_map)
+            if key is None:
+                self._counts["duplicate_instant"] += 1
+            keys.append(key)
+        for m, key in zip(fresh, keys, strict=True):
+            if key is not None:
+                self._associate(m)
+        for tid in self.tracker.expire(t):
+            self.graph.remove_track(tid)
+        self.graph.prune(t_min)
+        self._last = self.graph.solve()
+        self._sync_tracker()
+        gone = self.tracker.merge_duplicates(t)
+        for tid in gone:
+            self.graph.remove_track(tid)
+        self._counts["fused_cycles"] += 1
+        out = self._output(t)
+        self._last_cycle_ms = (time.perf_counter() - t0) * 1e3
+        return out
+
+    def _sync_tracker(self) -> None:
+        for tid in self.tracker.confirmed():
+            if tid in self.graph.tracks:
+                ts, p, v, C = self.graph.track_estimate(tid)
+                if C is not None:
+                    self.tracker.sync(tid, ts, np.concatenate([p, v]), C)
+
+    def _associate(self, m: VehiclePrior) -> None:
+        objs = m.objects
+        if len(objs) == 0:
+            return
+        t = float(m.t_meas)
+        p_body = objs.p_body
+        cov_body = cov_from_upper(np.asarray(objs.cov, dtype=np.float64))
+        keep = np.linalg.norm(p_body, axis=1) >= self.params.min_range_m
+        self._counts["too_close"] += int((~keep).sum())
+        if not keep.any():
+            return
+        pose = np.asarray(m.pose, dtype=float)
+        pose_cov = cov_from_upper(np.asarray(m.pose_cov, dtype=float))
+        p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
+        idx = np.flatnonzero(keep)
+        dets = [
+            Detection(m.sender, t, int(i), p_body[i], cov_body[i], int(objs.cls[i]), p_map[j], S_map[j])
+            for j, i in enumerate(idx)
+        ]
+        vehicles = []
+        for vid, chain in self.graph.vehicles.items():
+            if vid == m.sender:
+                continue
+            s = chain.nearest(t, self.params.vehicle_gate_max_dt_s)
+            if s is None:
+                continue
+            dt = t - s.t
+            cov = s.cov[:3, :3] + (self.params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
+            vehicles.append(VehicleCandidate(vid, s.pose[:3] + s.v_map * dt, cov))
+        assignments, _ = self.tracker.associate(dets, vehicles)
+        for a in assignments:
+            det = a.det
+            obs = self.graph.vehicle_state(det.sender, det.t, 0.0)
+            if obs is None:  # the observer's frame has left the window
+                self._counts["observer_gone"] += 1
+                continue
+            R_obs = geo.rpy_to_matrix(*obs.pose[3:])
+            if a.kind == "vehicle":
+                if not self.params.cross_localization:
+                    continue
+                target = self.graph.vehicle_state(a.target, det.t, self.params.cross_obs_max_dt_s)
+                if target is None:
+                    self._counts["cross_no_state"] += 1
+                    continue
+                delta = det.t - target.t  # the target moved v delta since its frame
+                z = det.p_body - R_obs.T @ target.v_map * delta
+                cov = det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3)
+                self.graph.add_cross_detection(obs.key, target.key, z, cov)
+                self._counts["cross_detections"] += 1
+            else:
+                tr = self.tracker.by_id(a.target)
+                cls = tr.cls if tr is not None else det.cls
+                v0 = tr.x[3:] if tr is not None else np.zeros(3)
+                state = self.graph.track_state(a.target, det.t, det.p_map, v0, cls)
+                delta = det.t - state.t  # nonzero only for unsynchronised senders (time_merge_s)
+                z, cov = det.p_body, det.cov_body
+                if delta != 0.0 and tr is not None:
+                    z = z - R_obs.T @ tr.x[3:] * delta
+                    cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
+                self.graph.add_detection(obs.key, state, z, cov)
+                self._counts["detections"] += 1
+
+    def _output(self, t: float) -> FusedState:
+        g = self.graph
+        vids = sorted(g.vehicles)
+        poses, pose_covs = [], []
+        for vid in vids:
+            _, T, cov_xi = g.vehicle_estimate(vid)
+            pose = vector_from_pose3(T)
+            if cov_xi is None:
+                cov = g.vehicles[vid].latest().cov
+            else:
+                cov = pose_cov_from_tangent(pose, cov_xi)
+            poses.append(pose)
+            pose_covs.append(cov_to_upper(_make_pd(cov)))
+        ids, cls, ps, vs, covs = [], [], [], [], []
+        for tid, tr in sorted(self.tracker.confirmed().items()):
+            if tid not in g.tracks:
+                continue
+            ts, p, v, C = g.track_estimate(tid)
+            if C is None:
+                C = tr.P
+            dt = t - ts
+            F = np.hstack([np.eye(3), dt * np.eye(3)])
+            q = g._psd(tr.cls)
+            cov = F @ C @ F.T + np.diag(q) * abs(dt) ** 3 / 3.0
+            ids.append(tid)
+            cls.append(tr.cls)
+            ps.append(p + v * dt)
+            vs.append(v)
+            covs.append(cov_to_upper(_make_pd(cov)))
+        self._seq += 1
+        return FusedState(
+            fleet=self.fleet,
+            sender=self.host_id,
+            seq=self._seq,
+            t_meas=t,
+            t_sent=t,
+            vehicle_ids=vids,
+            vehicle_pose=np.array(poses, dtype=np.float32).reshape(-1, 6),
+            vehicle_pose_cov=np.array(pose_covs, dtype=np.float32).reshape(-1, 21),
+            object_id=np.array(ids, dtype=np.uint32),
+            object_cls=np.array(cls, dtype=np.uint8),
+            object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
+            object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
+            object_cov=np.array(covs, dtype=np.float32).reshape(-1, 6),
+            messages_fused=sum(len(c.tkeys) for c in g.vehicles.values()),
+        )
+
+    # ------------------------------------------------------------------ health
+    def stats(self) -> dict:
+        """Counters and figures of the last cycle (for health status and benchmarks)."""
+        last = self._last
+        tracks = list(self.tracker.tracks.values())
+        return {
+            "received": self._counts["received"],
+            "accepted": self._counts["accepted"],
+            "rejected": dict(self._rejected),
+            "pending": len(self.buffer),
+            "expired": self._counts["expired"],
+            "fused_cycles": self._counts["fused_cycles"],
+            "last_iterations": last.iterations if last else 0,
+            "last_error_before": last.error_before if last else float("nan"),
+            "last_error_after": last.error_after if last else float("nan"),
+            "last_cycle_ms": self._last_cycle_ms,
+            "covariance_fallbacks": last.covariance_fallbacks if last else 0,
+            "factors": self.graph.num_factors,
+            "variables": self.graph.num_variables,
+            "vehicles": len(self.graph.vehicles),
+            "tracks_confirmed": sum(tr.confirmed for tr in tracks),
+            "tracks_tentative": sum(not tr.confirmed for tr in tracks),
+            "association": dict(self.tracker.counts),
+            "detections": self._counts["detections"],
+            "cross_detections": self._counts["cross_detections"],
+            "cross_no_state": self._counts["cross_no_state"],
+            "observer_gone": self._counts["observer_gone"],
+            "duplicate_instant": self._counts["duplicate_instant"],
+            "too_close": self._counts["too_close"],
+        }

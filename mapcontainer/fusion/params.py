@@ -1,0 +1,94 @@
+"""Parameters of the host container (validated; SI units unless a name says otherwise)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy import stats
+
+__all__ = ["FusionParams"]
+
+
+class FusionParams(BaseModel):
+    """Everything the host container's estimator and tracker can be tuned with.
+
+    Defaults are calibrated on the simulator's detector (configs/sensors/default.yaml) and on vehicle
+    priors of about 0.1 m / 0.3 deg; see mapcontainer/fusion/README notes in the module docstrings.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # ---- time
+    window_s: float = Field(1.0, gt=0, description="sliding window: states older than fuse time - window_s are dropped")
+    time_merge_s: float = Field(
+        0.02, ge=0, description="observations of one track closer in time than this share one state (async senders)"
+    )
+    future_tolerance_s: float = Field(1.0, ge=0, description="t_meas later than t_recv + this is refused ('future')")
+    max_pending: int = Field(100_000, gt=0, description="reorder buffer capacity ('overflow' beyond)")
+
+    # ---- association
+    gate_probability: float = Field(
+        0.99, gt=0, lt=1, description="chi-square (3 DoF) probability of the Mahalanobis gate in the map frame"
+    )
+    vehicle_gate_probability: float = Field(
+        0.9999, gt=0, lt=1, description="gate for matching a detection to a connected vehicle's reported position"
+    )
+    birth_exclusion_probability: float = Field(
+        0.9999,
+        gt=0,
+        lt=1,
+        description="an unassigned detection this close to a track or vehicle nobody took starts no track",
+    )
+    merge_probability: float = Field(
+        0.99, gt=0, lt=1, description="gate on position and velocity under which two confirmed tracks are one object"
+    )
+    merge_cycles: int = Field(3, ge=1, description="... for this many consecutive fuse() calls")
+    vehicle_gate_max_dt_s: float = Field(
+        0.5, gt=0, description="a connected vehicle's reported pose is used for gating up to this far from t_meas"
+    )
+    cross_obs_max_dt_s: float = Field(
+        0.06, ge=0, description="a detection of a connected vehicle is tied to its pose state at most this far in time"
+    )
+    birth_hits: int = Field(3, ge=1, description="a tentative track is confirmed after detections at this many instants")
+    tentative_timeout_s: float = Field(0.35, gt=0, description="a tentative track without a detection this long is dropped")
+    death_s: float = Field(1.0, gt=0, description="a confirmed track without a detection this long is deleted")
+
+    # ---- measurement models
+    reference_frame_sigma_m: float = Field(1e-3, gt=0, description="sigma of the (nearly hard) helper tie (m)")
+    huber_k: float | None = Field(
+        3.0, gt=0, description="Huber threshold on the whitened 3-D detection residual norm; None = Gaussian"
+    )
+    min_range_m: float = Field(0.5, gt=0, description="detections closer to the body origin than this are ignored")
+    cross_localization: bool = Field(True, description="detections of connected vehicles constrain their poses")
+
+    # ---- motion models
+    accel_psd_vehicle: float = Field(
+        2.0, gt=0, description="white-noise-on-acceleration PSD of obstacle vehicles, horizontal (m^2/s^3)"
+    )
+    accel_psd_pedestrian: float = Field(0.5, gt=0, description="... of pedestrians and cyclists, horizontal (m^2/s^3)")
+    accel_psd_vertical: float = Field(0.01, gt=0, description="... vertical, every class (m^2/s^3)")
+    speed_prior_vehicle_mps: float = Field(15.0, gt=0, description="zero-mean velocity prior sigma on a vehicle track's first state")
+    speed_prior_pedestrian_mps: float = Field(3.0, gt=0, description="... on a pedestrian or cyclist track's first state")
+    vehicle_velocity_sigma_mps: float = Field(
+        0.5, gt=0, description="error of a reported v_map, used by the motion factor between a vehicle's frames (m/s)"
+    )
+    vehicle_accel_sigma_mps2: float = Field(3.0, gt=0, description="unmodelled acceleration in that motion factor (m/s^2)")
+    vehicle_rate_sigma_radps: float = Field(
+        0.6, gt=0, description="rotation rate sigma of that motion factor (the relative rotation is not reported) (rad/s)"
+    )
+    motion_factor_max_dt_s: float = Field(0.5, gt=0, description="no motion factor between frames further apart")
+
+    # ---- solver
+    max_iterations: int = Field(3, ge=1, description="Levenberg-Marquardt iterations per fuse() at most")
+    relative_error_tol: float = Field(1e-3, gt=0, description="stop when the cost decreases by less than this fraction")
+    lambda_initial: float = Field(0.0, ge=0, description="initial LM damping (0: try the Gauss-Newton step first)")
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.death_s > self.window_s + 1e-9:
+            raise ValueError(f"death_s ({self.death_s}) must not exceed window_s ({self.window_s})")
+        return self
+
+    @property
+    def gate_chi2(self) -> float:
+        """Mahalanobis-squared gate for a 3-D position."""
+        return float(stats.chi2.ppf(self.gate_probability, 3))

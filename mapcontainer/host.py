@@ -1,0 +1,64 @@
+"""The host container in either architecture (paper, "Distributed Fusion Architecture").
+
+* distributed: vehicles localize themselves and send VehiclePriors; the container decodes them.
+* centralized: vehicles send RawObservations; the host runs one map matcher per sender itself
+  (the same :class:`~mapcontainer.vehicle.VehicleAgent` code a vehicle runs) and fuses the result.
+"""
+
+from __future__ import annotations
+
+from schemas import RawObservations, Rejection, VehiclePrior, decode
+
+from .fusion import Container, FusionParams
+from .hdmap.model import HDMap
+from .vehicle import Mode, VehicleAgent
+
+__all__ = ["CentralizedDecoder", "make_host"]
+
+
+class CentralizedDecoder:
+    """RawObservations bytes -> host-side self-localization -> VehiclePrior (or a Rejection).
+
+    Each sender's localizer must see its frames in time order: a frame older than the last one
+    localized for that sender is rejected as ``out_of_order`` (the channel's jitter can reorder).
+    """
+
+    def __init__(self, hdmap: HDMap, fleet: str):
+        self.hdmap = hdmap
+        self.fleet = fleet
+        self.agents: dict[str, VehicleAgent] = {}
+        self._last_t: dict[str, float] = {}
+
+    def __call__(self, payload: bytes) -> VehiclePrior | Rejection:
+        raw = decode(payload, RawObservations)
+        if isinstance(raw, Rejection):
+            return raw
+        if raw.fleet != self.fleet:
+            return Rejection("fleet", f"fleet {raw.fleet!r}")
+        last = self._last_t.get(raw.sender)
+        if last is not None and raw.t_meas <= last:
+            return Rejection("out_of_order", f"t_meas {raw.t_meas} <= {last} already localized for {raw.sender}")
+        agent = self.agents.get(raw.sender)
+        if agent is None:
+            agent = self.agents[raw.sender] = VehicleAgent(self.hdmap, raw.sender, self.fleet)
+        self._last_t[raw.sender] = raw.t_meas
+        try:
+            return agent.localize(raw.t_sent, raw)
+        except ValueError as exc:  # e.g. a lane mask that is not an image
+            return Rejection("invalid", str(exc)[:200])
+
+
+def make_host(
+    hdmap: HDMap,
+    params: FusionParams,
+    fleet: str,
+    host_id: str,
+    mode: Mode = "distributed",
+    known_senders: set[str] | None = None,
+) -> Container:
+    """A host container for ``mode``; feed it payload bytes with ``ingest`` and call ``fuse``."""
+    if mode == "distributed":
+        return Container(params, fleet, host_id, known_senders)
+    if mode == "centralized":
+        return Container(params, fleet, host_id, known_senders, decoder=CentralizedDecoder(hdmap, fleet))
+    raise ValueError(f"mode must be 'distributed' or 'centralized', got {mode!r}")

@@ -1,0 +1,23 @@
+"""Self-localization by HD-map matching (the paper's "Map-matching Localization"), with a GNSS +
+odometry fallback. Pure core: no I/O, deterministic.
+
+* :mod:`.matcher` -- one Levenberg-Marquardt solve for one camera frame (D_P, D_L, EDT lane
+  residual, r_n, GNSS and prediction priors).
+* :mod:`.localizer` -- tracking over frames: odometry prediction, failure detection, fallback, recovery.
+"""
+
+from .localizer import GnssMeasurement, LocalizationResult, Localizer, LocalizerParams, OdometryMeasurement
+from .matcher import CameraFrame, MapMatcher, MatcherParams, MatchResult, lane_distance_transform
+
+__all__ = [
+    "CameraFrame",
+    "GnssMeasurement",
+    "LocalizationResult",
+    "Localizer",
+    "LocalizerParams",
+    "MapMatcher",
+    "MatchResult",
+    "MatcherParams",
+    "OdometryMeasurement",
+    "lane_distance_transform",
+]

@@ -1,0 +1,724 @@
+"""Self-localization over time: odometry prediction, map matching, failure detection, fallback, recovery.
+
+:class:`Localizer` is pure: ``step(t, frame, odometry, gnss)`` takes the scenario time as an
+argument and returns a :class:`LocalizationResult`; bad input is counted in ``stats`` and
+returned as a result with a reason, never raised.
+
+One step::
+
+    initialise?  from GNSS and a heading (below)
+    predict      the state over dt = t - t_prev with the odometry (unicycle)
+    match        the camera frame from the prediction (MapMatcher)
+                 -> accepted if converged and no jump against the prediction: mode "map_matching"
+                 -> otherwise:                                               mode "fallback"
+    GNSS         EKF update of position + GNSS bias (outlying fixes down-weighted, far ones dropped)
+    fallback     + the ground constraint (height on the road, roll = pitch = 0)
+
+If converged matches keep being rejected as jumps (``jump_reset_after`` in a row), the prediction
+is distrusted: its position and yaw covariance are widened and the match is tried again.
+
+The state is ``[x, y, z, roll, pitch, yaw, k_v, b_w, b_E, b_N]``: the pose, the wheel-speed
+scale factor, the gyro bias and the GNSS receiver's slowly drifting horizontal bias (first-order
+Gauss-Markov). While map matching holds the position, the GNSS fixes teach the filter the bias; in
+fallback, the fixes then pull the position towards ``fix - bias``, and their information never
+accumulates below the bias' uncertainty (a low-cost receiver's errors are correlated for a minute:
+treated as white they would make the fallback overconfident).
+
+Heading at start-up (and after :meth:`Localizer.reset`), in this order:
+
+1. ``initial_yaw`` given to the constructor or to ``reset``;
+2. the HD map: the driving directions of the lane centre lines near the GNSS fix. On a one-way
+   stretch that is the heading. On a two-way road the course over ground (GNSS displacement
+   over ``init_course_distance_m`` aligned with the dead-reckoned odometry path) picks the
+   direction; before that, each candidate heading is tried with the map matcher and is taken if
+   it is the only one that converges;
+3. without map candidates, the course over ground alone (with its large uncertainty).
+
+Until a heading is known the result is the GNSS fix with a yaw variance of pi^2 / 3 (uniform),
+``initialized`` False, mode "fallback".
+
+What to send on: ``pose``/``cov`` are the tracker's posterior by default (``report="filtered"``),
+the best estimate of the vehicle's pose now. They are correlated from frame to frame; a consumer
+that fuses frames itself (one prior factor per frame plus motion factors) should take
+``pose_frame``/``cov_frame`` -- this frame's camera evidence with a weak prior, see
+:mod:`.matcher` -- or set ``report="frame"``, lest it count the same information many times.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..geometry import wrap_angle
+from ..hdmap.model import HDMap
+from .matcher import CameraFrame, MapMatcher, MatcherParams, MatchResult
+
+__all__ = ["GnssMeasurement", "LocalizationResult", "Localizer", "LocalizerParams", "OdometryMeasurement"]
+
+log = logging.getLogger(__name__)
+
+_UNIFORM_YAW_VAR = np.pi**2 / 3.0  # variance of a yaw uniform on [-pi, pi)
+_N = 10  # state size
+_SCALE, _GYRO, _GB = 6, 7, slice(8, 10)  # wheel-speed scale, gyro bias, GNSS bias (E, N)
+
+
+@dataclass(frozen=True)
+class OdometryMeasurement:
+    """Wheel speed (m/s, forward) and gyro yaw rate (rad/s).
+
+    :meth:`Localizer.step` also takes schemas.Odometry or a ``(speed, yaw_rate)`` tuple.
+    """
+
+    speed: float
+    yaw_rate: float
+
+
+@dataclass(frozen=True)
+class GnssMeasurement:
+    """A GNSS fix in the map frame with the receiver's reported 1-sigmas (m).
+
+    :meth:`Localizer.step` also takes schemas.GnssFix or a ``(p_map, sigma_h, sigma_v)`` tuple.
+    """
+
+    p_map: np.ndarray
+    sigma_h_m: float
+    sigma_v_m: float
+
+
+class LocalizerParams(BaseModel):
+    """Parameters of :class:`Localizer` (SI units; random walks per square root of a second)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    matcher: MatcherParams = Field(default_factory=MatcherParams)
+    report: Literal["filtered", "frame"] = Field(
+        "filtered",
+        description="what pose/cov carry while map matching: the tracker's posterior ('filtered'), or this "
+        "frame's own camera evidence ('frame', for consumers that fuse frames themselves); both are in the "
+        "result as pose_filtered / pose_frame",
+    )
+    # Odometry (unicycle model); the wheel-speed scale and the gyro bias are estimated.
+    speed_sigma_mps: float = Field(0.1, gt=0, description="1-sigma of the wheel speed, white (m/s)")
+    speed_scale_sigma: float = Field(0.005, ge=0, description="relative 1-sigma of the wheel speed, white")
+    yaw_rate_sigma_radps: float = Field(0.01, gt=0, description="1-sigma of the gyro yaw rate, white (rad/s)")
+    lateral_sigma_mps: float = Field(
+        0.1, ge=0, description="sideways velocity noise (slip, model error) (m/s)"
+    )
+    z_sigma_mps: float = Field(0.1, ge=0, description="random walk of the height (m/sqrt(s))")
+    roll_pitch_sigma_radps: float = Field(
+        0.01, ge=0, description="random walk of roll and pitch (rad/sqrt(s))"
+    )
+    scale_init_sigma: float = Field(0.02, gt=0, description="prior 1-sigma of the wheel-speed scale factor")
+    scale_rw_sigma: float = Field(1e-4, ge=0, description="random walk of the scale factor (1/sqrt(s))")
+    gyro_bias_init_sigma_radps: float = Field(
+        0.005, gt=0, description="prior 1-sigma of the gyro bias (rad/s)"
+    )
+    gyro_bias_rw_sigma: float = Field(1e-4, ge=0, description="random walk of the gyro bias (rad/s/sqrt(s))")
+    # GNSS: fix = position + bias + white noise.
+    gnss_bias_sigma_m: float = Field(
+        1.5, gt=0, description="stationary 1-sigma of the receiver's bias per axis (m)"
+    )
+    gnss_bias_tau_s: float = Field(60.0, gt=0, description="correlation time of the bias (s)")
+    gnss_white_min_sigma_m: float = Field(
+        0.5, gt=0, description="white part = sqrt(reported_sigma_h^2 - bias_sigma^2), at least this (m)"
+    )
+    gnss_gate_chi2: float = Field(
+        13.8, gt=0, description="fixes beyond this chi^2 (2 dof, 99.9 %) are dropped"
+    )
+    gnss_soft_chi2: float = Field(
+        5.99,
+        gt=0,
+        description="fixes beyond this chi^2 (2 dof, 95 %) get their noise scaled by chi^2 / this "
+        "(Huber-like): "
+        "multipath jumps of several metres are common in cities",
+    )
+    # Map matching acceptance.
+    jump_gate_chi2: float = Field(
+        22.5, gt=0, description="a match farther than this chi^2 (6 dof) from the prediction is rejected"
+    )
+    jump_reset_after: int = Field(
+        5,
+        ge=1,
+        description="after this many rejected jumps in a row the prediction is distrusted: its position and "
+        "yaw "
+        "covariance are widened and the match is tried again",
+    )
+    # Fallback ground constraint (the matcher's r_n when there is no match).
+    ground_sigma_m: float = Field(
+        0.2, gt=0, description="1-sigma of the height above the road in fallback (m)"
+    )
+    ground_roll_pitch_sigma_rad: float = Field(
+        0.02, gt=0, description="1-sigma of roll, pitch in fallback (rad)"
+    )
+    # Start-up.
+    init_extra_sigma_m: float = Field(
+        2.5,
+        ge=0,
+        description="added to the initial position 1-sigma for a multipath jump in the first fix (m)",
+    )
+    init_yaw_sigma_rad: float = Field(
+        0.05, gt=0, description="1-sigma of a given or map-derived initial heading"
+    )
+    init_lane_search_m: float = Field(
+        6.0, gt=0, description="centre lines this close to the GNSS fix give headings"
+    )
+    init_course_distance_m: float = Field(
+        12.0, gt=0, description="GNSS travel that gives a course over ground (m)"
+    )
+    init_min_speed_mps: float = Field(
+        1.0, ge=0, description="dead reckoning for the course only above this speed"
+    )
+    max_gap_s: float = Field(5.0, gt=0, description="a longer gap between steps re-initialises")
+
+
+@dataclass(frozen=True)
+class LocalizationResult:
+    """One step's estimate: the body pose in the map (x y z roll pitch yaw) with its 6x6 covariance.
+
+    ``pose``/``cov`` follow ``LocalizerParams.report``; ``pose_frame``/``cov_frame`` (map matching
+    only) are this frame's camera evidence with a weak prior -- independent from frame to frame,
+    as a factor graph that adds one prior per frame wants them.
+    """
+
+    t: float
+    pose: np.ndarray
+    cov: np.ndarray
+    velocity_map: np.ndarray
+    mode: Literal["map_matching", "fallback"]
+    initialized: bool
+    n_points: int = 0
+    n_poles: int = 0
+    n_lane: int = 0
+    cost: float = 0.0
+    iterations: int = 0
+    converged: bool = False
+    reason: str = ""
+    gnss_used: bool = False
+    pose_filtered: np.ndarray | None = None
+    cov_filtered: np.ndarray | None = None
+    pose_frame: np.ndarray | None = None
+    cov_frame: np.ndarray | None = None
+
+    def quality(self) -> dict[str, Any]:
+        """The fields of schemas.LocalizationQuality."""
+        return {
+            "mode": self.mode,
+            "n_points": self.n_points,
+            "n_poles": self.n_poles,
+            "n_lane": self.n_lane,
+            "cost": float(self.cost),
+        }
+
+
+@dataclass
+class _Init:
+    """Start-up bookkeeping: the first GNSS fix and the odometry path since (in the odometry's own frame)."""
+
+    g0: np.ndarray | None = None
+    theta: float = 0.0
+    p: np.ndarray = field(default_factory=lambda: np.zeros(2))
+
+
+def _as_odometry(o) -> OdometryMeasurement | None:
+    if o is None:
+        return None
+    if isinstance(o, tuple | list):
+        return OdometryMeasurement(float(o[0]), float(o[1]))
+    return OdometryMeasurement(float(o.speed), float(o.yaw_rate))
+
+
+def _as_gnss(g) -> GnssMeasurement | None:
+    if g is None:
+        return None
+    if isinstance(g, tuple | list):
+        return GnssMeasurement(np.asarray(g[0], dtype=float).reshape(-1), float(g[1]), float(g[2]))
+    return GnssMeasurement(
+        np.asarray(g.p_map, dtype=float).reshape(-1), float(g.sigma_h_m), float(g.sigma_v_m)
+    )
+
+
+class Localizer:
+    """Tracks one vehicle's pose by HD-map matching with a GNSS + odometry fallback (see the module doc).
+
+    Prediction (unicycle; odometry v_m, w_m; v = k_v v_m, w = w_m - b_w, theta_m = yaw + w dt / 2)::
+
+        x += v dt cos(theta_m),  y += v dt sin(theta_m),  yaw += w dt,  b_gnss *= exp(-dt / tau)
+        P = F P F^T + G diag(s_v^2, s_w^2) G^T + Q dt
+
+    with s_v^2 = speed_sigma^2 + (speed_scale_sigma v_m)^2 and Q the lateral, height, roll, pitch,
+    scale, gyro-bias and GNSS-bias process noise. A match is folded in through its information
+    (:meth:`_match_update`). Failure = the match did not converge (too few constraints, cost too
+    high, no features) or jumped (chi^2 of its change against the prediction > jump_gate_chi2).
+    In fallback the EKF keeps GNSS and the ground constraint; every frame with features is matched
+    from the fallback estimate, whose covariance has grown, and the matcher's wide-basin search
+    takes over when needed (recovery).
+    """
+
+    def __init__(self, hdmap: HDMap, params: LocalizerParams | None = None, initial_yaw: float | None = None):
+        self.params = params or LocalizerParams()
+        self.hdmap = hdmap
+        self.matcher = MapMatcher(hdmap, self.params.matcher)
+        self.stats: dict[str, int] = {}
+        self._lanes = [c.polyline for c in hdmap.centerlines]
+        self.reset(initial_yaw)
+
+    # ------------------------------------------------------------------ public
+
+    def reset(self, initial_yaw: float | None = None) -> None:
+        """Forget the state; the next steps initialise again (from GNSS and a heading)."""
+        self.y: np.ndarray | None = None  # see the module doc
+        self.P: np.ndarray | None = None
+        self.t_prev: float | None = None
+        self._odo_prev: OdometryMeasurement | None = None
+        self._initial_yaw = initial_yaw
+        self._init = _Init()
+        self._jumps = 0
+        self._last: LocalizationResult | None = None
+
+    @property
+    def initialized(self) -> bool:
+        return self.y is not None
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        """The current (filtered) pose estimate."""
+        return None if self.y is None else self.y[:6].copy()
+
+    def step(
+        self, t: float, frame: CameraFrame | None, odometry: Any | None, gnss: Any | None
+    ) -> LocalizationResult:
+        """Advance to time t with this frame's camera detections, odometry and GNSS fix (each may be None)."""
+        p = self.params
+        try:
+            odometry, gnss = _as_odometry(odometry), _as_gnss(gnss)
+        except (TypeError, ValueError, AttributeError, IndexError) as exc:
+            return self._bad_input(t, f"input malformed: {exc}")
+        bad = self._check_inputs(t, odometry, gnss)
+        if bad:
+            return self._bad_input(t, bad)
+        if not self.initialized:
+            self._advance_init(t, odometry, gnss)
+            self.t_prev, self._odo_prev = t, odometry
+            if not self._try_initialise(frame, gnss):
+                reason = "initialising: no heading yet" if gnss is not None else "initialising: no GNSS fix"
+                self._last = self._uninitialised(t, gnss, reason)
+                return self._last
+            self._count("initialised")
+            dt = 0.0
+        else:
+            dt = t - self.t_prev
+            if dt > p.max_gap_s:
+                self._count("gap_reset")
+                log.warning("gap of %.2f s > max_gap_s: re-initialising", dt)
+                self.reset(None)
+                return self.step(t, frame, odometry, gnss)
+        y_pred, P_pred = self._predict(dt, self._odo_prev, odometry)
+        self.t_prev, self._odo_prev = t, odometry
+
+        match, reason = None, ""
+        self._attempt = None
+        if frame is None:
+            reason = "no camera frame"
+        elif frame.is_empty():
+            reason = "no features"
+        else:
+            match, reason = self._match(frame, y_pred, P_pred)
+            if match is None and self._jumps >= p.jump_reset_after:
+                # The prediction keeps disagreeing with converged matches: distrust it and try again.
+                self._count("jump_reset")
+                P_wide = self._widen(P_pred, gnss)
+                match, reason = self._match(frame, y_pred, P_wide)
+                if match is not None:
+                    P_pred = P_wide
+        if match is not None:
+            self._jumps = 0
+            y, P = self._match_update(y_pred, P_pred, match)
+            mode = "map_matching"
+        else:
+            self._count("fallback")
+            y, P = y_pred, P_pred
+            mode = "fallback"
+        y, P, gnss_used = self._gnss_update(y, P, gnss)
+        if mode == "fallback":
+            y, P = self._ground_update(y, P)
+        self.y, self.P = y, P
+        self._last = self._result(t, mode, odometry, match, self._attempt, reason, gnss_used)
+        return self._last
+
+    # ------------------------------------------------------------------ inputs
+
+    def _check_inputs(self, t, odometry, gnss) -> str:
+        if not np.isfinite(t):
+            return "time not finite"
+        if self.t_prev is not None and t < self.t_prev:
+            return "time went backwards"
+        if odometry is not None and not (np.isfinite(odometry.speed) and np.isfinite(odometry.yaw_rate)):
+            return "odometry not finite"
+        if gnss is not None:
+            if gnss.p_map.shape != (3,) or not np.all(np.isfinite(gnss.p_map)):
+                return "GNSS fix invalid"
+            if not (gnss.sigma_h_m > 0 and gnss.sigma_v_m > 0):
+                return "GNSS sigmas invalid"
+        return ""
+
+    def _bad_input(self, t, reason: str) -> LocalizationResult:
+        """Bad input is data: count it, log it once, return the last result with the reason."""
+        self._count(reason.split(":")[0])
+        if self._last is not None:
+            return replace(self._last, reason=reason)
+        return self._uninitialised(float(t) if np.isfinite(t) else 0.0, None, reason)
+
+    def _count(self, key: str) -> None:
+        if key not in self.stats:
+            log.info("localizer: first %r", key)
+        self.stats[key] = self.stats.get(key, 0) + 1
+
+    # ------------------------------------------------------------------ prediction and updates
+
+    def _predict(self, dt: float, odo_a, odo_b) -> tuple[np.ndarray, np.ndarray]:
+        """Unicycle prediction of the state over dt with the mean of the two odometry readings."""
+        p = self.params
+        y, P = self.y.copy(), self.P.copy()
+        if dt <= 0.0:
+            return y, P
+        odos = [o for o in (odo_a, odo_b) if o is not None]
+        if odos:
+            vm = float(np.mean([o.speed for o in odos]))
+            wm = float(np.mean([o.yaw_rate for o in odos]))
+            sv2 = p.speed_sigma_mps**2 + (p.speed_scale_sigma * vm) ** 2
+            sw2 = p.yaw_rate_sigma_radps**2
+        else:  # no odometry: stand still, with wide noise
+            vm, wm = 0.0, 0.0
+            sv2, sw2 = 10.0**2, 0.5**2
+        k, b = y[_SCALE], y[_GYRO]
+        v, w = k * vm, wm - b
+        th = y[5] + 0.5 * w * dt
+        c, s = np.cos(th), np.sin(th)
+        phi = np.exp(-dt / p.gnss_bias_tau_s)
+        y[0] += v * dt * c
+        y[1] += v * dt * s
+        y[5] = wrap_angle(y[5] + w * dt)
+        y[_GB] *= phi
+        F = np.eye(_N)
+        F[0, 5], F[1, 5] = -v * dt * s, v * dt * c
+        F[0, _SCALE], F[1, _SCALE] = vm * dt * c, vm * dt * s
+        F[0, _GYRO], F[1, _GYRO] = 0.5 * v * dt * dt * s, -0.5 * v * dt * dt * c
+        F[5, _GYRO] = -dt
+        F[8, 8] = F[9, 9] = phi
+        G = np.zeros((_N, 2))  # d state / d (speed noise, yaw-rate noise)
+        G[0, 0], G[1, 0] = k * dt * c, k * dt * s
+        G[0, 1], G[1, 1] = -0.5 * v * dt * dt * s, 0.5 * v * dt * dt * c
+        G[5, 1] = dt
+        Q = G @ np.diag([sv2, sw2]) @ G.T
+        lat = np.array([-s, c])
+        Q[:2, :2] += np.outer(lat, lat) * p.lateral_sigma_mps**2 * dt**2 + np.eye(2) * 1e-6 * dt
+        Q[2, 2] += p.z_sigma_mps**2 * dt
+        Q[3, 3] += p.roll_pitch_sigma_radps**2 * dt
+        Q[4, 4] += p.roll_pitch_sigma_radps**2 * dt
+        Q[_SCALE, _SCALE] += p.scale_rw_sigma**2 * dt
+        Q[_GYRO, _GYRO] += p.gyro_bias_rw_sigma**2 * dt
+        Q[8, 8] += p.gnss_bias_sigma_m**2 * (1.0 - phi**2)
+        Q[9, 9] += p.gnss_bias_sigma_m**2 * (1.0 - phi**2)
+        P = F @ P @ F.T + Q
+        return y, 0.5 * (P + P.T)
+
+    def _match(self, frame: CameraFrame, y, P) -> tuple[MatchResult | None, str]:
+        """Match from the predicted pose; the result if accepted, else None and the reason.
+
+        The last attempt (accepted or not) is kept in ``self._attempt`` for the quality figures.
+        """
+        p = self.params
+        x_pred, Pxx = y[:6], P[:6, :6]
+        try:
+            match = self.matcher.match(frame, x_pred, Pxx, None)
+            self._attempt = match
+        except ValueError as exc:  # a malformed frame: count it, go on without it
+            self._count("frame invalid")
+            return None, f"frame invalid: {exc}"
+        if not match.converged:
+            return None, match.reason
+        d = match.pose_filtered - x_pred
+        d[5] = wrap_angle(d[5])
+        chi2 = float(d @ np.linalg.solve(Pxx, d))
+        if chi2 > p.jump_gate_chi2:
+            self._count("match_jump")
+            self._jumps += 1
+            return None, f"jump: chi2 {chi2:.1f} > {p.jump_gate_chi2}"
+        return match, ""
+
+    def _widen(self, P, gnss: GnssMeasurement | None) -> np.ndarray:
+        """P with the position and yaw variance raised to what GNSS alone would give."""
+        p = self.params
+        P = P.copy()
+        var_h = p.gnss_bias_sigma_m**2 + self._gnss_white_var(gnss) + p.init_extra_sigma_m**2
+        P[0, 0] += var_h
+        P[1, 1] += var_h
+        P[5, 5] += p.init_yaw_sigma_rad**2
+        return P
+
+    def _match_update(self, y, P, match: MatchResult) -> tuple[np.ndarray, np.ndarray]:
+        """Fold the matcher's posterior on the pose into the whole state (information form).
+
+        The matcher solved with the pose marginal (x_pred, P_xx) as its prior and returned the
+        posterior (x_f, P_f); its measurement information is Lambda = P_f^-1 - P_xx^-1 with the
+        information vector P_f^-1 (x_f - x_pred). Adding both to the state's information gives the
+        pose posterior (x_f, P_f) again and updates the odometry and GNSS biases through their
+        correlation with the pose.
+        """
+        Pxx = P[:6, :6]
+        I_f = np.linalg.inv(match.cov_filtered)
+        Lam = I_f - np.linalg.inv(Pxx)
+        d = match.pose_filtered - y[:6]
+        d[5] = wrap_angle(d[5])
+        Y = np.linalg.inv(P)
+        Y[:6, :6] += 0.5 * (Lam + Lam.T)
+        P_new = np.linalg.inv(Y)
+        eta = np.zeros(_N)
+        eta[:6] = I_f @ d
+        dy = P_new @ eta  # the prior is centred on y: delta form
+        y = y.copy()
+        y[:6] = match.pose_filtered  # the exact nonlinear solution for the pose block
+        y[6:] += dy[6:]
+        return y, 0.5 * (P_new + P_new.T)
+
+    def _gnss_white_var(self, gnss: GnssMeasurement | None) -> float:
+        p = self.params
+        if gnss is None:
+            return p.gnss_white_min_sigma_m**2
+        return max(gnss.sigma_h_m**2 - p.gnss_bias_sigma_m**2, p.gnss_white_min_sigma_m**2)
+
+    def _gnss_update(self, y, P, gnss: GnssMeasurement | None):
+        """EKF update with the horizontal fix, z = p_xy + b + white; dropped (counted) beyond the gate."""
+        if gnss is None:
+            return y, P, False
+        H = np.zeros((2, _N))
+        H[:, :2] = np.eye(2)
+        H[:, _GB] = np.eye(2)
+        R = np.eye(2) * self._gnss_white_var(gnss)
+        r = gnss.p_map[:2] - H @ y
+        S = H @ P @ H.T + R
+        chi2 = float(r @ np.linalg.solve(S, r))
+        if chi2 > self.params.gnss_gate_chi2:
+            self._count("gnss rejected")
+            return y, P, False
+        if chi2 > self.params.gnss_soft_chi2:
+            R = R * (chi2 / self.params.gnss_soft_chi2)
+        y, P = _kf_update(y, P, H, r, R)
+        return y, P, True
+
+    def _ground_update(self, y, P):
+        """Pseudo-measurements in fallback: height on the road, roll and pitch at their nominal values."""
+        p = self.params
+        rows, res, var = [], [], []
+        z_ground = self._ground_height(y)
+        if z_ground is not None:
+            rows.append(np.eye(_N)[2])
+            res.append(z_ground + p.matcher.body_height_m - y[2])
+            var.append(p.ground_sigma_m**2)
+        for i, nominal in zip((3, 4), p.matcher.nominal_roll_pitch_rad, strict=True):
+            rows.append(np.eye(_N)[i])
+            res.append(nominal - y[i])
+            var.append(p.ground_roll_pitch_sigma_rad**2)
+        return _kf_update(y, P, np.array(rows), np.array(res), np.diag(var))
+
+    def _ground_height(self, x) -> float | None:
+        tree = self.matcher._lane_tree
+        if tree is None:
+            return None
+        d, i = tree.query(np.asarray(x)[:2])
+        return float(self.matcher._lane_xyz[i, 2]) if d < 30.0 else None
+
+    # ------------------------------------------------------------------ start-up
+
+    def _advance_init(self, t, odometry, gnss) -> None:
+        """Dead-reckon the path since the first GNSS fix (for the course over ground)."""
+        p = self.params
+        it = self._init
+        if gnss is None:
+            return
+        if it.g0 is None:
+            it.g0 = gnss.p_map[:2].copy()
+            return
+        if self.t_prev is None or odometry is None:
+            return
+        dt = t - self.t_prev
+        if dt <= 0 or dt > p.max_gap_s:
+            return
+        v, w = odometry.speed, odometry.yaw_rate
+        th = it.theta + 0.5 * w * dt
+        if abs(v) >= p.init_min_speed_mps:
+            it.p = it.p + v * dt * np.array([np.cos(th), np.sin(th)])
+        it.theta += w * dt
+
+    def _course(self, gnss: GnssMeasurement | None) -> tuple[float, float] | None:
+        """Yaw from the GNSS displacement aligned with the dead-reckoned path, and its 1-sigma."""
+        it = self._init
+        if gnss is None or it.g0 is None:
+            return None
+        dg = gnss.p_map[:2] - it.g0
+        dist = float(np.linalg.norm(dg))
+        if dist < self.params.init_course_distance_m or np.linalg.norm(it.p) < 0.5 * dist:
+            return None
+        offset = np.arctan2(dg[1], dg[0]) - np.arctan2(it.p[1], it.p[0])
+        sigma = float(2.0 * np.sqrt(2.0) * gnss.sigma_h_m / dist)
+        return float(wrap_angle(offset + it.theta)), sigma
+
+    def _map_headings(self, p_xy) -> list[float]:
+        """Driving directions of the centre lines near p_xy (deduplicated within 20 deg)."""
+        out: list[float] = []
+        for line in self._lanes:
+            s = line.project(np.array([p_xy[0], p_xy[1], 0.0]))
+            q = line.point_at(s)
+            if np.hypot(q[0] - p_xy[0], q[1] - p_xy[1]) > self.params.init_lane_search_m:
+                continue
+            tng = line.tangent_at(s)
+            yaw = float(np.arctan2(tng[1], tng[0]))
+            if all(abs(wrap_angle(yaw - o)) > np.radians(20.0) for o in out):
+                out.append(yaw)
+        return out
+
+    def _init_state(self, gnss: GnssMeasurement, yaw: float, sigma_yaw: float) -> None:
+        """State at the GNSS fix with heading yaw; position error = -(bias + white): tied to the bias."""
+        p = self.params
+        z0 = self._ground_height(gnss.p_map)
+        x = np.array(
+            [
+                gnss.p_map[0],
+                gnss.p_map[1],
+                gnss.p_map[2] if z0 is None else z0 + p.matcher.body_height_m,
+                *p.matcher.nominal_roll_pitch_rad,
+                wrap_angle(yaw),
+            ]
+        )
+        vb = p.gnss_bias_sigma_m**2
+        vh = vb + self._gnss_white_var(gnss) + p.init_extra_sigma_m**2
+        vz = gnss.sigma_v_m**2 if z0 is None else p.ground_sigma_m**2
+        self.y = np.concatenate([x, [1.0, 0.0, 0.0, 0.0]])
+        self.P = np.diag(
+            [
+                vh,
+                vh,
+                vz,
+                p.ground_roll_pitch_sigma_rad**2,
+                p.ground_roll_pitch_sigma_rad**2,
+                sigma_yaw**2,
+                p.scale_init_sigma**2,
+                p.gyro_bias_init_sigma_radps**2,
+                vb,
+                vb,
+            ]
+        )
+        self.P[0, 8] = self.P[8, 0] = self.P[1, 9] = self.P[9, 1] = -vb
+
+    def _try_initialise(self, frame, gnss: GnssMeasurement | None) -> bool:
+        """Set the state from GNSS and a heading if one is available now (see the module doc)."""
+        p = self.params
+        if gnss is None:
+            return False
+        if self._initial_yaw is not None:
+            self._init_state(gnss, self._initial_yaw, p.init_yaw_sigma_rad)
+            return True
+        cands = self._map_headings(gnss.p_map[:2])
+        course = self._course(gnss)
+        if len(cands) == 1:
+            self._init_state(gnss, cands[0], p.init_yaw_sigma_rad)
+            return True
+        if cands and course is not None:
+            best = min(cands, key=lambda yaw: abs(wrap_angle(yaw - course[0])))
+            if abs(wrap_angle(best - course[0])) < max(3.0 * course[1], np.radians(30.0)):
+                self._init_state(gnss, best, p.init_yaw_sigma_rad)
+                return True
+        if cands and frame is not None and not frame.is_empty():
+            # Try each candidate heading with the camera: exactly one should converge.
+            converged = []
+            for yaw in cands:
+                self._init_state(gnss, yaw, p.init_yaw_sigma_rad)
+                try:
+                    res = self.matcher.match(frame, self.y[:6], self.P[:6, :6], None)
+                except ValueError:
+                    break
+                if res.converged:
+                    converged.append((2 * res.n_points + res.n_poles, yaw))
+            self.y = self.P = None
+            if len(converged) == 1:
+                self._init_state(gnss, converged[0][1], p.init_yaw_sigma_rad)
+                return True
+        if not cands and course is not None:
+            self._init_state(gnss, course[0], max(course[1], p.init_yaw_sigma_rad))
+            return True
+        return False
+
+    # ------------------------------------------------------------------ results
+
+    def _uninitialised(self, t: float, gnss: GnssMeasurement | None, reason: str) -> LocalizationResult:
+        """The GNSS position with an unknown heading (or nothing at all)."""
+        p = self.params
+        pose = np.zeros(6)
+        cov = np.diag([1e6, 1e6, 1e6, 1.0, 1.0, _UNIFORM_YAW_VAR])
+        if gnss is not None:
+            pose[:3] = gnss.p_map
+            cov[0, 0] = cov[1, 1] = p.gnss_bias_sigma_m**2 + self._gnss_white_var(gnss)
+            cov[2, 2] = gnss.sigma_v_m**2
+            cov[3, 3] = cov[4, 4] = p.ground_roll_pitch_sigma_rad**2
+        return LocalizationResult(t, pose, cov, np.zeros(3), "fallback", False, reason=reason)
+
+    def _result(
+        self,
+        t,
+        mode,
+        odometry,
+        match: MatchResult | None,
+        attempt: MatchResult | None,
+        reason: str,
+        gnss_used: bool,
+    ):
+        speed = float(self.y[_SCALE]) * (odometry.speed if odometry is not None else 0.0)
+        yaw, pitch = self.y[5], self.y[4]
+        vel = speed * np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), -np.sin(pitch)])
+        q = {}
+        if attempt is not None:
+            q = dict(
+                n_points=attempt.n_points,
+                n_poles=attempt.n_poles,
+                n_lane=attempt.n_lane,
+                cost=attempt.cost,
+                iterations=attempt.iterations,
+                converged=attempt.converged,
+            )
+        pose_f, cov_f = self.y[:6].copy(), self.P[:6, :6].copy()
+        pose, cov = pose_f, cov_f
+        frame_pose = frame_cov = None
+        if mode == "map_matching":
+            frame_pose, frame_cov = match.pose.copy(), match.cov.copy()
+            if self.params.report == "frame":
+                pose, cov = frame_pose, frame_cov
+        return LocalizationResult(
+            t=t,
+            pose=pose,
+            cov=cov,
+            velocity_map=vel,
+            mode=mode,
+            initialized=True,
+            reason=reason,
+            gnss_used=gnss_used,
+            pose_filtered=pose_f,
+            cov_filtered=cov_f,
+            pose_frame=frame_pose,
+            cov_frame=frame_cov,
+            **q,
+        )
+
+
+def _kf_update(y, P, H, r, R):
+    """Kalman update with residual r = z - H y (Joseph form); yaw wrapped."""
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    y = y + K @ r
+    y[5] = wrap_angle(y[5])
+    I_KH = np.eye(len(y)) - K @ H
+    P = I_KH @ P @ I_KH.T + K @ R @ K.T
+    return y, 0.5 * (P + P.T)

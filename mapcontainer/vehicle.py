@@ -1,0 +1,113 @@
+"""The vehicle agent: one connected vehicle's on-board logic, as a pure core class.
+
+``VehicleAgent.handle(t, frame)`` turns one SensorFrame into the message the vehicle puts on the
+V2X link: a :class:`~schemas.VehiclePrior` in distributed mode (self-localization by HD-map
+matching, plus this frame's object detections in the body frame with covariance — not filtered
+tracks: the host treats each message as independent evidence), or a
+:class:`~schemas.RawObservations` in centralized mode (the host localizes the vehicle itself).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from schemas import LocalizationQuality, Observations, RawObservations, VehiclePrior
+from schemas.arrays import cov_to_upper
+
+from .geometry import CameraIntrinsics
+from .hdmap.model import HDMap
+from .localization import CameraFrame, Localizer, LocalizerParams
+
+__all__ = ["Mode", "VehicleAgent", "camera_frame"]
+
+Mode = Literal["distributed", "centralized"]
+
+
+def camera_frame(obs: Observations) -> CameraFrame:
+    """The matcher's view of a SensorFrame / RawObservations (decodes the lane-mask PNG)."""
+    cam = obs.camera
+    mask = None
+    if obs.lane_mask_png:
+        mask = cv2.imdecode(np.frombuffer(obs.lane_mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise ValueError("lane_mask_png does not decode as an image")
+    return CameraFrame(
+        intr=CameraIntrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height),
+        T_body_cam=np.asarray(cam.T_body_cam, dtype=float),
+        points_uv=np.asarray(obs.points_uv, dtype=float),
+        points_cls=np.asarray(obs.points_cls),
+        poles_uv=np.asarray(obs.poles_uv, dtype=float),
+        lane_mask=mask,
+    )
+
+
+class VehicleAgent:
+    """One connected vehicle: localizes against the HD map and builds its V2X message."""
+
+    def __init__(
+        self,
+        hdmap: HDMap,
+        vehicle_id: str,
+        fleet: str,
+        mode: Mode = "distributed",
+        params: LocalizerParams | None = None,
+    ):
+        if mode not in ("distributed", "centralized"):
+            raise ValueError(f"mode must be 'distributed' or 'centralized', got {mode!r}")
+        self.vehicle_id = vehicle_id
+        self.fleet = fleet
+        self.mode = mode
+        self.localizer = Localizer(hdmap, params)
+        self._seq = 0
+        self.last: VehiclePrior | None = None
+
+    def localize(self, t: float, obs: Observations) -> VehiclePrior:
+        """Self-localization of this frame as a VehiclePrior (also used by the host in centralized mode)."""
+        res = self.localizer.step(obs.t_meas, camera_frame(obs), obs.odometry, obs.gnss)
+        prior = VehiclePrior(
+            fleet=self.fleet,
+            sender=self.vehicle_id,
+            seq=self._next_seq(),
+            t_meas=obs.t_meas,
+            t_sent=t,
+            pose=res.pose,
+            pose_cov=cov_to_upper(res.cov),
+            v_map=res.velocity_map,
+            quality=LocalizationQuality(**res.quality()),
+            objects=obs.objects,
+        )
+        self.last = prior
+        return prior
+
+    def handle(self, t: float, frame: Observations) -> VehiclePrior | RawObservations:
+        """The V2X message for one sensor frame, sent at time t."""
+        if frame.sender != self.vehicle_id:
+            raise ValueError(f"agent {self.vehicle_id} was given a frame from {frame.sender}")
+        if self.mode == "distributed":
+            return self.localize(t, frame)
+        return RawObservations(
+            **frame.model_dump(exclude={"fleet", "sender", "seq", "t_sent"}),
+            fleet=self.fleet,
+            sender=self.vehicle_id,
+            seq=self._next_seq(),
+            t_sent=t,
+        )
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq - 1
+
+    def figures(self) -> dict[str, float]:
+        """Health figures: the latest localization quality."""
+        if self.last is None:
+            return {}
+        q = self.last.quality
+        return {
+            "map_matching": float(q.mode == "map_matching"),
+            "landmark_inliers": float(q.n_points + q.n_poles),
+            "lane_inliers": float(q.n_lane),
+            "pose_sigma_m": float(np.sqrt(self.last.pose_cov[0] + self.last.pose_cov[6])),
+        }

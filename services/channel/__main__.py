@@ -1,0 +1,8 @@
+"""``python -m services.channel`` (see services.channel.app)."""
+
+import sys
+
+from .app import main, parse_args
+
+if __name__ == "__main__":
+    sys.exit(main(parse_args()))

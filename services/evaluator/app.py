@@ -1,0 +1,162 @@
+"""Evaluator service: live RMSE, end-to-end latency, bytes/s per vehicle and delivered fraction.
+
+Subscribes ground truth, every host's fused state, the vehicles' ``v2x/tx`` (bytes each vehicle
+sends) and the channel's ``v2x/rx`` (what arrived); the figures are defined in
+:mod:`services.evaluator.core`. Once a second it publishes :class:`EvalMetrics` as JSON on
+``mc/{fleet}/eval/metrics`` (not in the schemas registry yet: proposed). On stop it writes
+``eval_summary.json`` and ``birdseye.png`` (truth vs fused, covariance ellipses) to ``--out``.
+Callbacks only enqueue; one worker thread decodes and evaluates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import time
+from pathlib import Path
+
+import msgpack
+from pydantic import Field
+
+from schemas import FusedState, GroundTruth
+from schemas.topics import topic
+
+from ..channel.app import parse_receivers
+from ..runtime import (
+    Received,
+    Service,
+    ServiceSettings,
+    SimClock,
+    add_service_args,
+    service_settings_from_args,
+    setup_logging,
+    write_json,
+)
+from .core import Evaluator
+
+__all__ = ["METRICS_KEY", "EvaluatorSettings", "main", "metrics_key", "parse_args"]
+
+METRICS_KEY = "mc/{fleet}/eval/metrics"
+
+
+def metrics_key(fleet: str) -> str:
+    return METRICS_KEY.format(fleet=fleet)
+
+
+class EvaluatorSettings(ServiceSettings):
+    scenario: str | None = "paper-urban"  # for the map in the picture; None: no map
+    out: str | None = None
+    receivers: dict[str, list[str]] = Field(default_factory=lambda: {"host": []})
+    window_s: float = 5.0
+    stale_input_s: float | None = None
+
+
+def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
+    p = argparse.ArgumentParser(prog="python -m services.evaluator", description=__doc__.splitlines()[0])
+    p.add_argument("--scenario", default="paper-urban", help="for the map in the picture")
+    p.add_argument("--out", default=None, help="directory for eval_summary.json and birdseye.png")
+    p.add_argument("--receiver", action="append", default=None, help="as for the channel: host=cv0")
+    p.add_argument("--window", type=float, default=5.0, help="seconds of the sliding window")
+    add_service_args(p, "evaluator", default_id="evaluator")
+    a = p.parse_args(argv)
+    base = service_settings_from_args(a).model_dump()
+    base["stale_input_s"] = None
+    return EvaluatorSettings(
+        **base, scenario=a.scenario, out=a.out, receivers=parse_receivers(a.receiver), window_s=a.window
+    )
+
+
+def _seq(payload: bytes) -> int | None:
+    try:
+        seq = msgpack.unpackb(payload, raw=False).get("seq")
+    except Exception:  # not our message: counted as bytes, not as a delivery
+        return None
+    return seq if isinstance(seq, int) else None
+
+
+def main(s: EvaluatorSettings) -> int:
+    log = setup_logging("evaluator", s.id, s.log_level)
+    log.info("settings: %s", s.model_dump_json())
+    ev = Evaluator(s.fleet, window_s=s.window_s, onboard={k: set(v) for k, v in s.receivers.items()})
+    clock = SimClock()
+    work: queue.Queue[tuple[str, Received]] = queue.Queue(maxsize=10_000)
+    latest: dict = {"figures": {}}  # replaced whole, never mutated: the health thread reads it
+
+    with Service("evaluator", s, figures=lambda: latest["figures"]) as svc:
+        pub = svc.publisher(metrics_key(s.fleet), drop=True)
+
+        def enqueue(kind: str):
+            def cb(msg: Received) -> None:
+                try:
+                    work.put_nowait((kind, msg))
+                except queue.Full:
+                    svc.metrics.reject("queue_full", "evaluator falls behind", log)
+
+            return cb
+
+        svc.subscribe(topic("truth").key(fleet=s.fleet), enqueue("truth"))
+        svc.subscribe(topic("fused").pattern(fleet=s.fleet), enqueue("fused"))
+        for kind in ("prior", "raw"):
+            svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), enqueue("tx"))
+            svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet), enqueue("rx"))
+
+        def process(kind: str, msg: Received) -> None:
+            now = time.time()
+            if kind == "truth":
+                truth = svc.decode_or_reject(msg.payload, GroundTruth)
+                if truth is not None:
+                    clock.update(msg.attachment)
+                    ev.on_truth(truth)
+            elif kind == "fused":
+                fused = svc.decode_or_reject(msg.payload, FusedState)
+                if fused is not None:
+                    clock.update(msg.attachment)
+                    pub_ns = msg.attachment.get("t_wall_ns") or msg.t_recv_wall_ns
+                    ev.on_fused(fused, pub_ns, clock.wall_ns(fused.t_meas), now)
+            elif kind == "tx":
+                ev.on_tx(msg.key.split("/")[-2], _seq(msg.payload), len(msg.payload), now)
+            else:
+                parts = msg.key.split("/")
+                ev.on_rx(parts[-3], parts[-2], _seq(msg.payload), now)
+
+        def loop() -> None:
+            next_pub = time.monotonic() + 1.0
+            while not svc.stop_requested.is_set():
+                try:
+                    kind, msg = work.get(timeout=max(0.0, min(0.2, next_pub - time.monotonic())))
+                    t0 = time.perf_counter()
+                    process(kind, msg)
+                    svc.metrics.latency.add(time.perf_counter() - t0)
+                except queue.Empty:
+                    pass
+                if time.monotonic() >= next_pub:
+                    next_pub += 1.0
+                    m = ev.snapshot(time.time())
+                    latest["figures"] = {
+                        k: v
+                        for k, v in m.model_dump().items()
+                        if isinstance(v, int | float) and k not in ("seq", "t_wall")
+                    }
+                    pub.put(m.model_dump_json().encode())
+
+        svc.spawn(loop, "evaluate")
+        svc.wait()
+    # the session is closed: write the run's outputs
+    if s.out:
+        out = Path(s.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "eval_summary.json", ev.summary())
+        try:
+            from .plot import render_run
+
+            hdmap = None
+            if s.scenario:
+                from mapcontainer.hdmap.generator import generate_map
+                from mapcontainer.sim.config import load_scenario
+
+                hdmap = generate_map(load_scenario(s.scenario).map)
+            render_run(out / "birdseye.png", ev, hdmap, f"fleet {s.fleet}: truth (red/grey) vs fused (blue)")
+        except Exception:  # the picture is a convenience; the summary is already written
+            log.exception("could not draw birdseye.png")
+        log.info("wrote %s", out / "eval_summary.json")
+    return 0

@@ -1,0 +1,317 @@
+"""The evaluator's core: live accuracy, latency and bandwidth of a running fleet (pure: time is an argument).
+
+Accuracy. Each FusedState is compared with the GroundTruth of the same ``t_meas`` (the host solves
+at camera-frame times; truth is kept for ``truth_keep_s`` and matched within ``t_tol_s``).
+Vehicles are paired by id; objects with true obstacles by the Hungarian algorithm on horizontal
+distance with a gate (as ``mapcontainer.pipeline.match_objects``). Errors are horizontal
+(x, y in the map frame): RMSE = sqrt(mean ||e||^2) over every pair in the window (the paper's
+rms1 for vehicles; its map-frame counterpart for objects).
+
+Latency. End to end = wall time the fused state was published (``t_wall_ns`` in the host's
+attachment) minus the wall time its ``t_meas`` happened on the world's clock
+(``epoch_wall_ns + t_meas / time_scale``), so it includes the vehicle's processing, the link
+model, the host's reorder wait and its solve.
+
+Bandwidth. Payload bytes each vehicle puts on ``v2x/tx`` per second (what the radio would carry),
+and the delivered fraction: distinct (src, seq) received on ``v2x/rx/{dst}/{src}`` over messages
+sent by src to dst (sources on board a receiver excluded) over the last ``delivery_window_s``, each
+message counted once it is ``settle_s`` old (later arrivals count as lost).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, Field
+from scipy.optimize import linear_sum_assignment
+
+from schemas import FusedState, GroundTruth
+from schemas.arrays import cov_from_upper
+
+__all__ = ["EvalMetrics", "Evaluator", "match_objects"]
+
+GATE_M = 3.0
+
+
+class EvalMetrics(BaseModel):
+    """Published as JSON on ``mc/{fleet}/eval/metrics`` once a second (proposed for schemas/).
+
+    Units: metres, milliseconds as named, bytes per second; None when there is nothing to measure yet.
+    """
+
+    fleet: str
+    seq: int = Field(ge=0)
+    t_wall: float = Field(description="Unix time of this snapshot (s)")
+    t_meas: float | None = Field(None, description="scenario time of the newest evaluated fused state (s)")
+    window_s: float
+    fused_per_s: float = 0.0
+    evaluated: int = Field(0, description="fused states compared with truth so far")
+    no_truth: int = Field(0, description="fused states without ground truth at their t_meas")
+    vehicle_rmse_m: float | None = Field(None, description="horizontal, over the window")
+    object_rmse_m: float | None = Field(None, description="horizontal, matched objects, over the window")
+    vehicle_rmse_total_m: float | None = None
+    object_rmse_total_m: float | None = None
+    objects_fused: int = 0
+    objects_matched: int = 0
+    obstacles_truth: int = 0
+    e2e_latency_ms_p50: float | None = None
+    e2e_latency_ms_p99: float | None = None
+    tx_bytes_per_s: dict[str, float] = Field(default_factory=dict, description="per vehicle, payload bytes")
+    tx_msgs_per_s: dict[str, float] = Field(default_factory=dict)
+    tx_bytes_per_msg: dict[str, float] = Field(default_factory=dict)
+    delivered_fraction: float | None = None
+
+
+def match_objects(
+    p_fused: np.ndarray, p_true: np.ndarray, gate_m: float = GATE_M
+) -> tuple[np.ndarray, np.ndarray]:
+    """(true index, fused index) pairs: Hungarian on horizontal distance, pairs beyond the gate removed."""
+    if len(p_fused) == 0 or len(p_true) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    d = np.linalg.norm(p_true[:, None, :2] - p_fused[None, :, :2], axis=2)
+    rows, cols = linear_sum_assignment(np.where(d < gate_m, d, 1e6))
+    ok = d[rows, cols] < gate_m
+    return rows[ok], cols[ok]
+
+
+@dataclass
+class _Sample:
+    t_wall: float
+    vehicle_sq: list[float]
+    object_sq: list[float]
+    latency_ms: float | None
+
+
+@dataclass
+class Evaluator:
+    fleet: str
+    window_s: float = 5.0
+    truth_keep_s: float = 10.0
+    t_tol_s: float = 0.02
+    settle_s: float = 1.0
+    gate_m: float = GATE_M
+    onboard: dict[str, set[str]] = field(
+        default_factory=lambda: {"host": set()}
+    )  # receiver -> on-board sources
+    delivery_window_s: float = 30.0
+    plot_every_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        self._truth: dict[int, GroundTruth] = {}
+        self._pending: deque[tuple[FusedState, int | None, int | None, float]] = deque()
+        self._samples: deque[_Sample] = deque()
+        self._sum_v = self._sum_o = 0.0
+        self._n_v = self._n_o = 0
+        self.evaluated = 0
+        self.no_truth = 0
+        self.t_meas: float | None = None
+        self.last: dict[str, int] = {"objects_fused": 0, "objects_matched": 0, "obstacles_truth": 0}
+        self._tx: dict[str, deque[tuple[float, int]]] = {}
+        self._tx_sent: deque[tuple[float, str, int]] = deque()  # (t_wall, src, seq) not yet settled
+        self._rx_seen: dict[tuple[str, str, int], float] = {}  # (dst, src, seq) -> t_wall received
+        self._settled: deque[tuple[float, bool]] = deque()  # (t_wall sent, delivered) per directed message
+        self.sent_total = 0
+        self.delivered_total = 0
+        self.tx_bytes_total: dict[str, int] = {}
+        self.tx_msgs_total: dict[str, int] = {}
+        self._lat_all: list[float] = []
+        self._by_vehicle: dict[str, list] = {}  # vid -> [sum of squared errors, pairs]
+        self._seq = 0
+        # picture material: truth and fused tracks every plot_every_s, the last fused state
+        self.tracks_truth: dict[str, list[tuple[float, float]]] = {}
+        self.tracks_fused: dict[str, list[tuple[float, float]]] = {}
+        self.fused_objects: list[tuple[float, float]] = []
+        self.last_fused: FusedState | None = None
+        self.last_truth: GroundTruth | None = None
+        self._last_plot_t = -np.inf
+
+    # -- inputs -----------------------------------------------------------------------------
+    @staticmethod
+    def _k(t: float) -> int:
+        return int(round(t * 1000))
+
+    def on_truth(self, truth: GroundTruth) -> None:
+        self._truth[self._k(truth.t_meas)] = truth
+        lo = self._k(truth.t_meas - self.truth_keep_s)
+        for k in [k for k in self._truth if k < lo]:
+            del self._truth[k]
+        if truth.t_meas - self._last_plot_t >= self.plot_every_s - 1e-9:
+            self._last_plot_t = truth.t_meas
+            for vid, pose in zip(truth.vehicle_ids, truth.vehicle_pose, strict=True):
+                self.tracks_truth.setdefault(vid, []).append((float(pose[0]), float(pose[1])))
+            for oid, p in zip(truth.obstacle_id, truth.obstacle_p_map, strict=True):
+                self.tracks_truth.setdefault(f"o{int(oid)}", []).append((float(p[0]), float(p[1])))
+
+    def _find_truth(self, t: float) -> GroundTruth | None:
+        k = self._k(t)
+        if k in self._truth:
+            return self._truth[k]
+        tol = self._k(self.t_tol_s)
+        best = min(self._truth, key=lambda x: abs(x - k), default=None)
+        return self._truth[best] if best is not None and abs(best - k) <= tol else None
+
+    def on_fused(
+        self, fused: FusedState, pub_wall_ns: int | None, t_meas_wall_ns: int | None, now_wall: float
+    ) -> None:
+        """A fused state, when it was published, and when its t_meas happened (wall clock, ns)."""
+        self._pending.append((fused, pub_wall_ns, t_meas_wall_ns, now_wall))
+        self._resolve(now_wall)
+
+    def _resolve(self, now_wall: float) -> None:
+        keep: deque = deque()
+        while self._pending:
+            fused, pub_ns, meas_ns, t_in = self._pending.popleft()
+            truth = self._find_truth(fused.t_meas)
+            if truth is None:
+                newest = max(self._truth, default=None)
+                if now_wall - t_in < 2.0 and (newest is None or newest < self._k(fused.t_meas)):
+                    keep.append((fused, pub_ns, meas_ns, t_in))  # truth not here yet
+                else:
+                    self.no_truth += 1
+                continue
+            self._evaluate(fused, truth, pub_ns, meas_ns, now_wall)
+        self._pending = keep
+
+    def _evaluate(self, fused: FusedState, truth: GroundTruth, pub_ns, meas_ns, now_wall: float) -> None:
+        v_sq = []
+        tid = {v: i for i, v in enumerate(truth.vehicle_ids)}
+        for i, vid in enumerate(fused.vehicle_ids):
+            if vid in tid:
+                p_hat = np.asarray(fused.vehicle_pose[i][:2], float)
+                e = p_hat - np.asarray(truth.vehicle_pose[tid[vid]][:2], float)
+                v_sq.append(float(e @ e))
+                acc = self._by_vehicle.setdefault(vid, [0.0, 0])
+                acc[0] += float(e @ e)
+                acc[1] += 1
+        p_f = np.asarray(fused.object_p_map, float).reshape(-1, 3)
+        p_t = np.asarray(truth.obstacle_p_map, float).reshape(-1, 3)
+        ti, fi = match_objects(p_f, p_t, self.gate_m)
+        o_sq = [float(x) for x in np.sum((p_f[fi, :2] - p_t[ti, :2]) ** 2, axis=1)]
+        lat = (pub_ns - meas_ns) * 1e-6 if pub_ns is not None and meas_ns is not None else None
+        self._samples.append(_Sample(now_wall, v_sq, o_sq, lat))
+        if lat is not None:
+            self._lat_all.append(lat)
+            del self._lat_all[:-100_000]
+        self._sum_v += sum(v_sq)
+        self._n_v += len(v_sq)
+        self._sum_o += sum(o_sq)
+        self._n_o += len(o_sq)
+        self.evaluated += 1
+        self.t_meas = fused.t_meas
+        self.last = {"objects_fused": len(p_f), "objects_matched": len(ti), "obstacles_truth": len(p_t)}
+        self.last_fused = fused
+        self.last_truth = truth  # the truth at the last fused state's t_meas (for the picture)
+        for i, vid in enumerate(fused.vehicle_ids):
+            self.tracks_fused.setdefault(vid, []).append(tuple(float(x) for x in fused.vehicle_pose[i][:2]))
+        if len(p_f):
+            self.fused_objects.extend((float(x), float(y)) for x, y in p_f[:, :2])
+            del self.fused_objects[:-20000]
+
+    def on_tx(self, src: str, seq: int | None, nbytes: int, now_wall: float) -> None:
+        self._tx.setdefault(src, deque()).append((now_wall, nbytes))
+        self.tx_bytes_total[src] = self.tx_bytes_total.get(src, 0) + nbytes
+        self.tx_msgs_total[src] = self.tx_msgs_total.get(src, 0) + 1
+        if seq is not None:
+            self._tx_sent.append((now_wall, src, seq))
+
+    def on_rx(self, dst: str, src: str, seq: int | None, now_wall: float) -> None:
+        if seq is not None:
+            self._rx_seen[(dst, src, seq)] = now_wall
+
+    # -- outputs ----------------------------------------------------------------------------
+    def _settle(self, now_wall: float) -> None:
+        """Messages sent more than settle_s ago: count them as delivered or not, once."""
+        while self._tx_sent and self._tx_sent[0][0] <= now_wall - self.settle_s:
+            t, src, seq = self._tx_sent.popleft()
+            for dst, onboard in self.onboard.items():
+                if src == dst or src in onboard:
+                    continue
+                got = self._rx_seen.pop((dst, src, seq), None) is not None
+                self._settled.append((t, got))
+                self.sent_total += 1
+                self.delivered_total += got
+        lo = now_wall - self.delivery_window_s
+        while self._settled and self._settled[0][0] < lo:
+            self._settled.popleft()
+        for key in [k for k, t in self._rx_seen.items() if t < lo - self.settle_s]:
+            del self._rx_seen[key]  # received but never seen sent (e.g. sent before we started)
+
+    def _delivered_fraction(self) -> float | None:
+        if not self._settled:
+            return None
+        return sum(got for _, got in self._settled) / len(self._settled)
+
+    def snapshot(self, now_wall: float) -> EvalMetrics:
+        self._resolve(now_wall)
+        self._settle(now_wall)
+        lo = now_wall - self.window_s
+        while self._samples and self._samples[0].t_wall < lo:
+            self._samples.popleft()
+        for q in self._tx.values():
+            while q and q[0][0] < lo:
+                q.popleft()
+        v = [x for s in self._samples for x in s.vehicle_sq]
+        o = [x for s in self._samples for x in s.object_sq]
+        lat = [s.latency_ms for s in self._samples if s.latency_ms is not None]
+        span = self.window_s
+        self._seq += 1
+        return EvalMetrics(
+            fleet=self.fleet,
+            seq=self._seq,
+            t_wall=now_wall,
+            t_meas=self.t_meas,
+            window_s=self.window_s,
+            fused_per_s=len(self._samples) / span,
+            evaluated=self.evaluated,
+            no_truth=self.no_truth,
+            vehicle_rmse_m=float(np.sqrt(np.mean(v))) if v else None,
+            object_rmse_m=float(np.sqrt(np.mean(o))) if o else None,
+            vehicle_rmse_total_m=float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,
+            object_rmse_total_m=float(np.sqrt(self._sum_o / self._n_o)) if self._n_o else None,
+            e2e_latency_ms_p50=float(np.percentile(lat, 50)) if lat else None,
+            e2e_latency_ms_p99=float(np.percentile(lat, 99)) if lat else None,
+            tx_bytes_per_s={k: sum(n for _, n in q) / span for k, q in sorted(self._tx.items())},
+            tx_msgs_per_s={k: len(q) / span for k, q in sorted(self._tx.items())},
+            tx_bytes_per_msg={k: sum(n for _, n in q) / len(q) for k, q in sorted(self._tx.items()) if q},
+            delivered_fraction=self._delivered_fraction(),
+            **self.last,
+        )
+
+    def summary(self) -> dict:
+        """Whole-run figures for the final report."""
+        lat = self._lat_all
+        return {
+            "evaluated": self.evaluated,
+            "no_truth": self.no_truth,
+            "t_meas_last": self.t_meas,
+            "vehicle_rmse_m": float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,
+            "object_rmse_m": float(np.sqrt(self._sum_o / self._n_o)) if self._n_o else None,
+            "vehicle_pairs": self._n_v,
+            "vehicle_rmse_by_id_m": {
+                k: float(np.sqrt(a / n)) for k, (a, n) in sorted(self._by_vehicle.items()) if n
+            },
+            "object_pairs": self._n_o,
+            "e2e_latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
+            "e2e_latency_ms_p99": float(np.percentile(lat, 99)) if lat else None,
+            "tx_bytes_total": dict(sorted(self.tx_bytes_total.items())),
+            "tx_msgs_total": dict(sorted(self.tx_msgs_total.items())),
+            "tx_bytes_per_msg": {
+                k: self.tx_bytes_total[k] / n for k, n in sorted(self.tx_msgs_total.items()) if n
+            },
+            "directed_messages_settled": self.sent_total,
+            "delivered_fraction": self.delivered_total / self.sent_total if self.sent_total else None,
+        }
+
+    def ellipses(self) -> list[tuple[float, float, np.ndarray]]:
+        """(x, y, 2x2 horizontal covariance) of every vehicle and object in the last fused state."""
+        f = self.last_fused
+        if f is None:
+            return []
+        out = []
+        for pose, cov in zip(f.vehicle_pose, f.vehicle_pose_cov, strict=True):
+            out.append((float(pose[0]), float(pose[1]), cov_from_upper(np.asarray(cov, float))[:2, :2]))
+        for p, cov in zip(f.object_p_map, f.object_cov, strict=True):
+            out.append((float(p[0]), float(p[1]), cov_from_upper(np.asarray(cov, float))[:2, :2]))
+        return out

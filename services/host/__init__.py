@@ -1,0 +1,1 @@
+"""The host role: the fusion container fed from Zenoh; the solver runs in a worker process."""

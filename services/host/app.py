@@ -1,0 +1,203 @@
+"""Host service: the fusion container fed from Zenoh, fused state out at 10 Hz.
+
+Subscribes ``mc/{fleet}/v2x/rx/{hid}/*/prior`` (and ``.../raw`` in centralized mode) and, for
+on-board sources (``--local cv0``: the container runs on the ego vehicle, whose own messages do not
+cross the radio), ``mc/{fleet}/v2x/tx/{src}/prior`` directly. Every payload is handed to the fusion
+loop with its receive time in scenario seconds (from the world's clock carried in the
+attachments); the loop solves once per camera frame (10 Hz), when every known sender's message for
+the frame is in or ``--max-wait`` seconds after its first one (``worker.FrameGate``), and the
+service publishes the FusedState on ``mc/{fleet}/host/{hid}/fused``. The attachment carries the
+world's clock and ``t_wall_ns``.
+
+GTSAM holds the GIL for a whole solve, so by default the container runs in a worker process
+(``multiprocessing`` spawn context, started before the Zenoh session is opened) and this
+process only moves bytes: subscriber callbacks never wait for a solve. ``--inline`` runs the
+same loop in a thread instead (for measuring the difference).
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field
+
+from mapcontainer.config import read_yaml
+from schemas.topics import topic
+
+from ..runtime import (
+    Received,
+    Service,
+    ServiceSettings,
+    SimClock,
+    add_service_args,
+    make_attachment,
+    service_settings_from_args,
+    setup_logging,
+)
+from .worker import fusion_loop, fusion_process
+
+__all__ = ["HostSettings", "main", "parse_args"]
+
+
+class HostSettings(ServiceSettings):
+    scenario: str = "paper-urban"
+    mode: Literal["distributed", "centralized"] = "distributed"
+    max_wait_s: float = Field(0.1, ge=0, le=2, description="wall seconds a frame waits for late senders")
+    known_senders: list[str] | None = None
+    local: list[str] = Field(default_factory=list, description="on-board sources read from their tx topic")
+    params: dict[str, Any] | None = Field(None, description="FusionParams fields (None: defaults)")
+    inline: bool = False
+    inbox: int = 2000
+
+
+def parse_args(argv: list[str] | None = None) -> HostSettings:
+    p = argparse.ArgumentParser(prog="python -m services.host", description=__doc__.splitlines()[0])
+    p.add_argument("--scenario", default="paper-urban", help="scenario whose HD map the host carries")
+    p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
+    p.add_argument("--max-wait", type=float, default=0.1, help="seconds a frame waits for all senders")
+    p.add_argument("--known-senders", default=None, help="comma-separated vehicle ids (default: anyone)")
+    p.add_argument("--local", action="append", default=[], help="on-board source, e.g. cv0 (repeatable)")
+    p.add_argument("--params", default=None, help="YAML file of FusionParams fields")
+    p.add_argument("--inline", action="store_true", help="run the solver in a thread, not a worker process")
+    add_service_args(p, "host", default_id="host")
+    a = p.parse_args(argv)
+    return HostSettings(
+        **service_settings_from_args(a).model_dump(),
+        scenario=a.scenario,
+        mode=a.mode,
+        max_wait_s=a.max_wait,
+        known_senders=[x for x in a.known_senders.split(",") if x] if a.known_senders else None,
+        local=a.local,
+        params=read_yaml(Path(a.params)) if a.params else None,
+        inline=a.inline,
+    )
+
+
+def main(s: HostSettings) -> int:
+    log = setup_logging("host", s.id, s.log_level)
+    log.info("settings: %s", s.model_dump_json())
+    spec = {
+        "scenario": s.scenario,
+        "mode": s.mode,
+        "fleet": s.fleet,
+        "host_id": s.id,
+        "known_senders": s.known_senders,
+        "max_wait_s": s.max_wait_s,
+        "params": s.params,
+    }
+    # The worker starts before the Zenoh session exists (never fork after opening one; spawn anyway).
+    if s.inline:
+        inbox: Any = queue.Queue(maxsize=s.inbox)
+        outbox: Any = queue.Queue()
+        worker: Any = threading.Thread(
+            target=fusion_loop, args=(spec, inbox, outbox), daemon=True, name="fusion"
+        )
+    else:
+        ctx = mp.get_context("spawn")
+        inbox, outbox = ctx.Queue(maxsize=s.inbox), ctx.Queue()
+        worker = ctx.Process(
+            target=fusion_process, args=(spec, inbox, outbox, os.getpid()), daemon=True, name=f"fusion-{s.id}"
+        )
+    worker.start()
+    first = outbox.get(timeout=300)
+    if first[0] != "ready":
+        log.error("the fusion core did not start:\n%s", first[1])
+        return 1
+    log.info("fusion core ready (%s)", "thread" if s.inline else f"worker process {first[1]}")
+
+    clock = SimClock()
+    fig: dict[str, Any] = {
+        "fused_published": 0,
+        "solve_ms": 0.0,
+        "worker_alive": 1.0,
+        "inbox": 0,
+    }
+    core_stats: dict[str, Any] = {"stats": {}}  # replaced whole, never mutated: the health thread reads it
+    t0_mono = time.monotonic()
+    warned = threading.Event()
+
+    def check() -> tuple[str, str | None]:
+        if not worker.is_alive():
+            return "failed", "the fusion worker is gone"
+        return "ok", None
+
+    def figures() -> dict[str, Any]:
+        try:
+            fig["inbox"] = inbox.qsize()
+        except NotImplementedError:  # macOS multiprocessing queues
+            pass
+        return {**core_stats["stats"], **fig}
+
+    rc = 0
+    with Service("host", s, figures=figures, health_check=check) as svc:
+        fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=s.id))
+
+        def on_msg(msg: Received) -> None:
+            clock.update(msg.attachment)
+            t_recv = clock.now(msg.t_recv_wall_ns)
+            if t_recv is None:
+                if not warned.is_set():
+                    warned.set()
+                    log.warning("no world clock in the attachments; receive times are seconds since start")
+                t_recv = time.monotonic() - t0_mono
+            try:
+                inbox.put_nowait(("ingest", msg.payload, t_recv))
+            except queue.Full:
+                svc.metrics.reject("queue_full", f"fusion inbox full ({s.inbox})", log)
+
+        kinds = ["prior"] if s.mode == "distributed" else ["raw"]
+        for kind in kinds:
+            svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet, dst=s.id), on_msg)
+            for src in s.local:
+                svc.subscribe(topic(f"{kind}_tx").key(fleet=s.fleet, src=src), on_msg)
+
+        def drain() -> None:
+            nonlocal rc
+            while not svc.stop_requested.is_set():
+                try:
+                    item = outbox.get(timeout=0.2)
+                except queue.Empty:
+                    if not worker.is_alive():
+                        log.error("the fusion worker exited")
+                        fig["worker_alive"] = 0.0
+                        rc = 1
+                        svc.stop()
+                    continue
+                if item[0] == "error":
+                    svc.metrics.error(item[1].strip().splitlines()[-1])
+                    log.error("fusion error:\n%s", item[1])
+                    continue
+                results = item[-1]
+                if item[0] == "fused":
+                    _, payload, t, solve_s, stats, results = item
+                    fused_pub.put(
+                        payload,
+                        attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **clock.fields()),
+                    )
+                    svc.metrics.latency.add(solve_s)
+                    fig["fused_published"] += 1
+                    fig["solve_ms"] = solve_s * 1e3
+                    core_stats["stats"] = stats
+                for accepted, reason, _ in results:
+                    if not accepted:
+                        svc.metrics.reject(reason or "rejected", "by the container", log)
+
+        svc.spawn(drain, "drain")
+        svc.wait()
+    try:
+        inbox.put(("stop",), timeout=1.0)
+    except queue.Full:
+        pass
+    worker.join(timeout=5.0)
+    if not s.inline:
+        if worker.is_alive():
+            worker.terminate()
+        inbox.cancel_join_thread()  # do not wait on bytes nobody will read
+    return rc

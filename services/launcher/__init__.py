@@ -1,0 +1,1 @@
+"""The launcher: fleet manifests as data, process supervision, run directories and reports."""

@@ -1,0 +1,8 @@
+"""``python -m services.launcher``: run a fleet in the foreground (what ``mapc fleet up`` runs)."""
+
+import sys
+
+from .app import main, parse_args
+
+if __name__ == "__main__":
+    sys.exit(main(parse_args()))

@@ -1,0 +1,464 @@
+"""The launcher: brings a fleet up from a manifest, keeps it up, and takes it down leaving nothing behind.
+
+It is the fleet's Zenoh rendezvous: a peer listening on a free loopback port (or ``--listen``),
+which every service connects to (``--connect``) and any client can use (``mapc health``,
+``mapc fleet status`` prints it). It starts the manifest's processes group by group, a group
+when the previous ones are ready (their liveliness tokens seen), restarts crashed ones with
+backoff, prints a one-line summary each second and, at the end (duration reached, Ctrl-C,
+SIGTERM or ``mapc fleet down``), stops everything in reverse order and writes the report.
+
+Run directory ``runs/<fleet>-<timestamp>/``: ``config.json`` (resolved manifest and parameters),
+``state.json`` (live process table, endpoints, launcher pid), ``events.jsonl``, ``metrics.jsonl``
+(the evaluator's metrics, one line a second), ``logs/<process>.log``, and at the end
+``report.json`` plus the evaluator's ``birdseye.png`` and ``eval_summary.json``. While it runs,
+``runs/active/<fleet>.json`` points at the run directory (``mapc fleet status/down`` read it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.topics import topic
+
+from ..health import split_key
+from ..runtime import ZenohSettings, listening_locators, open_session, write_json
+from .manifest import FleetParams, ProcessSpec, load_manifest, resolve
+from .supervisor import Supervisor
+
+__all__ = ["LauncherSettings", "active_dir", "main", "new_run_dir", "parse_args", "plan", "run"]
+
+log = logging.getLogger("mapc.launcher")
+
+
+class LauncherSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    params: FleetParams
+    manifest: str | None = None
+    runs_dir: str = Field(default_factory=lambda: os.environ.get("MAPC_RUNS_DIR", "runs"))
+    run_dir: str | None = None
+    listen: str = "tcp/127.0.0.1:0"
+    join: str | None = Field(None, description="join this router as a client instead of being the rendezvous")
+    summary: bool = True
+    frozen_kill_s: float = 5.0
+    drain_s: float = 2.0
+
+
+def active_dir(runs_dir: str | Path) -> Path:
+    return Path(runs_dir) / "active"
+
+
+def new_run_dir(runs_dir: str | Path, fleet: str) -> Path:
+    base = Path(runs_dir) / f"{fleet}-{time.strftime('%Y%m%d-%H%M%S')}"
+    d, i = base, 1
+    while d.exists():
+        i += 1
+        d = base.with_name(f"{base.name}-{i}")
+    return d
+
+
+def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[ProcessSpec]:
+    """The processes to run; ConfigError (before anything starts) for an unknown scenario or network."""
+    from mapcontainer.channel import load_profile
+    from mapcontainer.sim.config import load_scenario
+
+    load_scenario(s.params.scenario)
+    load_profile(s.params.network)
+    return resolve(load_manifest(s.manifest), s.params, run_dir, connect)
+
+
+def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = None) -> None:
+    """The ``fleet up`` options (shared by ``mapc fleet up`` and ``python -m services.launcher``)."""
+    d = defaults or FleetParams()
+    p.add_argument("--scenario", default=None, help=f"scenario preset (default {d.scenario})")
+    p.add_argument("--vehicles", type=int, default=None, help=f"connected vehicles (default {d.vehicles})")
+    p.add_argument("--network", default=None, help=f"network profile (default {d.network})")
+    p.add_argument("--duration", type=float, default=None, help="scenario seconds (default: until stopped)")
+    p.add_argument("--fleet", default=None, help=f"fleet name, the key namespace (default {d.fleet})")
+    p.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="default distributed")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--time-scale", type=float, default=None, help="scenario seconds per wall second")
+    p.add_argument("--manifest", default=None, help="fleet manifest (default deploy/fleet.yaml)")
+    p.add_argument(
+        "--runs-dir", default=None, help="where run directories go (default ./runs, env MAPC_RUNS_DIR)"
+    )
+    p.add_argument("--run-dir", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--listen", default="tcp/127.0.0.1:0", help="the rendezvous endpoint (port 0: a free one)")
+    p.add_argument(
+        "--join",
+        default=None,
+        help="multi-host: join this host's router (client) instead of being the rendezvous",
+    )
+    p.add_argument(
+        "--zenoh-config",
+        default=None,
+        help="Zenoh JSON5 file for the launcher and every service ({zenoh_config} in the manifest)",
+    )
+    p.add_argument("--no-summary", action="store_true", help="no live summary line")
+
+
+def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
+    manifest = load_manifest(a.manifest)
+    over = {
+        "fleet": a.fleet,
+        "scenario": a.scenario,
+        "vehicles": a.vehicles,
+        "network": a.network,
+        "duration_s": a.duration,
+        "mode": a.mode,
+        "seed": a.seed,
+        "time_scale": a.time_scale,
+        "zenoh_config": a.zenoh_config,
+    }
+    params = manifest.defaults.model_copy(update={k: v for k, v in over.items() if v is not None})
+    params = FleetParams.model_validate(params.model_dump())
+    kw: dict[str, Any] = {
+        "params": params,
+        "manifest": a.manifest,
+        "run_dir": a.run_dir,
+        "listen": a.listen,
+        "join": a.join,
+        "summary": not a.no_summary,
+    }
+    if a.runs_dir:
+        kw["runs_dir"] = a.runs_dir
+    return LauncherSettings(**kw)
+
+
+def parse_args(argv: list[str] | None = None) -> LauncherSettings:
+    p = argparse.ArgumentParser(prog="python -m services.launcher", description=__doc__.splitlines()[0])
+    add_fleet_args(p)
+    return settings_from_args(p.parse_args(argv))
+
+
+# ---------------------------------------------------------------------------------- summary
+
+
+def summary_line(t_run: float, up: int, expected: int, metrics: dict | None) -> str:
+    """The live one-line summary (pure: easy to test)."""
+
+    def f(x, spec=".2f", unit=""):
+        return "-" if x is None else f"{x:{spec}}{unit}"
+
+    parts = [f"{t_run:6.1f}s", f"up {up}/{expected}"]
+    m = metrics or {}
+    parts.append(
+        f"RMSE veh {f(m.get('vehicle_rmse_m'), '.2f', ' m')} obj {f(m.get('object_rmse_m'), '.2f', ' m')}"
+    )
+    bps = m.get("tx_bytes_per_s") or {}
+    if bps:
+        parts.append("kB/s " + " ".join(f"{k} {v / 1e3:.1f}" for k, v in bps.items()))
+    parts.append(f"delivered {f(m.get('delivered_fraction'), '.3f')}")
+    parts.append(f"e2e p50 {f(m.get('e2e_latency_ms_p50'), '.0f', ' ms')}")
+    return " | ".join(parts)
+
+
+# ---------------------------------------------------------------------------------- the run
+
+
+class _Run:
+    def __init__(self, s: LauncherSettings, run_dir: Path):
+        self.s = s
+        self.run_dir = run_dir
+        self.events_f = open(run_dir / "events.jsonl", "a")  # noqa: SIM115 - closed in run()
+        self.metrics_f = open(run_dir / "metrics.jsonl", "a")  # noqa: SIM115
+        self.lock = threading.RLock()  # events are written from inside supervisor calls made under it
+        self.latest_metrics: dict | None = None
+        self.stop = threading.Event()
+        self.t0 = time.monotonic()
+        self.started_wall = time.time()
+        self.endpoints: list[str] = []
+        self.status = "starting"
+        self.sup: Supervisor | None = None
+
+    def event(self, event: str, name: str, details: dict) -> None:
+        rec = {
+            "t_wall": round(time.time(), 3),
+            "t_run": round(time.monotonic() - self.t0, 3),
+            "event": event,
+            "process": name,
+            **details,
+        }
+        with self.lock:
+            self.events_f.write(json.dumps(rec) + "\n")
+            self.events_f.flush()
+        level = (
+            logging.WARNING
+            if event in ("exited", "alive_lost", "frozen_kill", "stop_timeout")
+            else logging.INFO
+        )
+        if event == "exited" and self.sup is not None and self.sup.stopping:
+            level = logging.INFO
+        log.log(level, "%s %s %s", name, event, details or "")
+
+    def on_metrics(self, sample) -> None:
+        raw = sample.payload.to_bytes()
+        try:
+            m = json.loads(raw)
+        except ValueError:
+            return
+        with self.lock:
+            self.latest_metrics = m
+            self.metrics_f.write(raw.decode() + "\n")
+            self.metrics_f.flush()
+
+    def state(self) -> dict:
+        return {
+            "fleet": self.s.params.fleet,
+            "status": self.status,
+            "launcher_pid": os.getpid(),
+            "run_dir": str(self.run_dir),
+            "endpoints": self.endpoints,
+            "started_wall": self.started_wall,
+            "updated_wall": time.time(),
+            "params": self.s.params.model_dump(),
+            "processes": [p.to_json() for p in self.sup.procs.values()] if self.sup else [],
+        }
+
+    def write_state(self) -> None:
+        write_json(self.run_dir / "state.json", self.state())
+
+
+def _install_signals(stop: threading.Event) -> dict:
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            old[sig] = signal.signal(sig, lambda *_: stop.set())
+    return old
+
+
+def run(s: LauncherSettings) -> int:
+    """Bring the fleet up, supervise it until the end, stop it and write the report. Exit code."""
+    fleet = s.params.fleet
+    plan(s, "<run_dir>", "<connect>")  # configuration errors before anything starts
+    act = active_dir(s.runs_dir)
+    act.mkdir(parents=True, exist_ok=True)
+    pointer = act / f"{fleet}.json"
+    if pointer.exists():
+        try:
+            other = json.loads(pointer.read_text())
+        except ValueError:
+            other = {}
+        from .supervisor import pid_alive
+
+        if other.get("launcher_pid") and pid_alive(int(other["launcher_pid"])):
+            print(
+                f"mapc: fleet {fleet!r} is already running (launcher pid {other['launcher_pid']}, "
+                f"{other.get('run_dir')}); use another --fleet or `mapc fleet down`",
+                file=sys.stderr,
+            )
+            return 2
+    run_dir = Path(s.run_dir) if s.run_dir else new_run_dir(s.runs_dir, fleet)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(
+        level=logging.INFO,
+        format="%(asctime)s %(levelname)-7s launcher %(message)s",
+        handlers=[logging.FileHandler(run_dir / "launcher.log")],
+        force=True,
+    )
+    r = _Run(s, run_dir)
+    old_handlers = _install_signals(r.stop)
+    session = None
+    rc = 0
+    try:
+        zc = s.params.zenoh_config
+        if s.join:  # multi-host: this host's router is the meeting point
+            session = open_session(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
+            r.endpoints = [s.join]
+        else:
+            session = open_session(
+                ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc)
+            )
+            r.endpoints = listening_locators(session)
+        if not r.endpoints:
+            raise RuntimeError("could not read the rendezvous endpoint from the Zenoh admin space")
+        connect = next((e for e in r.endpoints if "127.0.0.1" in e), r.endpoints[0])
+        specs = plan(s, run_dir, connect)
+        write_json(
+            run_dir / "config.json",
+            {
+                "manifest": str(s.manifest or "deploy/fleet.yaml"),
+                "params": s.params.model_dump(),
+                "settings": s.model_dump(),
+                "endpoints": r.endpoints,
+                "processes": [p.to_json() for p in specs],
+            },
+        )
+        sup = r.sup = Supervisor(specs, run_dir / "logs", event=r.event, frozen_kill_s=s.frozen_kill_s)
+        write_json(
+            pointer,
+            {
+                "fleet": fleet,
+                "run_dir": str(run_dir.resolve()),
+                "launcher_pid": os.getpid(),
+                "endpoints": r.endpoints,
+            },
+        )
+        r.write_state()
+
+        def on_alive(sample) -> None:
+            import zenoh
+
+            role, sid = split_key(str(sample.key_expr))
+            with r.lock:
+                sup.on_alive(role, sid, sample.kind == zenoh.SampleKind.PUT)
+
+        keep = [
+            session.liveliness().declare_subscriber(
+                topic("alive").pattern(fleet=fleet), on_alive, history=True
+            )
+        ]
+        from ..evaluator.app import metrics_key
+
+        keep.append(session.declare_subscriber(metrics_key(fleet), r.on_metrics))  # until session.close()
+        if s.summary:
+            print(
+                f"fleet {fleet}: {len(specs)} processes, rendezvous {connect}, run dir {run_dir}", flush=True
+            )
+
+        # start, group by group
+        for order in sup.orders():
+            with r.lock:
+                group = sup.start_group(order)
+            deadline = time.monotonic() + max(p.spec.ready_timeout_s for p in group)
+            while not r.stop.is_set():
+                with r.lock:
+                    sup.step()
+                    ready = sup.all_ready(group)
+                    # a process that dies before it was ever ready has a configuration or code problem:
+                    # restarting it will not help, so the launch fails with its log
+                    crashed = [p for p in group if p.exit_codes and p.state != "ready"]
+                if ready:
+                    break
+                if crashed or time.monotonic() > deadline:
+                    missing = [p.spec.name for p in group if not (p.state == "ready" and p.alive)]
+                    print(f"mapc: not ready: {', '.join(missing)} (see {run_dir / 'logs'})", file=sys.stderr)
+                    for p in crashed:
+                        tail = _tail(run_dir / "logs" / f"{p.spec.name}.log", 15)
+                        print(
+                            f"--- {p.spec.name} exited with {p.exit_codes[-1]}; its log ends:\n{tail}",
+                            file=sys.stderr,
+                        )
+                    rc = 1
+                    r.stop.set()
+                    break
+                r.write_state()
+                r.stop.wait(0.1)
+            if r.stop.is_set():
+                break
+        if not r.stop.is_set():
+            r.status = "running"
+            r.event("fleet_ready", "launcher", {"after_s": round(time.monotonic() - r.t0, 2)})
+        r.write_state()
+
+        # supervise
+        next_print = time.monotonic()
+        completed_at = None
+        world = next((p for p in sup.procs.values() if p.spec.role == "world"), None)
+        while not r.stop.is_set():
+            with r.lock:
+                sup.step()
+                up = sum(p.alive for p in sup.procs.values())
+                metrics = r.latest_metrics
+            if (
+                world is not None
+                and completed_at is None
+                and world.state == "exited"
+                and world.returncode == 0
+            ):
+                completed_at = time.monotonic()
+                r.event("completed", "world", {"drain_s": s.drain_s})
+            if completed_at is not None and time.monotonic() - completed_at >= s.drain_s:
+                break
+            now = time.monotonic()
+            if now >= next_print:
+                next_print += 1.0
+                r.write_state()
+                if s.summary:
+                    print(summary_line(now - r.t0, up, len(sup.procs), metrics), flush=True)
+            r.stop.wait(0.2)
+    except Exception as e:
+        log.exception("launcher failed")
+        print(f"mapc: launcher failed: {e}", file=sys.stderr)
+        rc = 1
+    finally:
+        r.status = "stopping"
+        if r.sup is not None:
+            r.write_state()
+            if s.summary:
+                print("stopping ...", flush=True)
+            r.sup.stop_all()
+        r.status = "stopped"
+        if session is not None:
+            session.close()
+        if r.sup is not None:
+            report = write_report(r)
+            r.write_state()
+            if s.summary:
+                print(json.dumps(report.get("summary", {})), flush=True)
+        r.events_f.close()
+        r.metrics_f.close()
+        try:
+            if json.loads(pointer.read_text()).get("launcher_pid") == os.getpid():
+                pointer.unlink()
+        except (OSError, ValueError):
+            pass
+        for sig, h in old_handlers.items():
+            signal.signal(sig, h)
+    return rc
+
+
+def _tail(path: Path, n: int) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
+    except OSError:
+        return "(no log)"
+
+
+def write_report(r: _Run) -> dict:
+    """report.json: processes (restarts, exit codes), the last metrics and the evaluator's summary."""
+    ev_path = r.run_dir / "eval_summary.json"
+    try:
+        ev = json.loads(ev_path.read_text())
+    except (OSError, ValueError):
+        ev = None
+    procs = [p.to_json() for p in r.sup.procs.values()]
+    summary = {
+        "fleet": r.s.params.fleet,
+        "run_dir": str(r.run_dir),
+        "wall_s": round(time.monotonic() - r.t0, 1),
+        "restarts": sum(p["restarts"] for p in procs),
+        "vehicle_rmse_m": (ev or {}).get("vehicle_rmse_m"),
+        "object_rmse_m": (ev or {}).get("object_rmse_m"),
+        "e2e_latency_ms_p50": (ev or {}).get("e2e_latency_ms_p50"),
+        "delivered_fraction": (ev or {}).get("delivered_fraction"),
+        "tx_bytes_per_msg": (ev or {}).get("tx_bytes_per_msg"),
+        "birdseye": str(r.run_dir / "birdseye.png") if (r.run_dir / "birdseye.png").exists() else None,
+    }
+    report = {
+        "summary": summary,
+        "params": r.s.params.model_dump(),
+        "started_wall": r.started_wall,
+        "ended_wall": time.time(),
+        "endpoints": r.endpoints,
+        "processes": procs,
+        "last_metrics": r.latest_metrics,
+        "evaluation": ev,
+    }
+    write_json(r.run_dir / "report.json", report)
+    return report
+
+
+def main(s: LauncherSettings) -> int:
+    return run(s)

@@ -1,0 +1,172 @@
+"""``mapc fleet up --detach`` / ``status`` / ``down``: find running fleets by their run directories."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from .app import LauncherSettings, active_dir, new_run_dir
+from .supervisor import kill_group, pid_alive
+
+__all__ = ["active_fleets", "detach", "down", "launcher_argv"]
+
+
+def _read(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def active_fleets(runs_dir: str | Path) -> list[dict[str, Any]]:
+    """Every fleet with a pointer in runs/active/: pointer + state.json + whether its launcher lives."""
+    out = []
+    d = active_dir(runs_dir)
+    for ptr in sorted(d.glob("*.json")) if d.is_dir() else []:
+        p = _read(ptr)
+        if not p:
+            continue
+        state = _read(Path(p.get("run_dir", "")) / "state.json") or {}
+        pid = p.get("launcher_pid")
+        out.append(
+            {
+                "fleet": p.get("fleet", ptr.stem),
+                "pointer": str(ptr),
+                "run_dir": p.get("run_dir"),
+                "launcher_pid": pid,
+                "launcher_alive": bool(pid) and pid_alive(int(pid)),
+                "endpoints": state.get("endpoints") or p.get("endpoints") or [],
+                "status": state.get("status"),
+                "processes": state.get("processes", []),
+                "params": state.get("params", {}),
+            }
+        )
+    return out
+
+
+def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
+    """The command line of a detached launcher running ``s`` in ``run_dir``."""
+    p = s.params
+    argv = [
+        sys.executable,
+        "-m",
+        "services.launcher",
+        "--fleet",
+        p.fleet,
+        "--scenario",
+        p.scenario,
+        "--network",
+        p.network,
+        "--mode",
+        p.mode,
+        "--seed",
+        str(p.seed),
+        "--time-scale",
+        str(p.time_scale),
+        "--runs-dir",
+        str(s.runs_dir),
+        "--run-dir",
+        str(run_dir),
+        "--listen",
+        s.listen,
+        "--no-summary",
+    ]
+    if p.vehicles is not None:
+        argv += ["--vehicles", str(p.vehicles)]
+    if p.duration_s is not None:
+        argv += ["--duration", str(p.duration_s)]
+    if s.manifest:
+        argv += ["--manifest", str(s.manifest)]
+    if s.join:
+        argv += ["--join", s.join]
+    if p.zenoh_config:
+        argv += ["--zenoh-config", p.zenoh_config]
+    return argv
+
+
+def detach(s: LauncherSettings, timeout_s: float = 180.0) -> tuple[int, dict[str, Any]]:
+    """Start the launcher in the background and wait until the fleet is running (or failed)."""
+    run_dir = Path(s.run_dir) if s.run_dir else new_run_dir(s.runs_dir, s.params.fleet)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with open(run_dir / "launcher.out", "ab") as out:
+        proc = subprocess.Popen(
+            launcher_argv(s, run_dir),
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            close_fds=True,
+        )
+    deadline = time.monotonic() + timeout_s
+    state: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        state = _read(run_dir / "state.json") or {}
+        if state.get("status") == "running":
+            return 0, {"run_dir": str(run_dir), "launcher_pid": proc.pid, **state}
+        if proc.poll() is not None:
+            break
+        time.sleep(0.2)  # polling another process's file: nothing to wait on
+    return 1, {"run_dir": str(run_dir), "launcher_pid": proc.pid, "returncode": proc.poll(), **state}
+
+
+def _is_ours(pid: int) -> bool:
+    """A process of this project (guards against a recycled pid)."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\x00", b" ")
+    except OSError:
+        return False
+    return b"services." in cmd or b"mapc" in cmd or b"multiprocessing" in cmd
+
+
+def down(runs_dir: str | Path, fleet: str | None = None, timeout_s: float = 90.0) -> tuple[int, list[dict]]:
+    """Stop the named fleet (or every active one): SIGTERM its launcher, wait, then sweep leftovers.
+
+    The launcher stops its services (SIGINT, then SIGKILL) and writes the report. Whatever is still
+    alive afterwards (a launcher that hung or was killed) is killed by process group from state.json.
+    Returns (0 if nothing is left, 1 otherwise; what was done per fleet).
+    """
+    fleets = [f for f in active_fleets(runs_dir) if fleet is None or f["fleet"] == fleet]
+    results = []
+    rc = 0
+    for f in fleets:
+        res: dict[str, Any] = {
+            "fleet": f["fleet"],
+            "run_dir": f["run_dir"],
+            "launcher_pid": f["launcher_pid"],
+        }
+        pid = f["launcher_pid"]
+        if pid and f["launcher_alive"]:
+            os.kill(int(pid), signal.SIGTERM)
+            deadline = time.monotonic() + timeout_s
+            while pid_alive(int(pid)) and time.monotonic() < deadline:
+                time.sleep(0.1)  # not our child: no wait() possible
+            if pid_alive(int(pid)):
+                os.kill(int(pid), signal.SIGKILL)
+                res["launcher_killed"] = True
+        state = _read(Path(f["run_dir"] or "") / "state.json") or {"processes": f["processes"]}
+        swept = []
+        for p in state.get("processes", []):
+            ppid = p.get("pid")
+            if ppid and pid_alive(int(ppid)) and _is_ours(int(ppid)):
+                kill_group(int(ppid), signal.SIGKILL)
+                swept.append(p.get("name"))
+        deadline = time.monotonic() + 2.0
+        procs = state.get("processes", [])
+        while time.monotonic() < deadline and any(p.get("pid") and pid_alive(int(p["pid"])) for p in procs):
+            time.sleep(0.05)  # SIGKILL is asynchronous: wait until the kernel has reaped them
+        left = [p.get("name") for p in procs if p.get("pid") and pid_alive(int(p["pid"]))]
+        if pid and pid_alive(int(pid)):
+            left.append("launcher")
+        res.update(swept=swept, left=left, status=state.get("status"))
+        if left:
+            rc = 1
+        else:
+            Path(f["pointer"]).unlink(missing_ok=True)
+        results.append(res)
+    return rc, results

@@ -1,0 +1,97 @@
+"""Vehicle service: sensors in, V2X message out.
+
+Subscribes ``mc/{fleet}/sim/{vid}/sensors``; each frame goes through a bounded queue to one worker
+thread (frames are handled in order; when the vehicle cannot keep up, new frames are dropped and
+counted as ``queue_full``) that calls ``VehicleAgent.handle(t, frame)`` and publishes the result on
+``mc/{fleet}/v2x/tx/{vid}/prior`` (distributed) or ``.../raw`` (centralized). The attachment passes
+the world's clock on and adds ``t_capture_wall_ns`` (when the world published the frame).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Literal
+
+from mapcontainer.hdmap.generator import generate_map
+from mapcontainer.sim.config import load_scenario
+from schemas import RawObservations, SensorFrame, VehiclePrior, encode
+from schemas.topics import topic
+
+from ..runtime import (
+    Received,
+    Service,
+    ServiceSettings,
+    SimClock,
+    add_service_args,
+    make_attachment,
+    service_settings_from_args,
+    setup_logging,
+)
+
+__all__ = ["VehicleSettings", "main", "parse_args"]
+
+
+class VehicleSettings(ServiceSettings):
+    scenario: str = "paper-urban"  # the HD map comes from the scenario's map spec
+    mode: Literal["distributed", "centralized"] = "distributed"
+    queue: int = 8
+
+
+def parse_args(argv: list[str] | None = None) -> VehicleSettings:
+    p = argparse.ArgumentParser(prog="python -m services.vehicle", description=__doc__.splitlines()[0])
+    p.add_argument("--scenario", default="paper-urban", help="scenario whose HD map the vehicle carries")
+    p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
+    p.add_argument("--queue", type=int, default=8, help="frames waiting before new ones are dropped")
+    add_service_args(p, "vehicle")
+    a = p.parse_args(argv)
+    return VehicleSettings(
+        **service_settings_from_args(a).model_dump(), scenario=a.scenario, mode=a.mode, queue=a.queue
+    )
+
+
+def main(s: VehicleSettings) -> int:
+    from mapcontainer.vehicle import VehicleAgent
+
+    log = setup_logging("vehicle", s.id, s.log_level)
+    log.info("settings: %s", s.model_dump_json())
+    hdmap = generate_map(load_scenario(s.scenario).map)
+    agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode)
+    clock = SimClock()
+    figures_fn = getattr(agent, "figures", None) or getattr(agent, "stats", None)
+    extra = {"sent": 0.0, "last_msg_bytes": 0.0}
+
+    with Service("vehicle", s, figures=lambda: {**(figures_fn() if figures_fn else {}), **extra}) as svc:
+        kind = "prior_tx" if s.mode == "distributed" else "raw_tx"
+        pub = svc.publisher(topic(kind).key(fleet=s.fleet, src=s.id))
+
+        def on_frame(msg: Received) -> None:
+            frame = svc.decode_or_reject(msg.payload, SensorFrame)
+            if frame is None:
+                return
+            if frame.sender != s.id:
+                svc.metrics.reject("wrong_sender", f"frame from {frame.sender} on {msg.key}", log)
+                return
+            clock.update(msg.attachment)
+            t_now = clock.now()
+            out = agent.handle(frame.t_meas if t_now is None else t_now, frame)
+            if not isinstance(out, VehiclePrior | RawObservations):
+                svc.metrics.reject(getattr(out, "reason", "no_output"), str(out)[:200], log)
+                return
+            payload = encode(out)
+            pub.put(
+                payload,
+                attachment=make_attachment(
+                    t_wall_ns=time.time_ns(),
+                    t_capture_wall_ns=msg.attachment.get("t_wall_ns"),
+                    **clock.fields(),
+                ),
+            )
+            extra["sent"] += 1
+            extra["last_msg_bytes"] = float(len(payload))
+
+        svc.subscribe_queued(
+            topic("sensors").key(fleet=s.fleet, vid=s.id), on_frame, maxsize=s.queue, name="frames"
+        )
+        svc.wait()
+    return 0

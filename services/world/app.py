@@ -1,0 +1,174 @@
+"""World service: ``World(load_scenario(name), seed, fleet)`` paced to wall clock x ``--time-scale``.
+
+Publishes each vehicle's SensorFrame on ``mc/{fleet}/sim/{vid}/sensors`` and GroundTruth on
+``mc/{fleet}/sim/truth``. Frame k is computed ahead, then published at its due wall time
+``epoch + k dt / time_scale``; the attachment carries the clock (``epoch_wall_ns``, ``time_scale``)
+and the publish time (``t_wall_ns``). If a frame takes longer than its period the world falls
+behind: the lag is a health figure and the state turns degraded beyond ``--max-lag``.
+
+With ``--state-file`` the clock is kept in a file: a restarted world resumes the same timeline
+(at the frame now due, with fresh sensor noise state) instead of starting again at t = 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+from pydantic import Field
+
+from mapcontainer.sim.config import load_scenario
+from mapcontainer.sim.world import World
+from schemas import encode
+from schemas.topics import topic
+
+from ..runtime import (
+    Service,
+    ServiceSettings,
+    add_service_args,
+    make_attachment,
+    service_settings_from_args,
+    setup_logging,
+    write_json,
+)
+from .core import Pacer, scale_scenario
+
+__all__ = ["WorldSettings", "main", "parse_args"]
+
+
+class WorldSettings(ServiceSettings):
+    scenario: str = "paper-urban"
+    seed: int = 0
+    vehicles: int | None = Field(None, ge=1, description="connected vehicles (None: the scenario's)")
+    time_scale: float = Field(1.0, gt=0, le=100, description="scenario seconds per wall second")
+    duration_s: float | None = Field(None, gt=0, description="scenario seconds to run; None: until stopped")
+    wait_subscribers_s: float = Field(10.0, ge=0, description="wait this long for the vehicles' subscribers")
+    start_delay_s: float = Field(0.2, ge=0, description="wall seconds between the clock's epoch and now")
+    max_lag_s: float = Field(0.5, gt=0, description="degraded when publishing this far behind the clock")
+    state_file: str | None = None
+    stale_input_s: float | None = None  # the world has no input
+
+
+def parse_args(argv: list[str] | None = None) -> WorldSettings:
+    p = argparse.ArgumentParser(prog="python -m services.world", description=__doc__.splitlines()[0])
+    p.add_argument("--scenario", default="paper-urban")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--vehicles", type=int, default=None)
+    p.add_argument("--time-scale", type=float, default=1.0)
+    p.add_argument("--duration", type=float, default=None, help="scenario seconds; default: until stopped")
+    p.add_argument("--wait-subscribers", type=float, default=10.0)
+    p.add_argument("--state-file", default=None, help="keep the clock here; a restart resumes the timeline")
+    add_service_args(p, "world", default_id="world")
+    a = p.parse_args(argv)
+    base = service_settings_from_args(a).model_dump()
+    base["stale_input_s"] = None
+    return WorldSettings(
+        **base,
+        scenario=a.scenario,
+        seed=a.seed,
+        vehicles=a.vehicles,
+        time_scale=a.time_scale,
+        duration_s=a.duration,
+        wait_subscribers_s=a.wait_subscribers,
+        state_file=a.state_file,
+    )
+
+
+def _load_clock(path: str | None, s: WorldSettings) -> int | None:
+    """The epoch of a previous run of this world (same scenario, seed, scale), if any."""
+    if not path or not os.path.exists(path):
+        return None
+    try:
+        st = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    same = (st.get("scenario"), st.get("seed"), st.get("time_scale"), st.get("vehicles")) == (
+        s.scenario,
+        s.seed,
+        s.time_scale,
+        s.vehicles,
+    )
+    return int(st["epoch_wall_ns"]) if same and isinstance(st.get("epoch_wall_ns"), int) else None
+
+
+def main(s: WorldSettings) -> int:
+    log = setup_logging("world", s.id, s.log_level)
+    log.info("settings: %s", s.model_dump_json())
+    sc = scale_scenario(load_scenario(s.scenario), s.vehicles)
+    world = World(sc, seed=s.seed, fleet=s.fleet)
+    fig: dict[str, float] = {
+        "k": 0,
+        "t": 0.0,
+        "lag_s": 0.0,
+        "late_frames": 0,
+        "vehicles": len(world.vehicle_ids),
+        "tick_ms": 0.0,
+    }
+
+    def check() -> tuple[str, str | None]:
+        if fig["lag_s"] > s.max_lag_s:
+            return "degraded", f"{fig['lag_s']:.2f} s behind the clock (frames take {fig['tick_ms']:.0f} ms)"
+        return "ok", None
+
+    with Service("world", s, figures=lambda: fig, health_check=check) as svc:
+        pubs = {vid: svc.publisher(topic("sensors").key(fleet=s.fleet, vid=vid)) for vid in world.vehicle_ids}
+        truth_pub = svc.publisher(topic("truth").key(fleet=s.fleet))
+        svc.ready()
+        if s.wait_subscribers_s > 0 and not svc.wait_matching(pubs.values(), s.wait_subscribers_s):
+            missing = [v for v, p in pubs.items() if not p.matching]
+            log.warning(
+                "no subscriber yet for %s after %.1f s; starting anyway", missing, s.wait_subscribers_s
+            )
+        epoch = _load_clock(s.state_file, s)
+        if epoch is None:
+            epoch = time.time_ns() + int(s.start_delay_s * 1e9)
+            if s.state_file:
+                write_json(
+                    Path(s.state_file),
+                    {
+                        "epoch_wall_ns": epoch,
+                        "scenario": s.scenario,
+                        "seed": s.seed,
+                        "time_scale": s.time_scale,
+                        "vehicles": s.vehicles,
+                    },
+                )
+        pacer = Pacer(epoch, world.dt, s.time_scale)
+        k = pacer.first_k_at(time.time_ns())
+        if k:
+            log.info("resuming the timeline at frame %d (t = %.1f s)", k, pacer.t(k))
+        log.info(
+            "publishing %d vehicles at %.1f Hz x %.2f from epoch %d",
+            len(pubs),
+            1 / world.dt,
+            s.time_scale,
+            epoch,
+        )
+        while not svc.stop_requested.is_set():
+            t = pacer.t(k)
+            if s.duration_s is not None and t >= s.duration_s - 1e-9:
+                log.info("duration %.1f s reached", s.duration_s)
+                break
+            c0 = time.perf_counter()
+            tick = world.tick(k)
+            payloads = {vid: encode(f) for vid, f in tick.frames.items()}
+            truth = encode(tick.truth)
+            fig["tick_ms"] = (time.perf_counter() - c0) * 1e3
+            due = pacer.due_wall_ns(k)
+            if svc.wait(max(0.0, (due - time.time_ns()) * 1e-9)):
+                break
+            now = time.time_ns()
+            lag = (now - due) * 1e-9
+            if lag > world.dt / s.time_scale:
+                fig["late_frames"] += 1
+            att = make_attachment(t_wall_ns=now, epoch_wall_ns=epoch, time_scale=s.time_scale)
+            for vid, payload in payloads.items():
+                pubs[vid].put(payload, attachment=att)
+            truth_pub.put(truth, attachment=att)
+            fig.update(k=k, t=t, lag_s=max(lag, 0.0))
+            svc.metrics.latency.add(fig["tick_ms"] * 1e-3)
+            k += 1
+    return 0

@@ -1,0 +1,158 @@
+"""Service processes on loopback: liveliness, health over Zenoh, clean SIGINT shutdown, router mode.
+
+Each test has its own rendezvous on a free port and its own fleet name (fixtures in conftest.py).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import time
+
+import pytest
+
+from schemas import HealthStatus, VehiclePrior, decode
+from schemas.topics import topic
+from services.health import fleet_health
+from services.runtime import ZenohSettings, open_session
+
+pytestmark = pytest.mark.integration
+
+
+def test_world_is_seen_healthy_and_stops_cleanly_on_sigint(
+    rendezvous, fleet_name, spawn, mapc, watch_liveliness
+):
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    world = spawn(
+        "services.world",
+        "--fleet",
+        fleet_name,
+        "--connect",
+        endpoint,
+        "--wait-subscribers",
+        "0",
+        "--vehicles",
+        "1",
+    )
+    key = topic("alive").key(fleet=fleet_name, role="world", id="world")
+    alive.wait_alive(key, timeout=60)
+
+    proc = mapc("health", "--fleet", fleet_name, "--connect", endpoint, "--json")
+    assert proc.returncode == 0, proc.stderr
+    services = json.loads(proc.stdout)
+    assert [(s["role"], s["id"], s["state"]) for s in services] == [("world", "world", "ok")]
+    assert services[0]["uptime_s"] > 0 and "figures" in services[0]
+
+    # the periodic status put arrives too, and it is publishing frames
+    statuses = []
+    sub = session.declare_subscriber(
+        topic("health").key(fleet=fleet_name, role="world", id="world"),
+        lambda s: statuses.append(decode(s.payload.to_bytes(), HealthStatus)),
+    )
+    deadline = time.monotonic() + 10
+    while not any(s and s.msgs_out_per_s > 0 for s in statuses) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    sub.undeclare()
+    assert any(s and s.msgs_out_per_s > 0 for s in statuses), statuses
+
+    world.send_signal(signal.SIGINT)
+    assert world.wait(timeout=20) == 0, world.log_path.read_text()[-2000:]
+    alive.wait_gone(key, timeout=5)
+
+
+def test_health_exit_code_2_when_nothing_answers(rendezvous, fleet_name, mapc):
+    _, endpoint = rendezvous
+    proc = mapc("health", "--fleet", fleet_name, "--connect", endpoint, "--json")
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    assert json.loads(proc.stdout) == []
+    unreachable = mapc("health", "--fleet", fleet_name, "--connect", "tcp/127.0.0.1:1")
+    assert unreachable.returncode == 2
+
+
+def test_sensor_frames_become_priors_behind_the_channel(rendezvous, fleet_name, spawn, watch_liveliness):
+    """world -> vehicle -> channel -> v2x/rx/host/cv1/prior, decoded as a VehiclePrior (cv0 is on board)."""
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    common = ["--fleet", fleet_name, "--connect", endpoint]
+    spawn("services.channel", *common, "--network", "ideal", "--receiver", "host=cv0")
+    spawn("services.vehicle", *common, "--id", "cv1")
+    for role, sid in (("channel", "channel"), ("vehicle", "cv1")):
+        alive.wait_alive(topic("alive").key(fleet=fleet_name, role=role, id=sid), timeout=60)
+    got = []
+    sub = session.declare_subscriber(
+        topic("prior_rx").pattern(fleet=fleet_name, dst="host"),
+        lambda s: got.append((str(s.key_expr), s.payload.to_bytes())),
+    )
+    spawn("services.world", *common, "--vehicles", "2", "--duration", "3", "--wait-subscribers", "3")
+    deadline = time.monotonic() + 60
+    while len(got) < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    sub.undeclare()
+    assert len(got) >= 3
+    keys = {k for k, _ in got}
+    assert keys == {topic("prior_rx").key(fleet=fleet_name, dst="host", src="cv1")}  # cv0 had no vehicle
+    prior = decode(got[-1][1], VehiclePrior)
+    assert prior and prior.sender == "cv1" and prior.fleet == fleet_name
+
+    views = {(v.role, v.id): v for v in fleet_health(session, fleet_name, timeout_s=2.0)}
+    vehicle = views[("vehicle", "cv1")].status
+    assert vehicle.msgs_in_per_s > 0 and vehicle.msgs_out_per_s > 0 and vehicle.latency_ms_p50 is not None
+    channel = views[("channel", "channel")].status
+    assert channel.figures["offered_msgs"] >= 3 and channel.figures["delivered_fraction"] == 1.0
+
+
+def test_router_mode_with_clients(fleet_name, spawn, wait_for, watch_liveliness):
+    """The multi-host recipe on one machine: a router, a service and a health client as Zenoh clients."""
+    router = spawn("services.router", "--fleet", fleet_name, "--listen", "tcp/127.0.0.1:0")
+    line = wait_for(
+        lambda: re.search(r"listening on \['(tcp/127\.0\.0\.1:\d+)'", router.log_path.read_text()),
+        timeout=60,
+        what="the router's endpoint in its log",
+    )
+    endpoint = line.group(1)
+    spawn(
+        "services.world",
+        "--fleet",
+        fleet_name,
+        "--zenoh-mode",
+        "client",
+        "--connect",
+        endpoint,
+        "--wait-subscribers",
+        "0",
+        "--vehicles",
+        "1",
+    )
+    session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+    try:
+        alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+        for role in ("router", "world"):
+            alive.wait_alive(topic("alive").key(fleet=fleet_name, role=role, id=role), timeout=60)
+        views = fleet_health(session, fleet_name, timeout_s=2.0)
+        assert {(v.role, v.state) for v in views} == {("router", "ok"), ("world", "ok")}
+    finally:
+        session.close()
+    router.send_signal(signal.SIGINT)
+    assert router.wait(timeout=20) == 0
+
+
+def test_dry_run_prints_the_plan_and_starts_nothing(tmp_path, mapc):
+    proc = mapc(
+        "fleet",
+        "up",
+        "--dry-run",
+        "--json",
+        "--vehicles",
+        "3",
+        "--mode",
+        "centralized",
+        "--runs-dir",
+        str(tmp_path),
+    )
+    assert proc.returncode == 0, proc.stderr
+    plan = json.loads(proc.stdout)
+    assert plan["params"]["mode"] == "centralized"
+    assert [p["name"] for p in plan["processes"]].count("vehicle-cv2") == 1
+    assert not any(tmp_path.iterdir())

@@ -1,0 +1,174 @@
+"""The launcher with a real fleet on loopback: up, health, crash and restart, down leaving nothing behind.
+
+Every fleet gets a unique name, its own runs directory and a rendezvous on a free port.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from schemas.topics import topic
+from services.runtime import ZenohSettings, open_session
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+
+def _state(run_dir: Path) -> dict:
+    return json.loads((run_dir / "state.json").read_text())
+
+
+def _events(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "events.jsonl").read_text().splitlines() if line.strip()]
+
+
+def test_fleet_up_health_kill_restart_and_down(
+    tmp_path, fleet_name, mapc, wait_for, watch_liveliness, process_groups_alive
+):
+    runs = tmp_path / "runs"
+    up = mapc(
+        "fleet",
+        "up",
+        "--detach",
+        "--json",
+        "--fleet",
+        fleet_name,
+        "--vehicles",
+        "2",
+        "--network",
+        "ideal",
+        "--runs-dir",
+        str(runs),
+        timeout=240,
+    )
+    assert up.returncode == 0, up.stdout + up.stderr
+    info = json.loads(up.stdout)
+    run_dir = Path(info["run_dir"])
+    try:
+        state = _state(run_dir)
+        assert state["status"] == "running"
+        names = {p["name"] for p in state["processes"]}
+        assert names == {"evaluator", "host", "channel", "vehicle-cv0", "vehicle-cv1", "world"}
+        pgids = {p["pgid"] for p in state["processes"]} | {info["launcher_pid"]}
+
+        status = mapc("fleet", "status", "--json", "--runs-dir", str(runs))
+        assert status.returncode == 0
+        fleets = json.loads(status.stdout)
+        assert [f["fleet"] for f in fleets] == [fleet_name] and fleets[0]["endpoints"]
+
+        # every expected service answers and is healthy (after the first frames have flowed)
+        def healthy():
+            h = mapc("health", "--fleet", fleet_name, "--runs-dir", str(runs), "--json")
+            rows = json.loads(h.stdout) if h.stdout.strip() else []
+            return rows if h.returncode == 0 and len(rows) == 6 else None
+
+        rows = wait_for(healthy, timeout=60, what="all six services healthy", every=0.5)
+        assert {(r["role"], r["id"]) for r in rows} == {
+            ("evaluator", "evaluator"),
+            ("host", "host"),
+            ("channel", "channel"),
+            ("vehicle", "cv0"),
+            ("vehicle", "cv1"),
+            ("world", "world"),
+        }
+        assert all(r["state"] == "ok" for r in rows)
+
+        # SIGKILL a vehicle: its token disappears within 2 s and the launcher restarts it
+        endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
+        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        try:
+            alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+            key = topic("alive").key(fleet=fleet_name, role="vehicle", id="cv1")
+            alive.wait_alive(key, timeout=10)
+            victim = next(p for p in state["processes"] if p["name"] == "vehicle-cv1")
+            t_kill_wall = time.time()
+            t_kill = time.monotonic()
+            os.kill(victim["pid"], signal.SIGKILL)
+            seen_gone = alive.wait_gone(key, timeout=5)
+            assert seen_gone - t_kill < 2.0
+            alive.wait_alive(key, timeout=60)  # back: restarted by the launcher
+        finally:
+            session.close()
+
+        def restarted():
+            ev = [
+                e
+                for e in _events(run_dir)
+                if e["process"] == "vehicle-cv1" and e["t_wall"] >= t_kill_wall - 0.5
+            ]
+            kinds = [e["event"] for e in ev]
+            return ev if {"exited", "started", "ready"} <= set(kinds) else None
+
+        ev = wait_for(restarted, timeout=30, what="the launcher's restart events")
+        exited = next(e for e in ev if e["event"] == "exited")
+        assert exited["returncode"] == -signal.SIGKILL
+        assert exited["t_wall"] - t_kill_wall < 2.0
+        vehicle = next(p for p in _state(run_dir)["processes"] if p["name"] == "vehicle-cv1")
+        assert vehicle["restarts"] == 1 and vehicle["pid"] != victim["pid"]
+        pgids.add(vehicle["pgid"])
+    finally:
+        down = mapc("fleet", "down", "--fleet", fleet_name, "--runs-dir", str(runs), timeout=180)
+    assert down.returncode == 0, down.stdout + down.stderr
+    assert "no process left" in down.stdout
+    assert process_groups_alive(pgids) == []
+    assert not (runs / "active" / f"{fleet_name}.json").exists()
+    assert _state(run_dir)["status"] == "stopped"
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["summary"]["restarts"] == 1
+    assert {p["name"]: p["state"] for p in report["processes"]}["world"] == "stopped"
+    assert (run_dir / "logs" / "vehicle-cv1.log").read_text().count("start:") == 2
+    assert mapc("fleet", "status", "--runs-dir", str(runs)).returncode == 1
+
+
+def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, mapc):
+    runs = tmp_path / "runs"
+    proc = mapc(
+        "fleet",
+        "up",
+        "--fleet",
+        fleet_name,
+        "--vehicles",
+        "2",
+        "--duration",
+        "6",
+        "--network",
+        "dsrc",
+        "--runs-dir",
+        str(runs),
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    lines = proc.stdout.strip().splitlines()
+    assert any("up 6/6" in line for line in lines), lines[:5]
+    summary = json.loads(lines[-1])
+    run_dir = Path(summary["run_dir"])
+    assert summary["restarts"] == 0
+    for name in (
+        "config.json",
+        "state.json",
+        "events.jsonl",
+        "metrics.jsonl",
+        "report.json",
+        "eval_summary.json",
+        "birdseye.png",
+        "logs/world.log",
+        "logs/host.log",
+    ):
+        assert (run_dir / name).stat().st_size > 0, name
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["params"]["fleet"] == fleet_name and len(config["processes"]) == 6
+    ev = json.loads((run_dir / "eval_summary.json").read_text())
+    assert ev["evaluated"] > 10
+    assert ev["tx_msgs_total"]["cv0"] > 10 and 0 < ev["tx_bytes_per_msg"]["cv1"] < 2000
+    assert ev["delivered_fraction"] is not None and ev["delivered_fraction"] > 0.8
+    assert ev["vehicle_rmse_m"] is not None and ev["object_rmse_m"] is not None
+    metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert len(metrics) >= 3 and metrics[-1]["fleet"] == fleet_name
+    report = json.loads((run_dir / "report.json").read_text())
+    assert all(p["exit_codes"] and p["exit_codes"][-1] == 0 for p in report["processes"]), report["processes"]
+    assert not (runs / "active" / f"{fleet_name}.json").exists()

@@ -1,0 +1,224 @@
+"""services.runtime: rate counters, latency percentiles, health status building, Zenoh config building."""
+
+from __future__ import annotations
+
+import pytest
+
+from schemas import HealthStatus, decode, encode
+from services.health import ServiceView, exit_code, format_table, split_key
+from services.runtime import (
+    LatencySamples,
+    RateCounter,
+    ServiceMetrics,
+    SimClock,
+    ZenohSettings,
+    build_health,
+    build_zenoh_config,
+    flatten_figures,
+    make_attachment,
+    read_attachment,
+)
+
+
+class FakeClock:
+    def __init__(self, t: float = 100.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+# ------------------------------------------------------------------------------ counters
+
+
+def test_rate_counter_counts_over_the_sliding_window() -> None:
+    clk = FakeClock()
+    rc = RateCounter(window_s=2.0, clock=clk)
+    clk.t += 10.0  # older than the window: the span is the full window
+    for _ in range(20):  # 10 Hz for 2 s, 100 bytes each
+        rc.add(100)
+        clk.t += 0.1
+    rate, bps = rc.rates()
+    assert rate == pytest.approx(10.0, rel=0.06)
+    assert bps == pytest.approx(1000.0, rel=0.06)
+    assert rc.total == 20 and rc.total_bytes == 2000
+    clk.t += 5.0  # silence: everything leaves the window
+    assert rc.rates() == (0.0, 0.0)
+    assert rc.idle_s() == pytest.approx(5.1)
+
+
+def test_rate_counter_young_counter_is_not_underreported() -> None:
+    clk = FakeClock()
+    rc = RateCounter(window_s=5.0, clock=clk)
+    for _ in range(10):
+        rc.add(10)
+        clk.t += 0.1
+    rate, _ = rc.rates()  # 10 events in 1 s of life: 10/s, not 10/5 = 2/s
+    assert rate == pytest.approx(10.0, rel=0.01)
+    assert RateCounter(1.0).idle_s() is None
+
+
+def test_rate_counter_rejects_a_bad_window() -> None:
+    with pytest.raises(ValueError, match="window_s"):
+        RateCounter(0)
+
+
+def test_latency_percentiles_in_ms() -> None:
+    lat = LatencySamples(maxlen=1000)
+    assert lat.percentiles_ms() == [None, None]
+    for i in range(1, 101):
+        lat.add(i * 1e-3)
+    p50, p99 = lat.percentiles_ms((50, 99))
+    assert p50 == pytest.approx(50.5)
+    assert p99 == pytest.approx(99.01)
+
+
+# ------------------------------------------------------------------------------ health
+
+
+def test_flatten_figures() -> None:
+    fig = flatten_figures(
+        {"a": 1, "b": {"c": 2.5, "d": True}, "mode": "map_matching", "n": None, "x": float("nan")}
+    )
+    assert fig == {"a": 1.0, "b.c": 2.5, "b.d": 1.0, "mode.map_matching": 1.0}
+
+
+def test_build_health_round_trips_through_the_codec() -> None:
+    m = ServiceMetrics(window_s=5.0)
+    for _ in range(3):
+        m.msgs_in.add(200)
+    m.msgs_out.add(50)
+    m.latency.add(0.002)
+    m.reject("malformed", "bad bytes")
+    m.reject("malformed", "bad bytes")
+    m.reject("queue_full")
+    h = build_health(
+        fleet="f1",
+        role="vehicle",
+        sid="cv0",
+        seq=7,
+        uptime_s=12.5,
+        metrics=m,
+        state="degraded",
+        note="input stalled",
+        figures={"inliers": 12, "loc": {"mode": "fallback"}},
+        now_wall_s=1000.0,
+    )
+    assert isinstance(h, HealthStatus)
+    assert (h.role, h.sender, h.seq, h.state, h.uptime_s) == ("vehicle", "cv0", 7, "degraded", 12.5)
+    assert h.msgs_in_per_s > 0 and h.bytes_in_per_s == pytest.approx(3 * 200 * h.msgs_in_per_s / 3)
+    assert h.latency_ms_p50 == pytest.approx(2.0)
+    assert h.rejects == {"malformed": 2, "queue_full": 1}
+    assert h.last_error == "input stalled"
+    assert h.figures == {"inliers": 12.0, "loc.mode.fallback": 1.0}
+    back = decode(encode(h), HealthStatus)
+    assert back == h
+
+
+def test_build_health_rejects_an_unknown_state() -> None:
+    with pytest.raises(ValueError, match="state"):
+        build_health(fleet="f", role="r", sid="i", seq=0, uptime_s=0, metrics=ServiceMetrics(), state="meh")
+
+
+def _view(role, sid, state, alive=True, status=True):
+    st = None
+    if status:
+        st = build_health(
+            fleet="f",
+            role=role,
+            sid=sid,
+            seq=1,
+            uptime_s=1,
+            metrics=ServiceMetrics(),
+            state=state if state in ("ok", "degraded", "failed") else "ok",
+        )
+    return ServiceView(role, sid, alive, state, st)
+
+
+def test_health_exit_codes() -> None:
+    assert exit_code([]) == 2
+    assert exit_code([_view("world", "world", "missing", alive=False, status=False)]) == 2
+    assert exit_code([_view("world", "world", "ok"), _view("host", "host", "ok")]) == 0
+    assert exit_code([_view("world", "world", "ok"), _view("host", "host", "degraded")]) == 1
+    assert exit_code([_view("world", "world", "ok"), _view("host", "host", "missing", False, False)]) == 1
+    assert exit_code([_view("world", "world", "unresponsive", True, False)]) == 1
+
+
+def test_health_table_and_json() -> None:
+    views = [_view("world", "world", "ok"), _view("host", "host", "missing", False, False)]
+    table = format_table(views, "f")
+    assert "world" in table and "missing" in table
+    js = views[0].to_json()
+    assert js["role"] == "world" and js["state"] == "ok" and "uptime_s" in js and "figures" in js
+    assert split_key("mc/f/alive/vehicle/cv0") == ("vehicle", "cv0")
+    with pytest.raises(ValueError):
+        split_key("mc/f")
+
+
+# ------------------------------------------------------------------------------ zenoh config
+
+
+def test_peer_config_is_the_verified_recipe() -> None:
+    conf = build_zenoh_config(ZenohSettings(connect=["tcp/127.0.0.1:7000"]))
+    assert conf["mode"] == "peer"
+    assert conf["listen"]["endpoints"] == ["tcp/127.0.0.1:0"]
+    assert conf["connect"] == {
+        "endpoints": ["tcp/127.0.0.1:7000"],
+        "timeout_ms": 3000,
+        "exit_on_failure": True,
+    }
+    assert conf["scouting"]["multicast"]["enabled"] is False
+    assert conf["scouting"]["gossip"]["autoconnect_strategy"]["peer"]["to_peer"] == "greater-zid"
+    assert 1000 <= conf["transport"]["link"]["tx"]["lease"] <= 2000
+    assert "adminspace" not in conf
+
+
+def test_client_and_router_configs() -> None:
+    client = build_zenoh_config(ZenohSettings(mode="client", connect=["tcp/10.0.0.1:7447"]))
+    assert client["mode"] == "client" and "listen" not in client
+    router = build_zenoh_config(ZenohSettings(mode="router", connect=["tcp/10.0.0.2:7447"], adminspace=True))
+    assert router["listen"]["endpoints"] == ["tcp/0.0.0.0:7447"]
+    assert router["scouting"]["delay"] == 0
+    assert router["adminspace"] == {"enabled": True}
+    assert "gossip" not in router["scouting"]
+
+
+def test_configs_are_accepted_by_zenoh() -> None:
+    import json
+
+    import zenoh
+
+    for s in (
+        ZenohSettings(),
+        ZenohSettings(mode="client", connect=["tcp/127.0.0.1:1"]),
+        ZenohSettings(mode="router"),
+    ):
+        conf = zenoh.Config.from_json5(json.dumps(build_zenoh_config(s)))
+        assert json.loads(conf.get_json("mode")) == (s.mode or "peer")
+
+
+def test_settings_validate() -> None:
+    with pytest.raises(ValueError):
+        ZenohSettings(lease_ms=10)
+    with pytest.raises(ValueError):
+        ZenohSettings(mode="satellite")
+
+
+# ------------------------------------------------------------------------------ clock and attachments
+
+
+def test_sim_clock_maps_scenario_time_to_wall_time() -> None:
+    c = SimClock()
+    assert c.now() is None and c.wall_ns(1.0) is None and not c.known
+    assert not c.update({"epoch_wall_ns": "x"})
+    assert c.update({"epoch_wall_ns": 1_000_000_000, "time_scale": 0.5})
+    assert c.wall_ns(2.0) == 5_000_000_000  # 2 s of scenario at half speed: 4 s of wall time
+    assert c.now(5_000_000_000) == pytest.approx(2.0)
+
+
+def test_attachment_round_trip_and_garbage() -> None:
+    raw = make_attachment(t_wall_ns=123, epoch_wall_ns=None, time_scale=1.0)
+    assert read_attachment(raw) == {"t_wall_ns": 123, "time_scale": 1.0}
+    assert read_attachment(b"\xc1\xff") == {}
+    assert read_attachment(None) == {}
+    assert read_attachment(make_attachment()) == {}

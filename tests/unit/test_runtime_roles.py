@@ -1,0 +1,316 @@
+"""The roles' pure pieces: world pacing, manifests, restart backoff, frame gate, relay, evaluator."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from mapcontainer.config import ConfigError
+from mapcontainer.sim.config import load_scenario
+from schemas import FusedState, GroundTruth
+from services.channel.app import Relay, parse_receivers
+from services.evaluator.core import Evaluator, match_objects
+from services.evaluator.plot import ellipse_params
+from services.host.worker import FrameGate
+from services.launcher.app import parse_args as launcher_parse_args
+from services.launcher.app import summary_line
+from services.launcher.control import launcher_argv
+from services.launcher.manifest import FleetParams, Manifest, RestartPolicy, load_manifest, resolve
+from services.world.core import Pacer, scale_scenario
+
+# ------------------------------------------------------------------------------ world
+
+
+def test_pacer_maps_frames_to_wall_time() -> None:
+    p = Pacer(epoch_wall_ns=10**12, dt=0.1, time_scale=0.5)
+    assert p.due_wall_ns(0) == 10**12
+    assert p.due_wall_ns(10) == 10**12 + 2 * 10**9  # 1 s of scenario at half speed
+    assert p.first_k_at(10**12 + 2 * 10**9) == 10
+    assert p.first_k_at(10**12 + 2 * 10**9 + 1) == 11
+    assert p.first_k_at(0) == 0
+    with pytest.raises(ValueError):
+        Pacer(0, 0.0, 1.0)
+
+
+def test_scale_scenario_trims_and_extends() -> None:
+    sc = load_scenario("paper-urban")
+    assert scale_scenario(sc, None) is sc
+    assert len(scale_scenario(sc, 2).connected) == 2
+    big = scale_scenario(sc, 9)
+    assert len(big.connected) == 9 and big.connected[:4] == sc.connected
+    with pytest.raises(ValueError):
+        scale_scenario(sc, 0)
+
+
+# ------------------------------------------------------------------------------ manifest
+
+
+def test_default_manifest_resolves() -> None:
+    m = load_manifest()
+    specs = resolve(m, FleetParams(fleet="f1", vehicles=3, duration_s=None), "/tmp/run", "tcp/127.0.0.1:9")
+    names = [s.name for s in specs]
+    assert names[0] == "evaluator" and names[-1] == "world"
+    assert {"vehicle-cv0", "vehicle-cv1", "vehicle-cv2", "host", "channel"} <= set(names)
+    orders = [s.start_order for s in specs]
+    assert orders == sorted(orders)
+    world = specs[-1]
+    assert "--duration" not in world.argv  # optional pair left out
+    assert world.argv[world.argv.index("--vehicles") + 1] == "3"
+    for s in specs:
+        a = s.argv
+        assert a[1:3] == ["-m", s.module]
+        assert a[a.index("--fleet") + 1] == "f1" and a[a.index("--id") + 1] == s.id
+        assert a[a.index("--connect") + 1] == "tcp/127.0.0.1:9"
+    host = next(s for s in specs if s.role == "host")
+    assert host.argv[host.argv.index("--known-senders") + 1] == "cv0,cv1,cv2"
+    with_duration = resolve(m, FleetParams(duration_s=12.0), "/tmp/run", "tcp/x:1")
+    assert with_duration[-1].argv[with_duration[-1].argv.index("--duration") + 1] == "12.0"
+
+
+def test_manifest_errors_name_the_problem() -> None:
+    base = {
+        "name": "m",
+        "processes": [
+            {"name": "a", "module": "services.world", "role": "world", "id": "w", "args": ["--x", "{nope}"]}
+        ],
+    }
+    with pytest.raises(ConfigError, match="nope"):
+        resolve(Manifest.model_validate(base), FleetParams(), "/r", "tcp/x:1")
+    dup = {
+        "name": "m",
+        "processes": [
+            {"name": "a", "module": "m", "role": "r", "id": "i"},
+            {"name": "a", "module": "m", "role": "r", "id": "j"},
+        ],
+    }
+    with pytest.raises(ConfigError, match="unique"):
+        resolve(Manifest.model_validate(dup), FleetParams(), "/r", "tcp/x:1")
+    none_arg = {
+        "name": "m",
+        "processes": [{"name": "a", "module": "m", "role": "r", "id": "i", "args": ["{duration_s}"]}],
+    }
+    with pytest.raises(ConfigError, match="pair"):
+        resolve(Manifest.model_validate(none_arg), FleetParams(), "/r", "tcp/x:1")
+
+
+def test_restart_policy_backoff() -> None:
+    p = RestartPolicy(backoff_initial_s=0.5, backoff_factor=2.0, backoff_max_s=3.0, max_restarts=5)
+    assert [p.delay_s(n) for n in range(1, 6)] == [0.5, 1.0, 2.0, 3.0, 3.0]
+    assert p.wants_restart(-9, 0) and p.wants_restart(1, 4)
+    assert not p.wants_restart(0, 0)  # on-failure: a clean exit stays down
+    assert not p.wants_restart(1, 5)  # gave up
+    assert RestartPolicy(policy="always").wants_restart(0, 0)
+    assert not RestartPolicy(policy="never").wants_restart(-9, 0)
+    with pytest.raises(ValueError):
+        p.delay_s(0)
+
+
+def test_detached_launcher_command_line_round_trips(tmp_path) -> None:
+    s = launcher_parse_args(
+        [
+            "--fleet",
+            "abc",
+            "--vehicles",
+            "2",
+            "--duration",
+            "5",
+            "--network",
+            "ideal",
+            "--runs-dir",
+            str(tmp_path),
+        ]
+    )
+    argv = launcher_argv(s, tmp_path / "run")
+    back = launcher_parse_args(argv[3:])
+    assert back.params == s.params
+    assert back.run_dir == str(tmp_path / "run") and not back.summary
+
+
+def test_summary_line() -> None:
+    line = summary_line(
+        12.3,
+        7,
+        8,
+        {
+            "vehicle_rmse_m": 0.123,
+            "object_rmse_m": None,
+            "tx_bytes_per_s": {"cv0": 3700.0},
+            "delivered_fraction": 0.98,
+        },
+    )
+    assert "up 7/8" in line and "veh 0.12 m" in line and "obj -" in line and "cv0 3.7" in line
+    assert "delivered 0.980" in line
+    assert "up 0/0" in summary_line(0, 0, 0, None)
+
+
+# ------------------------------------------------------------------------------ host frame gate
+
+
+def test_frame_gate_waits_for_every_known_sender() -> None:
+    g = FrameGate({"cv0", "cv1"}, max_wait_s=0.1)
+    g.arrived("cv0", 0.1, now=0.0)
+    assert g.due(0.01) is None  # cv1 missing
+    g.arrived("cv1", 0.1, now=0.02)
+    assert g.due(0.02) == pytest.approx(0.1) and g.complete == 1
+    assert g.due(0.03) is None  # solved once
+    g.arrived("cv1", 0.1, now=0.04)  # a late duplicate of a solved frame is ignored
+    assert g.next_deadline() is None
+
+
+def test_frame_gate_times_out_and_skips_to_the_newest() -> None:
+    g = FrameGate({"cv0", "cv1"}, max_wait_s=0.1)
+    g.arrived("cv0", 0.1, now=0.0)
+    g.arrived("cv0", 0.2, now=0.1)
+    assert g.next_deadline() == pytest.approx(0.1)
+    assert g.due(0.15) == pytest.approx(0.1)  # frame 0.1 timed out; 0.2 still waits
+    assert g.due(0.21) == pytest.approx(0.2) and g.timed_out == 2
+
+
+def test_frame_gate_without_a_sender_list_expects_the_active_ones() -> None:
+    g = FrameGate(None, max_wait_s=1.0, active_s=2.0)
+    g.arrived("a", 0.0, now=0.0)
+    assert g.due(0.0) == 0.0  # only a was heard of
+    g.arrived("b", 0.1, now=0.1)
+    g.arrived("a", 0.2, now=0.2)
+    assert g.due(0.2) is None  # a and b are both active now: frames 0.1 (b) and 0.2 (a) wait
+    g.arrived("b", 0.2, now=0.25)
+    assert g.due(0.25) == pytest.approx(0.2)  # complete; the incomplete older frame is dropped
+    assert g.next_deadline() is None
+
+
+# ------------------------------------------------------------------------------ channel relay
+
+
+def test_relay_delivers_after_the_link_latency_and_keeps_attachments() -> None:
+    from mapcontainer.channel import Channel, NetworkProfile
+
+    clk = [0.0]
+    relay = Relay(
+        Channel(NetworkProfile.custom(latency_ms=20.0), seed=1), {"host": ["cv0"]}, clock=lambda: clk[0]
+    )
+    relay.offer("prior", "cv1", b"payload-1", {"epoch_wall_ns": 5})
+    relay.offer("prior", "cv0", b"payload-0", {})  # on board the host: not relayed
+    stop = threading.Event()
+    clk[0] = 0.019
+    assert relay.due(stop, max_wait_s=0.0) == []
+    clk[0] = 0.021
+    out = relay.due(stop, max_wait_s=0.0)
+    assert len(out) == 1
+    d, kind, att, late = out[0]
+    assert (d.src, d.dst, d.payload, kind, att) == (
+        "cv1",
+        "host",
+        b"payload-1",
+        "prior",
+        {"epoch_wall_ns": 5},
+    )
+    assert late == pytest.approx(0.001)
+    st = relay.stats()
+    assert st["offered_msgs"] == 1 and st["delivered_fraction"] == 1.0
+    assert parse_receivers(["host=cv0,cv9", "rsu"]) == {"host": ["cv0", "cv9"], "rsu": []}
+    assert parse_receivers(None) == {"host": []}
+
+
+# ------------------------------------------------------------------------------ evaluator
+
+
+def _truth(t: float, p_vehicle, p_obstacles) -> GroundTruth:
+    n = len(p_obstacles)
+    return GroundTruth(
+        fleet="f",
+        sender="world",
+        seq=int(t * 10),
+        t_meas=t,
+        t_sent=t,
+        vehicle_ids=["cv0"],
+        vehicle_pose=np.array([[*p_vehicle, 0, 0, 0, 0]], float),
+        vehicle_v_map=np.zeros((1, 3)),
+        obstacle_id=np.arange(1, n + 1, dtype=np.uint32),
+        obstacle_cls=np.ones(n, np.uint8),
+        obstacle_p_map=np.array([[*p, 0] for p in p_obstacles], float).reshape(-1, 3),
+        obstacle_v_map=np.zeros((n, 3)),
+        obstacle_yaw=np.zeros(n),
+    )
+
+
+def _fused(t: float, p_vehicle, p_objects) -> FusedState:
+    n = len(p_objects)
+    cov6 = [0.04, 0, 0, 0.04, 0, 0.04]
+    cov21 = np.zeros(21)
+    cov21[[0, 6, 11, 15, 18, 20]] = 0.01
+    return FusedState(
+        fleet="f",
+        sender="host",
+        seq=int(t * 10),
+        t_meas=t,
+        t_sent=t,
+        vehicle_ids=["cv0"],
+        vehicle_pose=np.array([[*p_vehicle, 0, 0, 0, 0]], float),
+        vehicle_pose_cov=cov21[None],
+        object_id=np.arange(n, dtype=np.uint32),
+        object_cls=np.ones(n, np.uint8),
+        object_p_map=np.array([[*p, 0] for p in p_objects], float).reshape(-1, 3),
+        object_v_map=np.zeros((n, 3)),
+        object_cov=np.array([cov6] * n, float).reshape(-1, 6),
+    )
+
+
+def test_evaluator_rmse_latency_and_bandwidth() -> None:
+    ev = Evaluator("f", window_s=5.0, onboard={"host": {"cv0"}}, settle_s=0.5)
+    for k in range(10):
+        t = k * 0.1
+        ev.on_truth(_truth(t, (10.0 + t, 0.0), [(0.0, 0.0), (20.0, 0.0)]))
+        # vehicle 0.3 m off in x, objects 0.4 m off in y, one false object far away
+        ev.on_fused(
+            _fused(t, (10.3 + t, 0.0), [(0.0, 0.4), (20.0, -0.4), (50.0, 50.0)]),
+            pub_wall_ns=int((100 + t) * 1e9) + 50_000_000,
+            t_meas_wall_ns=int((100 + t) * 1e9),
+            now_wall=100 + t,
+        )
+        ev.on_tx("cv1", k, 400, now_wall=100 + t)
+        ev.on_tx("cv0", k, 380, now_wall=100 + t)
+        if k != 3:  # one loss on cv1 -> host; cv0 is on board and not counted
+            ev.on_rx("host", "cv1", k, now_wall=100 + t + 0.02)
+    m = ev.snapshot(101.0)
+    assert m.evaluated == 10 and m.no_truth == 0
+    assert m.vehicle_rmse_m == pytest.approx(0.3, abs=1e-5)
+    assert m.object_rmse_m == pytest.approx(0.4, abs=1e-5)
+    assert (m.objects_fused, m.objects_matched, m.obstacles_truth) == (3, 2, 2)
+    assert m.e2e_latency_ms_p50 == pytest.approx(50.0, abs=0.01)
+    assert m.tx_bytes_per_s == {"cv0": 380 * 10 / 5.0, "cv1": 400 * 10 / 5.0}
+    assert m.tx_bytes_per_msg == {"cv0": 380.0, "cv1": 400.0}
+    assert m.delivered_fraction == pytest.approx(5 / 6)  # sent by 100.5: k = 0..5, k = 3 lost
+    s = ev.summary()
+    assert s["vehicle_rmse_by_id_m"]["cv0"] == pytest.approx(0.3, abs=1e-5)
+    assert s["tx_msgs_total"] == {"cv0": 10, "cv1": 10}
+    assert len(ev.ellipses()) == 1 + 3
+
+
+def test_evaluator_waits_for_truth_then_gives_up() -> None:
+    ev = Evaluator("f")
+    ev.on_fused(_fused(1.0, (0, 0), []), None, None, now_wall=10.0)
+    assert ev.evaluated == 0
+    ev.on_truth(_truth(1.0, (0.1, 0), []))
+    ev.snapshot(10.5)
+    assert ev.evaluated == 1
+    ev.on_fused(
+        _fused(0.5, (0, 0), []), None, None, now_wall=11.0
+    )  # older than any truth kept? no truth at 0.5
+    ev.snapshot(11.0)
+    assert ev.no_truth == 1
+
+
+def test_match_objects_gates() -> None:
+    ti, fi = match_objects(
+        np.array([[0.0, 0.0, 0], [10, 0, 0]]), np.array([[0.5, 0, 0], [30, 0, 0]]), gate_m=3.0
+    )
+    assert ti.tolist() == [0] and fi.tolist() == [0]
+    assert match_objects(np.zeros((0, 3)), np.zeros((2, 3)))[0].size == 0
+
+
+def test_ellipse_params() -> None:
+    w, h, ang = ellipse_params(np.diag([4.0, 1.0]), n_sigma=2.0)
+    assert (w, h) == pytest.approx((8.0, 4.0))
+    assert abs(ang) % 180 == pytest.approx(0.0, abs=1e-9)
