@@ -60,7 +60,7 @@ class VehicleAgent:
         self.vehicle_id = vehicle_id
         self.fleet = fleet
         self.mode = mode
-        self.localizer = Localizer(hdmap, params)
+        self.localizer = Localizer(hdmap, params or LocalizerParams(report="frame"))
         self._seq = 0
         self.last: VehiclePrior | None = None
 

@@ -106,7 +106,16 @@ def main(s: HostSettings) -> int:
             target=fusion_process, args=(spec, inbox, outbox, os.getpid()), daemon=True, name=f"fusion-{s.id}"
         )
     worker.start()
-    first = outbox.get(timeout=300)
+    first = None
+    while first is None:  # the core imports GTSAM and builds its graph: seconds
+        try:
+            first = outbox.get(timeout=0.5)
+        except queue.Empty:
+            if not worker.is_alive():
+                log.error(
+                    "the fusion worker died while starting (exit code %s)", getattr(worker, "exitcode", None)
+                )
+                return 1
     if first[0] != "ready":
         log.error("the fusion core did not start:\n%s", first[1])
         return 1

@@ -31,28 +31,16 @@ FusionSpec = dict[str, Any]  # scenario, mode, fleet, host_id, known_senders, pa
 
 
 def make_core(spec: FusionSpec):
-    """The host's core object: ``mapcontainer.host.Host`` when it exists, else the bare Container."""
+    """The host's core: ``mapcontainer.host.make_host`` (distributed or centralized container)."""
     from mapcontainer.fusion import FusionParams
+    from mapcontainer.hdmap.generator import generate_map
+    from mapcontainer.host import make_host
+    from mapcontainer.sim.config import load_scenario
 
     params = FusionParams(**spec["params"]) if spec.get("params") else FusionParams()
     known = set(spec["known_senders"]) if spec.get("known_senders") else None
-    try:
-        from mapcontainer.host import Host
-    except ImportError:
-        Host = None
-    if Host is not None:
-        from mapcontainer.hdmap.generator import generate_map
-        from mapcontainer.sim.config import load_scenario
-
-        hdmap = generate_map(load_scenario(spec["scenario"]).map)
-        return Host(hdmap, params, spec["fleet"], spec["host_id"], spec["mode"], known_senders=known)
-    if spec["mode"] != "distributed":
-        raise ValueError(
-            "centralized mode needs mapcontainer.host.Host (the host localizes raw observations)"
-        )
-    from mapcontainer.fusion.container import Container
-
-    return Container(params, spec["fleet"], spec["host_id"], known_senders=known)
+    hdmap = generate_map(load_scenario(spec["scenario"]).map)  # the centralized mode localizes against it
+    return make_host(hdmap, params, spec["fleet"], spec["host_id"], spec["mode"], known_senders=known)
 
 
 def _stats(core) -> dict:
