@@ -18,8 +18,14 @@ def _cmd_scenario_list(args: argparse.Namespace) -> int:
     rows = []
     for name in list_scenarios():
         sc = load_scenario(name)
-        rows.append({"name": name, "vehicles": len(sc.connected),
-                     "obstacles": len(sc.obstacle_vehicles) + len(sc.pedestrians), "description": sc.description})
+        rows.append(
+            {
+                "name": name,
+                "vehicles": len(sc.connected),
+                "obstacles": len(sc.obstacle_vehicles) + len(sc.pedestrians),
+                "description": sc.description,
+            }
+        )
     if args.json:
         print(json.dumps(rows))
     else:
@@ -78,7 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--fleet", default="sim", help="fleet name written into the messages")
     sim.set_defaults(func=_cmd_sim)
 
-    bench = sub.add_parser("bench", help="benchmarks that print one JSON line").add_subparsers(dest="sub", required=True)
+    bench = sub.add_parser("bench", help="benchmarks that print one JSON line").add_subparsers(
+        dest="sub", required=True
+    )
     bl = bench.add_parser("localization", help="map-matching accuracy, consistency and speed")
     bl.add_argument("--scenario", default="paper-urban")
     bl.add_argument("--seeds", type=int, default=3, help="independent episodes")

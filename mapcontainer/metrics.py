@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import stats
+from scipy.optimize import linear_sum_assignment
 
-__all__ = ["anees_band", "nees", "percentile", "rmse"]
+__all__ = ["anees_band", "match_objects", "nees", "percentile", "rmse"]
 
 
 def rmse(errors) -> float:
@@ -45,3 +46,18 @@ def anees_band(dof: int, n: int, confidence: float = 0.95) -> tuple[float, float
 def percentile(values, q: float) -> float:
     v = np.asarray(values, dtype=float)
     return float(np.percentile(v, q)) if v.size else float("nan")
+
+
+def match_objects(p_est, p_true, gate_m: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pair estimated with true positions: Hungarian on horizontal distance, pairs beyond the gate dropped.
+
+    Returns (true index array, estimate index array).
+    """
+    p_est = np.asarray(p_est, dtype=float)
+    p_true = np.asarray(p_true, dtype=float)
+    if len(p_est) == 0 or len(p_true) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    d = np.linalg.norm(p_true[:, None, :2] - p_est[None, :, :2], axis=2)
+    rows, cols = linear_sum_assignment(np.where(d < gate_m, d, 1e6))
+    ok = d[rows, cols] < gate_m
+    return rows[ok], cols[ok]

@@ -17,7 +17,6 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from schemas import FusedState, GroundTruth, encode
 from schemas.arrays import cov_from_upper
@@ -26,14 +25,14 @@ from . import geometry as geo
 from .channel import Channel, NetworkProfile, load_profile
 from .fusion import FusionParams
 from .host import make_host
+from .metrics import match_objects
 from .sim import World, load_scenario
 from .sim.config import ScenarioConfig
 from .vehicle import Mode, VehicleAgent
 
-__all__ = ["PipelineResult", "TickRecord", "View", "match_objects", "run_pipeline"]
+__all__ = ["PipelineResult", "TickRecord", "View", "relative_errors", "run_pipeline"]
 
 HOST_ID = "host"
-MATCH_GATE_M = 3.0
 
 
 @dataclass(frozen=True)
@@ -89,8 +88,14 @@ def run_pipeline(
     agents = {v: VehicleAgent(world.hdmap, v, fleet, mode) for v in world.vehicle_ids}
     channel = Channel(profile, seed=seed)
     hosts = {
-        view.name: make_host(world.hdmap, fusion or FusionParams(), fleet, HOST_ID, mode,
-                             known_senders=set(view.senders or world.vehicle_ids))
+        view.name: make_host(
+            world.hdmap,
+            fusion or FusionParams(),
+            fleet,
+            HOST_ID,
+            mode,
+            known_senders=set(view.senders or world.vehicle_ids),
+        )
         for view in views
     }
     listeners = {view.name: set(view.senders or world.vehicle_ids) for view in views}
@@ -127,22 +132,6 @@ def run_pipeline(
     return result
 
 
-def match_objects(fused: FusedState, truth: GroundTruth, gate_m: float = MATCH_GATE_M):
-    """Pair fused objects with true obstacles (Hungarian on horizontal distance, gated).
-
-    Returns (truth index array, fused index array); connected vehicles are not obstacles and any
-    fused object standing on one is left unmatched.
-    """
-    if len(fused.object_id) == 0 or len(truth.obstacle_id) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    p_hat = np.asarray(fused.object_p_map, float)[:, :2]
-    p_true = np.asarray(truth.obstacle_p_map, float)[:, :2]
-    d = np.linalg.norm(p_true[:, None] - p_hat[None], axis=2)
-    rows, cols = linear_sum_assignment(np.where(d < gate_m, d, 1e6))
-    ok = d[rows, cols] < gate_m
-    return rows[ok], cols[ok]
-
-
 def relative_errors(fused: FusedState, truth: GroundTruth, ego: str, radius_m: float):
     """Errors (N, 2) of target positions in the ego's body frame (the paper's rms2) for true targets
     within ``radius_m`` of the ego, using the fused ego pose and fused target positions."""
@@ -152,7 +141,7 @@ def relative_errors(fused: FusedState, truth: GroundTruth, ego: str, radius_m: f
     T_hat = geo.pose_to_matrix(np.asarray(fused.vehicle_pose[fused.vehicle_ids.index(ego)], float))
     p_true_map = np.asarray(truth.obstacle_p_map, float)
     near = np.linalg.norm(p_true_map[:, :2] - T_true[:2, 3], axis=1) <= radius_m
-    ti, fi = match_objects(fused, truth)
+    ti, fi = match_objects(fused.object_p_map, truth.obstacle_p_map)
     keep = near[ti]
     ti, fi = ti[keep], fi[keep]
     rel_true = geo.transform_points(geo.inverse(T_true), p_true_map[ti])

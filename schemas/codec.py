@@ -64,9 +64,7 @@ def decode(data: bytes, model: type[M]) -> M | Rejection:
     if len(data) > MAX_MESSAGE_BYTES:
         return Rejection("too_large", f"{len(data)} bytes > {MAX_MESSAGE_BYTES}")
     try:
-        obj = msgpack.unpackb(
-            data, raw=False, strict_map_key=True, use_list=True
-        )
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
     except Exception as exc:  # msgpack raises many types (ValueError, ExtraData, FormatError, ...)
         return Rejection("malformed", f"{type(exc).__name__}: {exc}"[:200])
     if not isinstance(obj, dict):

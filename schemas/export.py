@@ -17,29 +17,15 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from .models import (
-    SCHEMA_VERSION,
-    FusedState,
-    GroundTruth,
-    HealthStatus,
-    RawObservations,
-    SensorFrame,
-    VehiclePrior,
-)
+from .models import SCHEMA_VERSION
 from .topics import TOPICS
 
 __all__ = ["DEFAULT_DIR", "MODELS", "export", "render", "schema_filename", "stale"]
 
 DEFAULT_DIR = Path(__file__).parent / "json"
 
-MODELS: tuple[type[BaseModel], ...] = (
-    SensorFrame,
-    RawObservations,
-    VehiclePrior,
-    FusedState,
-    GroundTruth,
-    HealthStatus,
-)
+# Every message model that travels on a registered topic, in registry order.
+MODELS: tuple[type[BaseModel], ...] = tuple(dict.fromkeys(t.model for t in TOPICS if t.model is not None))
 
 _WIRE_NOTE = (
     "Wire format: a msgpack map keyed by field name; absent optional fields mean null/default; "

@@ -25,6 +25,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "CameraInfo",
     "Envelope",
+    "EvalMetrics",
     "FusedState",
     "GnssFix",
     "GroundTruth",
@@ -132,9 +133,7 @@ class ObjectObservations(_Model):
         default_factory=lambda: np.zeros((0, 6), np.float16),
         description="3x3 position covariance per object, upper triangle (m^2), float16",
     )
-    cls: U8(None) = Field(
-        default_factory=lambda: np.zeros(0, np.uint8), description="ObjectClass code per object"
-    )
+    cls: U8(None) = Field(default_factory=lambda: np.zeros(0, np.uint8), description="ObjectClass code per object")
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -259,7 +258,9 @@ class FusedState(Envelope):
         if len(self.vehicle_pose) != v or len(self.vehicle_pose_cov) != v:
             raise ValueError(f"{v} vehicle ids but {len(self.vehicle_pose)} poses, {len(self.vehicle_pose_cov)} covs")
         n = len(self.object_id)
-        if n > MAX_OBJECTS or any(len(a) != n for a in (self.object_cls, self.object_p_map, self.object_v_map, self.object_cov)):
+        if n > MAX_OBJECTS or any(
+            len(a) != n for a in (self.object_cls, self.object_p_map, self.object_v_map, self.object_cov)
+        ):
             raise ValueError("object arrays differ in length")
         _check_pd("vehicle pose covariance", self.vehicle_pose_cov)
         _check_pd("object covariance", self.object_cov)
@@ -306,3 +307,30 @@ class HealthStatus(Envelope):
     rejects: dict[str, int] = Field(default_factory=dict, description="rejected inputs by reason")
     last_error: str | None = None
     figures: dict[str, float] = Field(default_factory=dict, description="role figures, e.g. fused_objects")
+
+
+class EvalMetrics(Envelope):
+    """Evaluator -> anyone, once a second: live accuracy, latency and bandwidth of the fleet.
+
+    ``t_meas`` is the scenario time of the newest evaluated fused state; figures are over the last
+    ``window_s`` seconds of wall time unless named ``*_total``; None when nothing was measured yet.
+    """
+
+    t_wall: float = Field(description="Unix time of this snapshot (s)")
+    window_s: float = Field(gt=0)
+    fused_per_s: float = Field(0.0, ge=0)
+    evaluated: int = Field(0, ge=0, description="fused states compared with truth so far")
+    no_truth: int = Field(0, ge=0, description="fused states without ground truth at their t_meas")
+    vehicle_rmse_m: float | None = Field(None, ge=0, description="horizontal, over the window")
+    object_rmse_m: float | None = Field(None, ge=0, description="horizontal, matched objects, over the window")
+    vehicle_rmse_total_m: float | None = Field(None, ge=0)
+    object_rmse_total_m: float | None = Field(None, ge=0)
+    objects_fused: int = Field(0, ge=0)
+    objects_matched: int = Field(0, ge=0)
+    obstacles_truth: int = Field(0, ge=0)
+    e2e_latency_ms_p50: float | None = Field(None, ge=0, description="sensor t_meas -> fused output published")
+    e2e_latency_ms_p99: float | None = Field(None, ge=0)
+    tx_bytes_per_s: dict[str, float] = Field(default_factory=dict, description="V2X payload bytes per vehicle")
+    tx_msgs_per_s: dict[str, float] = Field(default_factory=dict)
+    tx_bytes_per_msg: dict[str, float] = Field(default_factory=dict)
+    delivered_fraction: float | None = Field(None, ge=0, le=1)

@@ -13,7 +13,15 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from .models import FusedState, GroundTruth, HealthStatus, RawObservations, SensorFrame, VehiclePrior
+from .models import (
+    EvalMetrics,
+    FusedState,
+    GroundTruth,
+    HealthStatus,
+    RawObservations,
+    SensorFrame,
+    VehiclePrior,
+)
 
 __all__ = ["TOPICS", "Topic", "topic"]
 
@@ -64,6 +72,8 @@ TOPICS: tuple[Topic, ...] = (
     Topic("raw_rx", "mc/{fleet}/v2x/rx/{dst}/{src}/raw", RawObservations, 10.0,
           "channel emulator -> receiver {dst}: raw observations from {src} after the link model"),
     Topic("fused", "mc/{fleet}/host/{hid}/fused", FusedState, 10.0, "host -> anyone: the fused environment"),
+    Topic("metrics", "mc/{fleet}/eval/metrics", EvalMetrics, 1.0,
+          "evaluator -> anyone: live RMSE, end-to-end latency, bytes/s per vehicle, delivered fraction"),
     Topic("health", "mc/{fleet}/health/{role}/{id}", HealthStatus, 1.0,
           "every service: periodic status put, and a queryable on the same key"),
     Topic("alive", "mc/{fleet}/alive/{role}/{id}", None, None, "every service: liveliness token"),

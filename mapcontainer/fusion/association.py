@@ -109,11 +109,15 @@ def cv_predict(x, P, dt: float, q_psd) -> tuple[np.ndarray, np.ndarray]:
     x' = F x, P' = F P F^T + Q(|dt|), F = [[I, dt I], [0, I]],
     Q = [[q |dt|^3 / 3, q dt |dt| / 2], [q dt |dt| / 2, q |dt|]] per axis.
     """
-    q = np.diag(np.asarray(q_psd, dtype=float))
+    q = np.asarray(q_psd, dtype=float)
     F = np.eye(6)
     F[:3, 3:] = dt * np.eye(3)
     a = abs(dt)
-    Q = np.block([[q * a**3 / 3, q * dt * a / 2], [q * dt * a / 2, q * a]])
+    Q = np.zeros((6, 6))
+    i = np.arange(3)
+    Q[i, i] = q * a**3 / 3
+    Q[i, i + 3] = Q[i + 3, i] = q * dt * a / 2
+    Q[i + 3, i + 3] = q * a
     return F @ x, F @ P @ F.T + Q
 
 
@@ -202,17 +206,26 @@ class Tracker:
     def predict(self, tr: Track, t: float) -> tuple[np.ndarray, np.ndarray]:
         return cv_predict(tr.x, tr.P, t - tr.t, _psd(self.params, tr.cls))
 
-    def predict_positions(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted positions (K, 3) and their covariances (K, 3, 3) of ``tracks`` at time t (vectorised)."""
+    def predict_states(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`cv_predict` of many tracks to time t at once: states (K, 6), covariances (K, 6, 6)."""
         x = np.array([tr.x for tr in tracks])
         P = np.array([tr.P for tr in tracks])
-        dt = np.array([t - tr.t for tr in tracks])[:, None]
+        dt = np.array([t - tr.t for tr in tracks])
         q = np.array([_psd(self.params, tr.cls) for tr in tracks])
-        p = x[:, :3] + dt * x[:, 3:]
-        d = dt[:, :, None]
-        Ppp = P[:, :3, :3] + d * (P[:, :3, 3:] + P[:, 3:, :3]) + d**2 * P[:, 3:, 3:]
-        Ppp = Ppp + q[:, :, None] * np.eye(3) * np.abs(d) ** 3 / 3.0
-        return p, Ppp
+        F = np.tile(np.eye(6), (len(tracks), 1, 1))
+        F[:, :3, 3:] = dt[:, None, None] * np.eye(3)
+        a = np.abs(dt)[:, None]
+        Q = np.zeros_like(P)
+        idx = np.arange(3)
+        Q[:, idx, idx] = q * a**3 / 3
+        Q[:, idx, idx + 3] = Q[:, idx + 3, idx] = q * (dt[:, None] * a) / 2
+        Q[:, idx + 3, idx + 3] = q * a
+        return np.einsum("kij,kj->ki", F, x), F @ P @ F.transpose(0, 2, 1) + Q
+
+    def predict_positions(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted positions (K, 3) and their covariances (K, 3, 3) of ``tracks`` at time t."""
+        x, P = self.predict_states(tracks, t)
+        return x[:, :3], P[:, :3, :3]
 
     # ---------------------------------------------------------------- association
     def associate(
@@ -335,8 +348,7 @@ class Tracker:
         if len(conf) < 2:
             self._merge_streak = {}
             return []
-        x = np.array([cv_predict(tr.x, tr.P, t - tr.t, _psd(self.params, tr.cls))[0] for tr in conf])
-        P = np.array([cv_predict(tr.x, tr.P, t - tr.t, _psd(self.params, tr.cls))[1] for tr in conf])
+        x, P = self.predict_states(conf, t)
         d2p = mahalanobis_matrix(x[:, :3], P[:, :3, :3], x[:, :3], P[:, :3, :3])
         d2v = mahalanobis_matrix(x[:, 3:], P[:, 3:, 3:], x[:, 3:], P[:, 3:, 3:])
         close = (d2p <= self.merge_gate) & (d2v <= self.merge_gate)

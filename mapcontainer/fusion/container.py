@@ -20,14 +20,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas import FusedState, Rejection, VehiclePrior, decode
-from schemas.arrays import cov_from_upper, cov_to_upper
 
 from .. import geometry as geo
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer
 from .graph import FusionGraph, SolveReport
 from .params import FusionParams
-from .poses import pose_cov_from_tangent, vector_from_pose3
+from .poses import pose_cov_from_tangent, sym_from_upper, upper_from_sym, vector_from_pose3
 
 __all__ = ["Container", "FusionParams", "IngestResult"]
 
@@ -124,7 +123,7 @@ class Container:
         self._counts["expired"] += len(msgs) - len(fresh)
         keys = []
         for m in fresh:  # all poses first, so that detections can be matched to any vehicle of the instant
-            key = self.graph.add_vehicle_prior(m.sender, m.t_meas, m.pose, cov_from_upper(m.pose_cov), m.v_map)
+            key = self.graph.add_vehicle_prior(m.sender, m.t_meas, m.pose, sym_from_upper(m.pose_cov), m.v_map)
             if key is None:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
@@ -157,13 +156,13 @@ class Container:
             return
         t = float(m.t_meas)
         p_body = objs.p_body
-        cov_body = cov_from_upper(np.asarray(objs.cov, dtype=np.float64))
+        cov_body = sym_from_upper(np.asarray(objs.cov, dtype=np.float64))
         keep = np.linalg.norm(p_body, axis=1) >= self.params.min_range_m
         self._counts["too_close"] += int((~keep).sum())
         if not keep.any():
             return
         pose = np.asarray(m.pose, dtype=float)
-        pose_cov = cov_from_upper(np.asarray(m.pose_cov, dtype=float))
+        pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
         idx = np.flatnonzero(keep)
         dets = [
@@ -225,7 +224,7 @@ class Container:
             else:
                 cov = pose_cov_from_tangent(pose, cov_xi)
             poses.append(pose)
-            pose_covs.append(cov_to_upper(_make_pd(cov)))
+            pose_covs.append(upper_from_sym(_make_pd(cov)))
         ids, cls, ps, vs, covs = [], [], [], [], []
         for tid, tr in sorted(self.tracker.confirmed().items()):
             if tid not in g.tracks:
@@ -241,7 +240,7 @@ class Container:
             cls.append(tr.cls)
             ps.append(p + v * dt)
             vs.append(v)
-            covs.append(cov_to_upper(_make_pd(cov)))
+            covs.append(upper_from_sym(_make_pd(cov)))
         self._seq += 1
         return FusedState(
             fleet=self.fleet,

@@ -55,14 +55,15 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
+from gtsam import VectorValues
 from gtsam.symbol_shorthand import H, P, V, X
-from scipy.linalg import solve_triangular
+from scipy.linalg import lapack
 
 from schemas import ObjectClass
 
+from .association import observations_to_map
 from .buffer import time_key
 from .params import FusionParams
-from .association import observations_to_map
 from .poses import pose3_from_vector, pose_cov_to_tangent, vector_from_pose3
 
 __all__ = ["FusionGraph", "SolveReport"]
@@ -323,14 +324,13 @@ class FusionGraph:
             if ps is None or not self.values.exists(pose_key):
                 continue
             m, S = observations_to_map(vector_from_pose3(self.values.atPose3(pose_key)), ps.cov, z[None], cov_z[None])
-            m, S = m[0], S[0]
-            Si = np.linalg.inv(S)
-            r = m - p0
+            Si = np.linalg.inv(S[0])
+            r = m[0] - p0
             d = float(np.sqrt(r @ Si @ r))
             w = 1.0 if k is None or d <= k else k / d
             info[:3, :3] += w * Si
-            eta[:3] += w * Si @ m
-        if np.linalg.matrix_rank(info[3:, 3:]) < 3 or np.linalg.matrix_rank(info[:3, :3]) < 3:
+            eta[:3] += w * Si @ m[0]
+        if not s0.dets or chain.prior is None or chain.prior[0] != k0:  # keep it well posed
             sv = self._speed_prior(chain.cls)
             info += np.diag([1e-6, 1e-6, 1e-6, sv**-2, sv**-2, 4.0])
             eta[:3] += 1e-6 * p0
@@ -339,8 +339,12 @@ class FusionGraph:
         dt = s1.t - s0.t
         F = np.eye(6)
         F[:3, 3:] = dt * np.eye(3)
-        q = np.diag(self._psd(chain.cls))
-        Q = np.block([[q * dt**3 / 3, q * dt**2 / 2], [q * dt**2 / 2, q * dt]])
+        q = self._psd(chain.cls)
+        i = np.arange(3)
+        Q = np.zeros((6, 6))
+        Q[i, i] = q * dt**3 / 3
+        Q[i, i + 3] = Q[i + 3, i] = q * dt**2 / 2
+        Q[i + 3, i + 3] = q * dt
         mu1, P1 = F @ mu0, F @ P0 @ F.T + Q
         if chain.prior is not None and chain.prior[0] == k1:  # combine with what the next state already has
             Ia, Ib = np.linalg.inv(chain.prior[2]), np.linalg.inv(P1)
@@ -348,11 +352,19 @@ class FusionGraph:
             mu1 = P1 @ (Ia @ chain.prior[1] + Ib @ mu1)
         self._set_prior(chain, k1, mu1, P1)
 
-    def _helper(self, z, cov, robust: bool) -> int:
-        """A helper Point3 h with a prior at z (covariance cov; Huber-robust if ``robust``)."""
+    def _helper(self, z, cov, robust: bool, ties: int = 1) -> int:
+        """A helper Point3 h with a prior at z (Huber-robust if ``robust``).
+
+        The ``ties`` reference-frame ties that will hang on it add ties * sigma^2 I to the detection's
+        covariance; the prior gets cov - ties * sigma^2 I so that the chain's total is exactly ``cov``.
+        """
         h = H(self._n["h"])
         self._n["h"] += 1
         z = np.asarray(z, dtype=float)
+        cov = np.asarray(cov, dtype=float)
+        reduced = cov - ties * self.params.reference_frame_sigma_m**2 * np.eye(3)
+        if np.linalg.eigvalsh(reduced)[0] > 0.1 * np.linalg.eigvalsh(cov)[0]:
+            cov = reduced
         self.values.insert(h, z)
         noise = self._robust(cov) if robust else gtsam.noiseModel.Gaussian.Covariance(cov)
         self._add_factor(gtsam.PriorFactorPoint3(h, z, noise))
@@ -382,10 +394,10 @@ class FusionGraph:
         self._n["h"] += 1
         T_obs = self.values.atPose3(pose_key)
         self.values.insert(q, T_obs.transformFrom(np.asarray(z_body, dtype=float)))
-        h = self._helper(z_body, cov_body, robust=True)
+        h = self._helper(z_body, cov_body, robust=True, ties=2)
         self._tie(h, pose_key, q)
         g0 = np.zeros(3) if offset_body is None else np.asarray(offset_body, dtype=float)
-        g = self._helper(g0, (self.params.reference_frame_sigma_m**2) * np.eye(3), robust=False)
+        g = self._helper(g0, 1e-8 * np.eye(3), robust=False, ties=0)
         self._tie(g, target_key, q)
 
     # ------------------------------------------------------------------ window
@@ -474,8 +486,11 @@ class FusionGraph:
                 decrease = err - new_err
                 # Converged when the cost barely moved, or when the linear model predicted the new cost:
                 # then the Gauss-Newton step already landed on the minimum of an accurate quadratic model.
+                # (robust factors linearize to IRLS quadratics whose values differ from the robust cost by
+                # a constant, so compare the predicted and actual decrease, not the values)
                 tol = max(self.params.relative_error_tol * new_err, 1e-3)
-                model_ok = lam == 0 and abs(gfg.error(delta) - new_err) <= tol
+                predicted = gfg.error(VectorValues.Zero(delta)) - gfg.error(delta)
+                model_ok = lam == 0 and abs(predicted - decrease) <= max(self.params.model_tol * new_err, 1e-3)
                 values, err = new, new_err
                 lam = lam / 10 if lam > 1e-3 else 0.0
                 if decrease <= tol or model_ok:
@@ -508,7 +523,9 @@ class FusionGraph:
             first = min(i for i, k in enumerate(keys) if k in wanted)
             off = np.cumsum([0, *dims])
             C = R[off[first] :, off[first] :]
-            Cinv = solve_triangular(C, np.eye(len(C)))
+            Cinv, info = lapack.dtrtri(C, lower=0)  # unblocked for small n: no BLAS thread wake-ups
+            if info != 0:
+                continue
             block = {k: slice(off[i] - off[first], off[i + 1] - off[first]) for i, k in enumerate(keys) if i >= first}
             for k in block:
                 if k in wanted:

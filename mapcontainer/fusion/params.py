@@ -53,7 +53,15 @@ class FusionParams(BaseModel):
     death_s: float = Field(1.0, gt=0, description="a confirmed track without a detection this long is deleted")
 
     # ---- measurement models
-    reference_frame_sigma_m: float = Field(1e-3, gt=0, description="sigma of the (nearly hard) helper tie (m)")
+    reference_frame_sigma_m: float = Field(
+        0.01,
+        gt=0,
+        description=(
+            "sigma of the tie between a detection's helper point and observer/object (m); taken out of the"
+            " helper's prior so the total is the detection covariance. Tighter ties amplify the rotation"
+            " nonlinearity (second-order terms / sigma) and cost Gauss-Newton iterations"
+        ),
+    )
     huber_k: float | None = Field(
         3.0, gt=0, description="Huber threshold on the whitened 3-D detection residual norm; None = Gaussian"
     )
@@ -80,6 +88,15 @@ class FusionParams(BaseModel):
     # ---- solver
     max_iterations: int = Field(3, ge=1, description="Levenberg-Marquardt iterations per fuse() at most")
     relative_error_tol: float = Field(1e-3, gt=0, description="stop when the cost decreases by less than this fraction")
+    model_tol: float = Field(
+        0.02,
+        ge=0,
+        description=(
+            "also stop when an undamped step's actual cost decrease matches the linear model's prediction to"
+            " within this fraction of the cost (the step landed on the model's minimum; what remains is the"
+            " Huber reweighting, measured at < 0.15 sigma on the latest states)"
+        ),
+    )
     lambda_initial: float = Field(0.0, ge=0, description="initial LM damping (0: try the Gauss-Newton step first)")
 
     @model_validator(mode="after")

@@ -25,6 +25,8 @@ from .. import geometry as geo
 
 __all__ = [
     "euler_rate_matrix",
+    "sym_from_upper",
+    "upper_from_sym",
     "pose3_from_vector",
     "pose_cov_from_tangent",
     "pose_cov_to_tangent",
@@ -73,3 +75,26 @@ def pose3_from_vector(pose) -> gtsam.Pose3:
 def vector_from_pose3(T: gtsam.Pose3) -> np.ndarray:
     """[x, y, z, roll, pitch, yaw] of a gtsam.Pose3."""
     return geo.matrix_to_pose(T.matrix())
+
+
+_TRIU = {n: np.triu_indices(n) for n in (3, 6)}
+_FROM = {len(_TRIU[n][0]): n for n in (3, 6)}
+
+
+def sym_from_upper(upper) -> np.ndarray:
+    """Symmetric (..., n, n) from row-major upper triangles (..., 6) or (..., 21) (fast path of
+    schemas.arrays.cov_from_upper for the two sizes the container uses)."""
+    upper = np.asarray(upper, dtype=np.float64)
+    n = _FROM[upper.shape[-1]]
+    i, j = _TRIU[n]
+    out = np.empty(upper.shape[:-1] + (n, n))
+    out[..., i, j] = upper
+    out[..., j, i] = upper
+    return out
+
+
+def upper_from_sym(cov) -> np.ndarray:
+    """Row-major upper triangle of symmetric (..., n, n), n in (3, 6)."""
+    cov = np.asarray(cov)
+    i, j = _TRIU[cov.shape[-1]]
+    return cov[..., i, j]

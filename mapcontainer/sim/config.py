@@ -21,6 +21,7 @@ __all__ = [
     "VehicleSpec",
     "list_scenarios",
     "load_scenario",
+    "scale_scenario",
 ]
 
 
@@ -176,3 +177,32 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
 
 def load_sensor_config(name: str = "default") -> SensorConfig:
     return load_yaml_model(SensorConfig, config_dir() / "sensors" / f"{name}.yaml")
+
+
+def scale_scenario(sc: ScenarioConfig, vehicles: int | None) -> ScenarioConfig:
+    """The scenario with ``vehicles`` connected vehicles (None: as defined).
+
+    Fewer than defined: the first ones. More: extra vehicles are spread evenly over the ring's
+    lanes and around it, at about the defined vehicles' mean speed (0.9x to 1.1x).
+    """
+    if vehicles is None or vehicles == len(sc.connected):
+        return sc
+    if vehicles < 1:
+        raise ValueError(f"vehicles must be at least 1, got {vehicles}")
+    connected = list(sc.connected[:vehicles])
+    n_extra = vehicles - len(connected)
+    if n_extra > 0:
+        lanes = 2 * sc.map.lanes_per_direction
+        speed = sum(v.speed_mps for v in sc.connected) / len(sc.connected)
+        ring_m = 2 * (sc.map.length_m + sc.map.width_m)  # roughly the ring's length; s wraps anyway
+        for i in range(n_extra):
+            connected.append(
+                VehicleSpec(
+                    lane=i % lanes,
+                    s0_m=(i + 0.5) * ring_m / n_extra,
+                    speed_mps=speed * (0.9 + 0.2 * ((i * 7) % 5) / 4),
+                )
+            )
+    data = sc.model_dump()
+    data["connected"] = [v.model_dump() for v in connected]
+    return ScenarioConfig.model_validate(data)

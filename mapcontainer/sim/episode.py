@@ -68,12 +68,25 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
 
     save_map(world.hdmap, out_dir / "map.geojson")
     (out_dir / "scenario.json").write_text(
-        json.dumps({"seed": world.seed, "fleet": world.fleet, "duration_s": duration_s,
-                    "scenario": sc.model_dump(mode="json")}, indent=2) + "\n"
+        json.dumps(
+            {
+                "seed": world.seed,
+                "fleet": world.fleet,
+                "duration_s": duration_s,
+                "scenario": sc.model_dump(mode="json"),
+            },
+            indent=2,
+        )
+        + "\n"
     )
     render_birdseye(
-        out_dir / "birdseye.png", world.hdmap, {k: np.array(v) for k, v in tracks.items()}, last.states,
-        world.vehicle_ids, sc.sensors.detector.fov_deg, sc.sensors.detector.range_m,
+        out_dir / "birdseye.png",
+        world.hdmap,
+        {k: np.array(v) for k, v in tracks.items()},
+        last.states,
+        world.vehicle_ids,
+        sc.sensors.detector.fov_deg,
+        sc.sensors.detector.range_m,
         f"{sc.name}  seed {world.seed}  {duration_s:g} s",
     )
     for vid in world.vehicle_ids:

@@ -59,12 +59,18 @@ def render_birdseye(
         c, s = np.cos(st.yaw), np.sin(st.yaw)
         l, w = st.size[0], st.size[1]
         box = np.array([[l, w], [l, -w], [-l, -w], [-l, w], [l, w]]) / 2
-        ax.plot(st.p_map[0] + c * box[:, 0] - s * box[:, 1], st.p_map[1] + s * box[:, 0] + c * box[:, 1],
-                "-", color=color, lw=1.5)
+        ax.plot(
+            st.p_map[0] + c * box[:, 0] - s * box[:, 1],
+            st.p_map[1] + s * box[:, 0] + c * box[:, 1],
+            "-",
+            color=color,
+            lw=1.5,
+        )
         if is_cv:
             ang = st.yaw + np.radians(np.linspace(-fov_deg / 2, fov_deg / 2, 30))
-            wedge = np.vstack([st.p_map[:2], st.p_map[:2] + range_m * np.column_stack([np.cos(ang), np.sin(ang)]),
-                               st.p_map[:2]])
+            wedge = np.vstack(
+                [st.p_map[:2], st.p_map[:2] + range_m * np.column_stack([np.cos(ang), np.sin(ang)]), st.p_map[:2]]
+            )
             ax.fill(wedge[:, 0], wedge[:, 1], color="tab:red", alpha=0.08)
             ax.annotate(aid, st.p_map[:2] + [2, 2], color="tab:red", fontsize=9)
     ax.plot([], [], "-", color="tab:red", label="connected vehicle")

@@ -220,7 +220,9 @@ class Gnss:
                 ang = rng.uniform(0, 2 * np.pi)
                 self.jump = rng.uniform(*c.multipath_jump_m) * np.array([np.cos(ang), np.sin(ang)])
                 self.jump_until = t + rng.uniform(*c.multipath_duration_s)
-        err = np.concatenate([self.bias + self.jump + rng.normal(0, c.white_sigma_m, 2), [rng.normal(0, c.vertical_sigma_m)]])
+        err = np.concatenate(
+            [self.bias + self.jump + rng.normal(0, c.white_sigma_m, 2), [rng.normal(0, c.vertical_sigma_m)]]
+        )
         return np.asarray(p_true, float) + err, c.reported_sigma_h_m, c.reported_sigma_v_m
 
 

@@ -32,8 +32,14 @@ __all__ = ["FrameDebug", "Tick", "World"]
 
 # The lane mask travels as a 1-bit PNG with run-length-friendly deflate: about 1 ms and 2.5 kB for
 # a 1280x720 mask here (an 8-bit PNG took 7 ms and 9 kB).
-_PNG_PARAMS = [cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, 1,
-               cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+_PNG_PARAMS = [
+    cv2.IMWRITE_PNG_BILEVEL,
+    1,
+    cv2.IMWRITE_PNG_COMPRESSION,
+    1,
+    cv2.IMWRITE_PNG_STRATEGY,
+    cv2.IMWRITE_PNG_STRATEGY_RLE,
+]
 
 
 @dataclass(frozen=True)
@@ -64,7 +70,12 @@ class _VehicleSensors:
         self.detector = ObjectDetector(cfg.detector, cfg.camera.mount_xyz_m, np.random.default_rng(det_ss))
         intr = self.camera.intr
         self.camera_info = CameraInfo(
-            fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy, width=intr.width, height=intr.height,
+            fx=intr.fx,
+            fy=intr.fy,
+            cx=intr.cx,
+            cy=intr.cy,
+            width=intr.width,
+            height=intr.height,
             T_body_cam=self.camera.T_body_cam,
         )
 
@@ -84,8 +95,14 @@ class World:
         def follower(actor_id: str, spec, i: int, n: int) -> LaneFollower:
             phase = 2 * np.pi * i / max(n, 1)
             return LaneFollower(
-                actor_id, lanes[spec.lane], spec.s0_m, spec.speed_mps, spec.speed_amp_mps,
-                spec.speed_period_s, phase, (spec.length_m, spec.width_m, spec.height_m),
+                actor_id,
+                lanes[spec.lane],
+                spec.s0_m,
+                spec.speed_mps,
+                spec.speed_amp_mps,
+                spec.speed_period_s,
+                phase,
+                (spec.length_m, spec.width_m, spec.height_m),
             )
 
         n_cv, n_ov = len(scenario.connected), len(scenario.obstacle_vehicles)
@@ -116,7 +133,11 @@ class World:
         cv = [states[a.id] for a in self.connected]
         ob = [states[a.id] for a in self.obstacles]
         return GroundTruth(
-            fleet=self.fleet, sender="world", seq=k, t_meas=t, t_sent=t,
+            fleet=self.fleet,
+            sender="world",
+            seq=k,
+            t_meas=t,
+            t_sent=t,
             vehicle_ids=[s.id for s in cv],
             vehicle_pose=np.array([s.pose for s in cv]).reshape(-1, 6),
             vehicle_v_map=np.array([s.v_map for s in cv]).reshape(-1, 3),
@@ -140,9 +161,15 @@ class World:
         speed, yaw_rate = sensors.odometry.measure(me.speed, me.yaw_rate)
         p_obj, cov_obj, cls_obj, ids = sensors.detector.observe(me, others, others + [me])
         frame = SensorFrame(
-            fleet=self.fleet, sender=vid, seq=k, t_meas=t, t_sent=t,
+            fleet=self.fleet,
+            sender=vid,
+            seq=k,
+            t_meas=t,
+            t_sent=t,
             camera=sensors.camera_info,
-            points_uv=cam.points_uv, points_cls=cam.points_cls, poles_uv=cam.poles_uv,
+            points_uv=cam.points_uv,
+            points_cls=cam.points_cls,
+            poles_uv=cam.poles_uv,
             lane_mask_png=png.tobytes(),
             gnss=GnssFix(p_map=p_gnss, sigma_h_m=sh, sigma_v_m=sv),
             odometry=Odometry(speed=speed, yaw_rate=yaw_rate),

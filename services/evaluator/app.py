@@ -2,8 +2,8 @@
 
 Subscribes ground truth, every host's fused state, the vehicles' ``v2x/tx`` (bytes each vehicle
 sends) and the channel's ``v2x/rx`` (what arrived); the figures are defined in
-:mod:`services.evaluator.core`. Once a second it publishes :class:`EvalMetrics` as JSON on
-``mc/{fleet}/eval/metrics`` (not in the schemas registry yet: proposed). On stop it writes
+:mod:`services.evaluator.core`. Once a second it publishes :class:`schemas.EvalMetrics` on the
+registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). On stop it writes
 ``eval_summary.json`` and ``birdseye.png`` (truth vs fused, covariance ellipses) to ``--out``.
 Callbacks only enqueue; one worker thread decodes and evaluates.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 import msgpack
 from pydantic import Field
 
-from schemas import FusedState, GroundTruth
+from schemas import FusedState, GroundTruth, encode
 from schemas.topics import topic
 
 from ..channel.app import parse_receivers
@@ -34,13 +34,7 @@ from ..runtime import (
 )
 from .core import Evaluator
 
-__all__ = ["METRICS_KEY", "EvaluatorSettings", "main", "metrics_key", "parse_args"]
-
-METRICS_KEY = "mc/{fleet}/eval/metrics"
-
-
-def metrics_key(fleet: str) -> str:
-    return METRICS_KEY.format(fleet=fleet)
+__all__ = ["EvaluatorSettings", "main", "parse_args"]
 
 
 class EvaluatorSettings(ServiceSettings):
@@ -77,13 +71,13 @@ def _seq(payload: bytes) -> int | None:
 def main(s: EvaluatorSettings) -> int:
     log = setup_logging("evaluator", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
-    ev = Evaluator(s.fleet, window_s=s.window_s, onboard={k: set(v) for k, v in s.receivers.items()})
+    ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard={k: set(v) for k, v in s.receivers.items()})
     clock = SimClock()
     work: queue.Queue[tuple[str, Received]] = queue.Queue(maxsize=10_000)
     latest: dict = {"figures": {}}  # replaced whole, never mutated: the health thread reads it
 
     with Service("evaluator", s, figures=lambda: latest["figures"]) as svc:
-        pub = svc.publisher(metrics_key(s.fleet), drop=True)
+        pub = svc.publisher(topic("metrics").key(fleet=s.fleet), drop=True)
 
         def enqueue(kind: str):
             def cb(msg: Received) -> None:
@@ -137,7 +131,7 @@ def main(s: EvaluatorSettings) -> int:
                         for k, v in m.model_dump().items()
                         if isinstance(v, int | float) and k not in ("seq", "t_wall")
                     }
-                    pub.put(m.model_dump_json().encode())
+                    pub.put(encode(m))
 
         svc.spawn(loop, "evaluate")
         svc.wait()

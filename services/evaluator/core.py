@@ -3,7 +3,7 @@
 Accuracy. Each FusedState is compared with the GroundTruth of the same ``t_meas`` (the host solves
 at camera-frame times; truth is kept for ``truth_keep_s`` and matched within ``t_tol_s``).
 Vehicles are paired by id; objects with true obstacles by the Hungarian algorithm on horizontal
-distance with a gate (as ``mapcontainer.pipeline.match_objects``). Errors are horizontal
+distance with a gate (``mapcontainer.metrics.match_objects``). Errors are horizontal
 (x, y in the map frame): RMSE = sqrt(mean ||e||^2) over every pair in the window (the paper's
 rms1 for vehicles; its map-frame counterpart for objects).
 
@@ -24,56 +24,14 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, Field
-from scipy.optimize import linear_sum_assignment
 
-from schemas import FusedState, GroundTruth
+from mapcontainer.metrics import match_objects
+from schemas import EvalMetrics, FusedState, GroundTruth
 from schemas.arrays import cov_from_upper
 
-__all__ = ["EvalMetrics", "Evaluator", "match_objects"]
+__all__ = ["Evaluator"]
 
 GATE_M = 3.0
-
-
-class EvalMetrics(BaseModel):
-    """Published as JSON on ``mc/{fleet}/eval/metrics`` once a second (proposed for schemas/).
-
-    Units: metres, milliseconds as named, bytes per second; None when there is nothing to measure yet.
-    """
-
-    fleet: str
-    seq: int = Field(ge=0)
-    t_wall: float = Field(description="Unix time of this snapshot (s)")
-    t_meas: float | None = Field(None, description="scenario time of the newest evaluated fused state (s)")
-    window_s: float
-    fused_per_s: float = 0.0
-    evaluated: int = Field(0, description="fused states compared with truth so far")
-    no_truth: int = Field(0, description="fused states without ground truth at their t_meas")
-    vehicle_rmse_m: float | None = Field(None, description="horizontal, over the window")
-    object_rmse_m: float | None = Field(None, description="horizontal, matched objects, over the window")
-    vehicle_rmse_total_m: float | None = None
-    object_rmse_total_m: float | None = None
-    objects_fused: int = 0
-    objects_matched: int = 0
-    obstacles_truth: int = 0
-    e2e_latency_ms_p50: float | None = None
-    e2e_latency_ms_p99: float | None = None
-    tx_bytes_per_s: dict[str, float] = Field(default_factory=dict, description="per vehicle, payload bytes")
-    tx_msgs_per_s: dict[str, float] = Field(default_factory=dict)
-    tx_bytes_per_msg: dict[str, float] = Field(default_factory=dict)
-    delivered_fraction: float | None = None
-
-
-def match_objects(
-    p_fused: np.ndarray, p_true: np.ndarray, gate_m: float = GATE_M
-) -> tuple[np.ndarray, np.ndarray]:
-    """(true index, fused index) pairs: Hungarian on horizontal distance, pairs beyond the gate removed."""
-    if len(p_fused) == 0 or len(p_true) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    d = np.linalg.norm(p_true[:, None, :2] - p_fused[None, :, :2], axis=2)
-    rows, cols = linear_sum_assignment(np.where(d < gate_m, d, 1e6))
-    ok = d[rows, cols] < gate_m
-    return rows[ok], cols[ok]
 
 
 @dataclass
@@ -87,14 +45,13 @@ class _Sample:
 @dataclass
 class Evaluator:
     fleet: str
+    evaluator_id: str = "evaluator"
     window_s: float = 5.0
     truth_keep_s: float = 10.0
     t_tol_s: float = 0.02
     settle_s: float = 1.0
     gate_m: float = GATE_M
-    onboard: dict[str, set[str]] = field(
-        default_factory=lambda: {"host": set()}
-    )  # receiver -> on-board sources
+    onboard: dict[str, set[str]] = field(default_factory=lambda: {"host": set()})  # receiver -> on-board sources
     delivery_window_s: float = 30.0
     plot_every_s: float = 0.5
 
@@ -152,9 +109,7 @@ class Evaluator:
         best = min(self._truth, key=lambda x: abs(x - k), default=None)
         return self._truth[best] if best is not None and abs(best - k) <= tol else None
 
-    def on_fused(
-        self, fused: FusedState, pub_wall_ns: int | None, t_meas_wall_ns: int | None, now_wall: float
-    ) -> None:
+    def on_fused(self, fused: FusedState, pub_wall_ns: int | None, t_meas_wall_ns: int | None, now_wall: float) -> None:
         """A fused state, when it was published, and when its t_meas happened (wall clock, ns)."""
         self._pending.append((fused, pub_wall_ns, t_meas_wall_ns, now_wall))
         self._resolve(now_wall)
@@ -257,11 +212,14 @@ class Evaluator:
         lat = [s.latency_ms for s in self._samples if s.latency_ms is not None]
         span = self.window_s
         self._seq += 1
+        t_meas = 0.0 if self.t_meas is None else self.t_meas
         return EvalMetrics(
             fleet=self.fleet,
+            sender=self.evaluator_id,
             seq=self._seq,
             t_wall=now_wall,
-            t_meas=self.t_meas,
+            t_meas=t_meas,
+            t_sent=t_meas,
             window_s=self.window_s,
             fused_per_s=len(self._samples) / span,
             evaluated=self.evaluated,
@@ -289,17 +247,13 @@ class Evaluator:
             "vehicle_rmse_m": float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,
             "object_rmse_m": float(np.sqrt(self._sum_o / self._n_o)) if self._n_o else None,
             "vehicle_pairs": self._n_v,
-            "vehicle_rmse_by_id_m": {
-                k: float(np.sqrt(a / n)) for k, (a, n) in sorted(self._by_vehicle.items()) if n
-            },
+            "vehicle_rmse_by_id_m": {k: float(np.sqrt(a / n)) for k, (a, n) in sorted(self._by_vehicle.items()) if n},
             "object_pairs": self._n_o,
             "e2e_latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
             "e2e_latency_ms_p99": float(np.percentile(lat, 99)) if lat else None,
             "tx_bytes_total": dict(sorted(self.tx_bytes_total.items())),
             "tx_msgs_total": dict(sorted(self.tx_msgs_total.items())),
-            "tx_bytes_per_msg": {
-                k: self.tx_bytes_total[k] / n for k, n in sorted(self.tx_msgs_total.items()) if n
-            },
+            "tx_bytes_per_msg": {k: self.tx_bytes_total[k] / n for k, n in sorted(self.tx_msgs_total.items()) if n},
             "directed_messages_settled": self.sent_total,
             "delivered_fraction": self.delivered_total / self.sent_total if self.sent_total else None,
         }

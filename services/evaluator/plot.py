@@ -58,9 +58,7 @@ def render_run(path: Path, ev: Evaluator, hdmap: HDMap | None, title: str) -> No
         ax.plot(o[:, 0], o[:, 1], ".", ms=1.0, color="tab:cyan", alpha=0.4)
     for x, y, cov in ev.ellipses():
         w, h, ang = ellipse_params(cov)
-        ax.add_patch(
-            Ellipse((x, y), max(w, 0.05), max(h, 0.05), angle=ang, fill=False, color="tab:blue", lw=1.2)
-        )
+        ax.add_patch(Ellipse((x, y), max(w, 0.05), max(h, 0.05), angle=ang, fill=False, color="tab:blue", lw=1.2))
         ax.plot(x, y, "+", color="tab:blue", ms=6)
     ax.plot([], [], "-", color="tab:red", lw=2, label="connected vehicles (truth)")
     ax.plot([], [], "-", color="0.35", lw=0.8, label="obstacles (truth)")

@@ -29,6 +29,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
 from ..health import split_key
@@ -90,9 +91,7 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--time-scale", type=float, default=None, help="scenario seconds per wall second")
     p.add_argument("--manifest", default=None, help="fleet manifest (default deploy/fleet.yaml)")
-    p.add_argument(
-        "--runs-dir", default=None, help="where run directories go (default ./runs, env MAPC_RUNS_DIR)"
-    )
+    p.add_argument("--runs-dir", default=None, help="where run directories go (default ./runs, env MAPC_RUNS_DIR)")
     p.add_argument("--run-dir", default=None, help=argparse.SUPPRESS)
     p.add_argument("--listen", default="tcp/127.0.0.1:0", help="the rendezvous endpoint (port 0: a free one)")
     p.add_argument(
@@ -153,9 +152,7 @@ def summary_line(t_run: float, up: int, expected: int, metrics: dict | None) -> 
 
     parts = [f"{t_run:6.1f}s", f"up {up}/{expected}"]
     m = metrics or {}
-    parts.append(
-        f"RMSE veh {f(m.get('vehicle_rmse_m'), '.2f', ' m')} obj {f(m.get('object_rmse_m'), '.2f', ' m')}"
-    )
+    parts.append(f"RMSE veh {f(m.get('vehicle_rmse_m'), '.2f', ' m')} obj {f(m.get('object_rmse_m'), '.2f', ' m')}")
     bps = m.get("tx_bytes_per_s") or {}
     if bps:
         parts.append("kB/s " + " ".join(f"{k} {v / 1e3:.1f}" for k, v in bps.items()))
@@ -193,24 +190,19 @@ class _Run:
         with self.lock:
             self.events_f.write(json.dumps(rec) + "\n")
             self.events_f.flush()
-        level = (
-            logging.WARNING
-            if event in ("exited", "alive_lost", "frozen_kill", "stop_timeout")
-            else logging.INFO
-        )
+        level = logging.WARNING if event in ("exited", "alive_lost", "frozen_kill", "stop_timeout") else logging.INFO
         if event == "exited" and self.sup is not None and self.sup.stopping:
             level = logging.INFO
         log.log(level, "%s %s %s", name, event, details or "")
 
     def on_metrics(self, sample) -> None:
-        raw = sample.payload.to_bytes()
-        try:
-            m = json.loads(raw)
-        except ValueError:
+        msg = decode(sample.payload.to_bytes(), EvalMetrics)
+        if isinstance(msg, Rejection):
             return
+        m = msg.model_dump(mode="json")
         with self.lock:
             self.latest_metrics = m
-            self.metrics_f.write(raw.decode() + "\n")
+            self.metrics_f.write(json.dumps(m) + "\n")
             self.metrics_f.flush()
 
     def state(self) -> dict:
@@ -277,9 +269,7 @@ def run(s: LauncherSettings) -> int:
             session = open_session(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
             r.endpoints = [s.join]
         else:
-            session = open_session(
-                ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc)
-            )
+            session = open_session(ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc))
             r.endpoints = listening_locators(session)
         if not r.endpoints:
             raise RuntimeError("could not read the rendezvous endpoint from the Zenoh admin space")
@@ -314,18 +304,12 @@ def run(s: LauncherSettings) -> int:
             with r.lock:
                 sup.on_alive(role, sid, sample.kind == zenoh.SampleKind.PUT)
 
-        keep = [
-            session.liveliness().declare_subscriber(
-                topic("alive").pattern(fleet=fleet), on_alive, history=True
-            )
-        ]
-        from ..evaluator.app import metrics_key
-
-        keep.append(session.declare_subscriber(metrics_key(fleet), r.on_metrics))  # until session.close()
+        keep = [session.liveliness().declare_subscriber(topic("alive").pattern(fleet=fleet), on_alive, history=True)]
+        keep.append(
+            session.declare_subscriber(topic("metrics").key(fleet=fleet), r.on_metrics)
+        )  # until session.close()
         if s.summary:
-            print(
-                f"fleet {fleet}: {len(specs)} processes, rendezvous {connect}, run dir {run_dir}", flush=True
-            )
+            print(f"fleet {fleet}: {len(specs)} processes, rendezvous {connect}, run dir {run_dir}", flush=True)
 
         # start, group by group
         for order in sup.orders():
@@ -371,12 +355,7 @@ def run(s: LauncherSettings) -> int:
                 sup.step()
                 up = sum(p.alive for p in sup.procs.values())
                 metrics = r.latest_metrics
-            if (
-                world is not None
-                and completed_at is None
-                and world.state == "exited"
-                and world.returncode == 0
-            ):
+            if world is not None and completed_at is None and world.state == "exited" and world.returncode == 0:
                 completed_at = time.monotonic()
                 r.event("completed", "world", {"drain_s": s.drain_s})
             if completed_at is not None and time.monotonic() - completed_at >= s.drain_s:

@@ -4,40 +4,9 @@ from __future__ import annotations
 
 import math
 
-from mapcontainer.sim.config import ScenarioConfig, VehicleSpec
+from mapcontainer.sim.config import scale_scenario
 
-__all__ = ["Pacer", "scale_scenario"]
-
-
-def scale_scenario(sc: ScenarioConfig, vehicles: int | None) -> ScenarioConfig:
-    """The scenario with ``vehicles`` connected vehicles (None: as defined).
-
-    Fewer than defined: the first ones. More: the hook for the scaling experiments — extra vehicles
-    are spread evenly over the ring's lanes, starting half-way between the defined ones, at the
-    defined vehicles' mean speed. (The scenario generator for large fleets belongs in
-    mapcontainer.sim; replace this when it exists.)
-    """
-    if vehicles is None or vehicles == len(sc.connected):
-        return sc
-    if vehicles < 1:
-        raise ValueError(f"vehicles must be at least 1, got {vehicles}")
-    connected = list(sc.connected[:vehicles])
-    n_extra = vehicles - len(connected)
-    if n_extra > 0:
-        lanes = 2 * sc.map.lanes_per_direction
-        speed = sum(v.speed_mps for v in sc.connected) / len(sc.connected)
-        ring_m = 2 * (sc.map.length_m + sc.map.width_m)  # roughly the ring's length; s wraps anyway
-        for i in range(n_extra):
-            connected.append(
-                VehicleSpec(
-                    lane=i % lanes,
-                    s0_m=(i + 0.5) * ring_m / n_extra,
-                    speed_mps=speed * (0.9 + 0.2 * ((i * 7) % 5) / 4),
-                )
-            )
-    data = sc.model_dump()
-    data["connected"] = [v.model_dump() for v in connected]
-    return ScenarioConfig.model_validate(data)
+__all__ = ["Pacer", "scale_scenario"]  # scale_scenario re-exported from the core
 
 
 class Pacer:

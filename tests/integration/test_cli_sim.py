@@ -14,9 +14,23 @@ from schemas import GroundTruth, SensorFrame, encode
 def test_mapc_sim_writes_a_readable_episode(tmp_path):
     out = tmp_path / "episode"
     proc = subprocess.run(
-        [sys.executable, "-m", "mapcontainer.cli", "sim", "paper-urban", "--seed", "1", "--duration", "1.0",
-         "--out", str(out)],
-        capture_output=True, text=True, timeout=300, check=True,
+        [
+            sys.executable,
+            "-m",
+            "mapcontainer.cli",
+            "sim",
+            "paper-urban",
+            "--seed",
+            "1",
+            "--duration",
+            "1.0",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
     )
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["scenario"] == "paper-urban" and summary["seed"] == 1
@@ -37,10 +51,19 @@ def test_mapc_sim_writes_a_readable_episode(tmp_path):
 
 
 def test_mapc_scenario_list_and_bad_scenario():
-    proc = subprocess.run([sys.executable, "-m", "mapcontainer.cli", "scenario", "list", "--json"],
-                          capture_output=True, text=True, timeout=120, check=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mapcontainer.cli", "scenario", "list", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
     names = {row["name"] for row in json.loads(proc.stdout)}
     assert "paper-urban" in names and "blindspot-beyond" in names
-    bad = subprocess.run([sys.executable, "-m", "mapcontainer.cli", "sim", "nope", "--out", "/tmp/never"],
-                         capture_output=True, text=True, timeout=120)
+    bad = subprocess.run(
+        [sys.executable, "-m", "mapcontainer.cli", "sim", "nope", "--out", "/tmp/never"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode == 2 and "unknown scenario" in bad.stderr

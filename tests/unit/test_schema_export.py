@@ -27,6 +27,7 @@ def test_export_writes_one_file_per_model_plus_topics(tmp_path: Path) -> None:
             "fused_state.json",
             "ground_truth.json",
             "health_status.json",
+            "eval_metrics.json",
             "topics.json",
         ]
     )
@@ -54,11 +55,12 @@ def test_stale_reports_missing_and_changed_files(tmp_path: Path) -> None:
 
 
 def test_every_topic_model_is_exported() -> None:
-    assert {t.model for t in TOPICS if t.model is not None} <= set(MODELS)
+    assert {t.model for t in TOPICS if t.model is not None} == set(MODELS)
+    assert {schema_filename(m) for m in MODELS} | {"topics.json"} == set(render())
 
 
 def test_array_fields_document_dtype_and_shape() -> None:
-    schema = json.loads(render()[schema_filename(MODELS[3])])  # FusedState
+    schema = json.loads(render()["fused_state.json"])
     assert schema["title"] == "FusedState"
     cov = schema["properties"]["object_cov"]
     assert cov["x-dtype"] == "float32" and cov["x-shape"] == ["N", 6]

@@ -51,8 +51,13 @@ def test_same_seed_gives_identical_bytes_and_noise_depends_on_seed():
 
 def _camera(**overrides) -> tuple[Camera, HDMap]:
     cfg = load_sensor_config().camera.model_copy(
-        update={"p_detect_near": 1.0, "p_detect_far": 1.0, "clutter_points_per_frame": 0.0,
-                "clutter_poles_per_frame": 0.0, **overrides}
+        update={
+            "p_detect_near": 1.0,
+            "p_detect_far": 1.0,
+            "clutter_points_per_frame": 0.0,
+            "clutter_poles_per_frame": 0.0,
+            **overrides,
+        }
     )
     hd = HDMap(
         name="probe",
@@ -68,8 +73,9 @@ def _camera(**overrides) -> tuple[Camera, HDMap]:
     return Camera(cfg, hd, np.random.default_rng(0)), hd
 
 
-TRUCK = ActorState("9", ObjectClass.VEHICLE, np.array([15.0, 0.0, 0.0]), 0.0, np.zeros(3), 0.0,
-                   np.array([4.6, 1.9, 2.5]))
+TRUCK = ActorState(
+    "9", ObjectClass.VEHICLE, np.array([15.0, 0.0, 0.0]), 0.0, np.zeros(3), 0.0, np.array([4.6, 1.9, 2.5])
+)
 
 
 def test_camera_never_detects_hidden_landmarks():
@@ -113,12 +119,14 @@ def test_detector_is_occluded_by_the_vehicle_ahead():
 
 
 def test_detector_noise_matches_its_reported_covariance():
-    cfg = load_sensor_config().detector.model_copy(update={"p_detect_near": 1.0, "p_detect_far": 1.0,
-                                                           "false_alarms_per_frame": 0.0})
+    cfg = load_sensor_config().detector.model_copy(
+        update={"p_detect_near": 1.0, "p_detect_far": 1.0, "false_alarms_per_frame": 0.0}
+    )
     det = ObjectDetector(cfg, (1.5, 0.0, 1.5), np.random.default_rng(5))
     me = ActorState("cv0", ObjectClass.VEHICLE, np.zeros(3), 0.0, np.zeros(3), 0.0, np.array([4.6, 1.9, 1.5]))
-    tgt = ActorState("1", ObjectClass.PEDESTRIAN, np.array([25.0, 8.0, 0.0]), 0.0, np.zeros(3), 0.0,
-                     np.array([0.6, 0.6, 1.75]))
+    tgt = ActorState(
+        "1", ObjectClass.PEDESTRIAN, np.array([25.0, 8.0, 0.0]), 0.0, np.zeros(3), 0.0, np.array([0.6, 0.6, 1.75])
+    )
     nees = []
     for _ in range(400):
         p, cov, cls, ids = det.observe(me, [tgt], [me, tgt])
