@@ -1,0 +1,65 @@
+"""The vehicle agent on simulated frames: accuracy, message size and the centralized payload."""
+
+import numpy as np
+import pytest
+
+from mapcontainer import geometry as geo
+from mapcontainer.metrics import rmse
+from mapcontainer.sim import World, load_scenario
+from mapcontainer.vehicle import VehicleAgent
+from schemas import ObjectObservations, RawObservations, VehiclePrior, decode, encode
+from schemas.arrays import cov_from_upper
+
+
+@pytest.fixture(scope="module")
+def urban_run():
+    world = World(load_scenario("paper-urban"), seed=0)
+    agents = {v: VehicleAgent(world.hdmap, v, world.fleet) for v in world.vehicle_ids}
+    out = []
+    for tick in world.run(8.0):
+        for vid, frame in tick.frames.items():
+            out.append((tick, vid, frame, agents[vid].handle(tick.t, frame)))
+    return out
+
+
+def test_self_localization_accuracy_and_consistency(urban_run):
+    err, nees, matched = [], [], []
+    for tick, vid, frame, prior in urban_run:
+        assert isinstance(prior, VehiclePrior) and prior.sender == vid and prior.t_meas == frame.t_meas
+        if tick.t < 3.0:  # initialisation from GNSS first
+            continue
+        e = np.asarray(prior.pose, float) - tick.states[vid].pose
+        e[3:] = geo.wrap_angle(e[3:])
+        err.append(e[:2])
+        nees.append(e @ np.linalg.solve(cov_from_upper(prior.pose_cov), e))
+        matched.append(prior.quality.mode == "map_matching")
+    assert rmse(err) < 0.3
+    assert np.mean(matched) > 0.9
+    assert 1.0 < np.mean(nees) < 15.0
+
+
+def test_prior_carries_this_frames_detections_and_is_compact(urban_run):
+    _, _, frame, prior = urban_run[-1]
+    np.testing.assert_array_equal(prior.objects.p_body_cm, frame.objects.p_body_cm)
+    # With 14 observed objects a prior still encodes to <= 600 bytes (an ETSI CPM with 14 objects ~540 B).
+    rng = np.random.default_rng(0)
+    p = rng.uniform([-5, -30, -0.5], [60, 30, 0.5], (14, 3))
+    cov = np.array([np.diag(rng.uniform(0.01, 0.4, 3)) for _ in range(14)])
+    big = prior.model_copy(update={"objects": ObjectObservations.from_metres(p, cov, np.ones(14, np.uint8)),
+                                   "seq": 123456, "fleet": "fleet-01"})
+    payload = encode(big)
+    assert len(payload) <= 600, len(payload)
+    back = decode(payload, VehiclePrior)
+    assert isinstance(back, VehiclePrior) and len(back.objects) == 14
+
+
+def test_centralized_mode_forwards_the_raw_observations():
+    world = World(load_scenario("overlap"), seed=0)
+    agent = VehicleAgent(world.hdmap, "cv1", world.fleet, mode="centralized")
+    tick = world.tick(0)
+    raw = agent.handle(0.05, tick.frames["cv1"])
+    assert isinstance(raw, RawObservations) and raw.sender == "cv1" and raw.t_sent == 0.05
+    assert raw.lane_mask_png == tick.frames["cv1"].lane_mask_png
+    assert len(encode(raw)) > 5 * 400
+    with pytest.raises(ValueError, match="given a frame from cv0"):
+        agent.handle(0.0, tick.frames["cv0"])
