@@ -67,6 +67,57 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_fusion(args: argparse.Namespace) -> int:
+    from .fusion.bench import bench_fusion
+
+    result = bench_fusion(
+        vehicles=args.vehicles, objects=args.objects, window=args.window, seed=args.seed, ticks=args.ticks
+    )
+    print(json.dumps(result))
+    return 0
+
+
+def _cmd_experiment_paper(args: argparse.Namespace) -> int:
+    from .experiments.paper import PaperSettings, run_paper_experiment
+
+    settings = PaperSettings(
+        runs=args.runs,
+        seed=args.seed,
+        workers=args.workers,
+        duration_s=args.duration,
+        warmup_s=args.warmup,
+        rv_runs=args.rv_runs,
+        rv_duration_s=args.rv_duration,
+    )
+    res = run_paper_experiment(args.out, settings, progress=not args.quiet)
+    targets = {t["target"]: "PASS" if t["pass"] else "FAIL" for t in res["targets"]}
+    print(json.dumps({"out": str(args.out), "wall_s": res["wall_s"], "runs": res["runs"], "targets": targets}))
+    return 0
+
+
+def _cmd_experiment_network(args: argparse.Namespace) -> int:
+    from .experiments.network import run_network_sweep
+
+    rows = run_network_sweep(
+        args.out,
+        quick=args.quick,
+        seed=args.seed,
+        workers=args.workers,
+        duration=args.duration,
+        scenario=args.scenario,
+        progress=not args.quiet,
+    )
+    print(json.dumps({"out": str(args.out), "points": len(rows)}))
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapc", description="Map Container: map-based cooperative perception over V2X")
     sub = p.add_subparsers(dest="command", required=True)
@@ -92,6 +143,42 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--seeds", type=int, default=3, help="independent episodes")
     bl.add_argument("--duration", type=float, default=20.0, help="seconds per episode")
     bl.set_defaults(func=_cmd_bench_localization)
+    bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
+    bf.add_argument("--vehicles", type=_positive_int, default=4)
+    bf.add_argument("--objects", type=int, default=14)
+    bf.add_argument("--window", type=_positive_int, default=10, help="frames in the sliding window")
+    bf.add_argument("--ticks", type=_positive_int, default=100, help="frames to run (timings skip the first window)")
+    bf.add_argument("--seed", type=int, default=0)
+    bf.set_defaults(func=_cmd_bench_fusion)
+
+    exp = sub.add_parser("experiment", help="experiments that write tables and plots").add_subparsers(
+        dest="sub", required=True
+    )
+    ep = exp.add_parser("paper", help="reproduce the paper's results (figure exp_sim, Tables res1/res2)")
+    ep.add_argument("--runs", type=_positive_int, default=200, help="Monte Carlo runs per simulated scenario")
+    ep.add_argument("--out", required=True, help="output directory")
+    ep.add_argument("--seed", type=int, default=0, help="run i uses seed S + i")
+    ep.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
+    ep.add_argument(
+        "--duration", type=float, default=2.0, help="simulated seconds per simulation run, warm-up included"
+    )
+    ep.add_argument("--warmup", type=float, default=1.0, help="seconds at the start of every run not scored")
+    ep.add_argument(
+        "--rv-runs", type=_positive_int, default=None, help="runs per real-vehicle scenario (default min(runs, 10))"
+    )
+    ep.add_argument("--rv-duration", type=float, default=6.0, help="seconds per real-vehicle run, warm-up included")
+    ep.add_argument("--quiet", action="store_true", help="no progress bar")
+    ep.set_defaults(func=_cmd_experiment_paper)
+
+    en = exp.add_parser("network", help="latency x loss x bandwidth sweep in both modes (in-process)")
+    en.add_argument("--out", required=True, help="output directory")
+    en.add_argument("--quick", action="store_true", help="a 2 x 2 x 2 grid of short runs (for tests)")
+    en.add_argument("--seed", type=int, default=0)
+    en.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
+    en.add_argument("--duration", type=float, default=None, help="seconds per point (default 4, quick 2.5)")
+    en.add_argument("--scenario", default="paper-urban")
+    en.add_argument("--quiet", action="store_true", help="no progress bar")
+    en.set_defaults(func=_cmd_experiment_network)
 
     sch = sub.add_parser("schemas", help="the wire contract").add_subparsers(dest="sub", required=True)
     ex = sch.add_parser("export", help="write JSON Schema files (default: schemas/json/)")

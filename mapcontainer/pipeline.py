@@ -68,6 +68,7 @@ class PipelineResult:
     channel_stats: dict = field(default_factory=dict)
     host_stats: dict[str, dict] = field(default_factory=dict)
     duration_s: float = 0.0
+    deliveries: list[tuple[str, float, float]] = field(default_factory=list)  # (src, t_sent, t_arrive) received
 
 
 def run_pipeline(
@@ -121,6 +122,7 @@ def run_pipeline(
                 result.tx_msgs[vid] += 1
                 channel.send(vid, HOST_ID, payload, t)
         for d in channel.deliver(t):
+            result.deliveries.append((d.src, d.t_sent, d.t_arrive))
             for name, host in hosts.items():
                 if d.src in listeners[name]:
                     host.ingest(d.payload, d.t_arrive)

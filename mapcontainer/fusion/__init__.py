@@ -1,6 +1,7 @@
 """Host container: reorder buffer, association, sliding-window factor graph (paper §III-D)."""
 
 from .association import Tracker, observations_to_map
+from .blas import limit_blas_threads
 from .buffer import ReorderBuffer
 from .container import Container, IngestResult
 from .graph import FusionGraph
@@ -13,5 +14,6 @@ __all__ = [
     "IngestResult",
     "ReorderBuffer",
     "Tracker",
+    "limit_blas_threads",
     "observations_to_map",
 ]

@@ -92,7 +92,11 @@ def classes_compatible(a: int, b: int) -> bool:
 
 
 def _psd(params: FusionParams, cls: int) -> np.ndarray:
-    horiz = params.accel_psd_pedestrian if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST) else params.accel_psd_vehicle
+    horiz = (
+        params.accel_psd_pedestrian
+        if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST)
+        else params.accel_psd_vehicle
+    )
     return np.array([horiz, horiz, params.accel_psd_vertical])
 
 
@@ -151,6 +155,7 @@ class Assignment:
     kind: str
     target: int | str
     det: Detection
+    d2: float = 0.0  # Mahalanobis distance squared of the match (innovation)
 
 
 @dataclass
@@ -167,15 +172,17 @@ class Track:
     cls_votes: Counter = field(default_factory=Counter)
     hit_keys: set = field(default_factory=set)
     frames: dict = field(default_factory=dict)  # (sender, time key) -> t of its detections
-    pending: list[Detection] = field(default_factory=list)
+    pending: list[tuple[Detection, float]] = field(default_factory=list)  # held detections and their d2
 
     @property
     def confirmed(self) -> bool:
         return self.id is not None
 
-    @property
-    def cls(self) -> int:
-        return int(self.cls_votes.most_common(1)[0][0]) if self.cls_votes else int(ObjectClass.UNKNOWN)
+    cls: int = int(ObjectClass.UNKNOWN)  # majority of cls_votes (see vote)
+
+    def vote(self, cls: int) -> None:
+        self.cls_votes[cls] += 1
+        self.cls = int(self.cls_votes.most_common(1)[0][0])
 
 
 class Tracker:
@@ -228,9 +235,7 @@ class Tracker:
         return x[:, :3], P[:, :3, :3]
 
     # ---------------------------------------------------------------- association
-    def associate(
-        self, dets: list[Detection], vehicles: list[VehicleCandidate]
-    ) -> tuple[list[Assignment], list[int]]:
+    def associate(self, dets: list[Detection], vehicles: list[VehicleCandidate]) -> tuple[list[Assignment], list[int]]:
         """Assign one message's detections. Returns (assignments for the graph, ids of newly confirmed tracks).
 
         Assignments to a newly confirmed track include its held detections (oldest first). A detection
@@ -241,9 +246,14 @@ class Tracker:
         if not dets:
             return [], []
         t = dets[0].t
-        live = list(self.tracks.values())
-        n, nv, nt = len(dets), len(vehicles), len(live)
         m = np.array([d.p_map for d in dets])
+        live = list(self.tracks.values())
+        if live:  # only tracks that could be near a detection (a cheap Euclidean pre-gate)
+            xs = np.array([tr.x for tr in live])
+            dts = np.array([t - tr.t for tr in live])[:, None]
+            near = np.min(np.linalg.norm((xs[:, None, :3] + dts[:, None] * xs[:, None, 3:]) - m[None], axis=2), axis=1)
+            live = [tr for tr, d in zip(live, near, strict=True) if d <= self.params.pregate_m]
+        n, nv, nt = len(dets), len(vehicles), len(live)
         S_m = np.array([d.cov_map for d in dets])
         cost = np.full((n, nv + nt), _INFEASIBLE)
         d2_all = np.full((n, nv + nt), np.inf)
@@ -267,35 +277,45 @@ class Tracker:
 
         out: list[Assignment] = []
         born: list[int] = []
+        kf: list[tuple[Track, Detection]] = []
         for i, det in enumerate(dets):
             j = matched.get(i)
             if j is None:
                 if np.any(d2_all[i, ~taken] <= self.exclusion_gate):
                     self.counts["birth_suppressed"] += 1
                 else:
-                    self._new_track(det)
+                    self._maybe_confirm(self._new_track(det), out, born)
                     self.counts["new_tentative"] += 1
             elif j < nv:
-                out.append(Assignment("vehicle", vehicles[j].vid, det))
+                out.append(Assignment("vehicle", vehicles[j].vid, det, float(cost[i, j])))
                 self.counts["matched_vehicle"] += 1
             else:
                 tr = live[j - nv]
-                self._update(tr, det)
+                self._record(tr, det)
+                kf.append((tr, det))
                 if tr.confirmed:
-                    out.append(Assignment("track", tr.id, det))
+                    out.append(Assignment("track", tr.id, det, float(cost[i, j])))
                     self.counts["matched_track"] += 1
                 else:
-                    tr.pending.append(det)
+                    tr.pending.append((det, float(cost[i, j])))
                     self.counts["matched_tentative"] += 1
-                    if len(tr.hit_keys) >= self.params.birth_hits:
-                        tr.id = self._next_id
-                        self._uid_of[tr.id] = tr.uid
-                        self._next_id += 1
-                        born.append(tr.id)
-                        out.extend(Assignment("track", tr.id, d) for d in sorted(tr.pending, key=lambda d: d.t))
-                        tr.pending = []
-                        self.counts["confirmed"] += 1
+                    self._maybe_confirm(tr, out, born)
+        self._update(kf)
         return out, born
+
+    def _maybe_confirm(self, tr: Track, out: list[Assignment], born: list[int]) -> None:
+        """Confirm a tentative track with detections at birth_hits instants: next global id, held
+        detections out to the graph (oldest first)."""
+        if tr.confirmed or len(tr.hit_keys) < self.params.birth_hits:
+            return
+        tr.id = self._next_id
+        self._uid_of[tr.id] = tr.uid
+        self._next_id += 1
+        born.append(tr.id)
+        held = sorted(tr.pending, key=lambda p: p[0].t)
+        out.extend(Assignment("track", tr.id, d, d2) for d, d2 in held)
+        tr.pending = []
+        self.counts["confirmed"] += 1
 
     def _new_track(self, det: Detection) -> Track:
         sv = speed_prior(self.params, det.cls)
@@ -306,28 +326,36 @@ class Tracker:
             uid=self._next_uid, x=np.concatenate([det.p_map, np.zeros(3)]), P=P, t=det.t, t_last=det.t, t_first=det.t
         )
         self._next_uid += 1
-        tr.cls_votes[det.cls] += 1
+        tr.vote(det.cls)
         tr.hit_keys.add(time_key(det.t))
         tr.frames[(det.sender, time_key(det.t))] = det.t
-        tr.pending.append(det)
+        tr.pending.append((det, 0.0))
         self.tracks[tr.uid] = tr
         return tr
 
-    def _update(self, tr: Track, det: Detection) -> None:
-        """Kalman update with the map-frame detection (skipped for detections older than the filter)."""
-        tr.cls_votes[det.cls] += 1
+    def _record(self, tr: Track, det: Detection) -> None:
+        tr.vote(det.cls)
         tr.hit_keys.add(time_key(det.t))
         tr.frames[(det.sender, time_key(det.t))] = det.t
         tr.t_last = max(tr.t_last, det.t)
         tr.t_first = min(tr.t_first, det.t)
-        if det.t < tr.t:
+
+    def _update(self, pairs: list[tuple[Track, Detection]]) -> None:
+        """Kalman updates of distinct tracks with their map-frame detections, all at once (detections
+        older than a track's filter are skipped: the filter only gates and initialises)."""
+        pairs = [(tr, det) for tr, det in pairs if det.t >= tr.t]
+        if not pairs:
             return
-        x, P = self.predict(tr, det.t)
-        S = P[:3, :3] + det.cov_map
-        K = np.linalg.solve(S, P[:3, :]).T
-        x = x + K @ (det.p_map - x[:3])
-        P = P - K @ P[:3, :]
-        tr.x, tr.P, tr.t = x, 0.5 * (P + P.T), det.t
+        tracks = [tr for tr, _ in pairs]
+        x, P = self.predict_states(tracks, pairs[0][1].t)
+        m = np.array([det.p_map for _, det in pairs])
+        S = P[:, :3, :3] + np.array([det.cov_map for _, det in pairs])
+        K = np.linalg.solve(S, P[:, :3, :]).transpose(0, 2, 1)  # P H^T S^-1 (S symmetric)
+        x = x + np.einsum("nij,nj->ni", K, m - x[:, :3])
+        P = P - K @ P[:, :3, :]
+        P = 0.5 * (P + P.transpose(0, 2, 1))
+        for n, (tr, det) in enumerate(pairs):
+            tr.x, tr.P, tr.t = x[n], P[n], det.t
 
     # ---------------------------------------------------------------- maintenance
     def sync(self, track_id: int, t: float, x, P) -> None:
@@ -349,12 +377,19 @@ class Tracker:
             self._merge_streak = {}
             return []
         x, P = self.predict_states(conf, t)
-        d2p = mahalanobis_matrix(x[:, :3], P[:, :3, :3], x[:, :3], P[:, :3, :3])
-        d2v = mahalanobis_matrix(x[:, 3:], P[:, 3:, 3:], x[:, 3:], P[:, 3:, 3:])
+        dist = np.linalg.norm(x[:, None, :3] - x[None, :, :3], axis=2)
+        pairs = np.argwhere(np.triu(dist <= self.params.pregate_m, 1))
+        d2p = d2v = np.zeros(0)
+        if len(pairs):
+            a_, b_ = pairs[:, 0], pairs[:, 1]
+            dp, dv = x[a_, :3] - x[b_, :3], x[a_, 3:] - x[b_, 3:]
+            Sp, Sv = P[a_, :3, :3] + P[b_, :3, :3], P[a_, 3:, 3:] + P[b_, 3:, 3:]
+            d2p = np.einsum("ni,ni->n", dp, np.linalg.solve(Sp, dp[..., None])[..., 0])
+            d2v = np.einsum("ni,ni->n", dv, np.linalg.solve(Sv, dv[..., None])[..., 0])
         close = (d2p <= self.merge_gate) & (d2v <= self.merge_gate)
         streak: dict[tuple[int, int], int] = {}
         gone: list[int] = []
-        for a, b in zip(*np.nonzero(np.triu(close, 1)), strict=True):
+        for a, b in pairs[close]:
             ta, tb = conf[a], conf[b]
             if not classes_compatible(ta.cls, tb.cls) or ta.frames.keys() & tb.frames.keys():
                 continue
@@ -368,6 +403,7 @@ class Tracker:
             young = self.by_id(tid)
             if older is not None and young is not None:
                 older.cls_votes.update(young.cls_votes)
+                older.cls = int(older.cls_votes.most_common(1)[0][0])
                 older.hit_keys |= young.hit_keys
             del self.tracks[self._uid_of.pop(tid)]
             self.counts["merged"] += 1

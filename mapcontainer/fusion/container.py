@@ -47,11 +47,14 @@ def _decode_prior(payload: bytes) -> VehiclePrior | Rejection:
 
 
 def _make_pd(C: np.ndarray) -> np.ndarray:
-    """Symmetric, with eigenvalues floored (float32-safe) — a covariance the wire validator accepts."""
-    C = 0.5 * (C + C.T)
+    """Symmetric (..., n, n) with eigenvalues floored (float32-safe): covariances the wire validator accepts."""
+    C = np.asarray(C, dtype=float)
+    if C.size == 0:
+        return C
+    C = 0.5 * (C + np.swapaxes(C, -1, -2))
     w, U = np.linalg.eigh(C)
-    floor = max(1e-12, 1e-7 * float(np.max(np.abs(w)))) if w.size else 1e-12
-    return (U * np.maximum(w, floor)) @ U.T
+    floor = np.maximum(1e-12, 1e-7 * np.max(np.abs(w), axis=-1, keepdims=True))
+    return (U * np.maximum(w, floor)[..., None, :]) @ np.swapaxes(U, -1, -2)
 
 
 class Container:
@@ -74,6 +77,7 @@ class Container:
         self.graph = FusionGraph(params)
         self.tracker = Tracker(params)
         self._counts: Counter[str] = Counter()
+        self._cross: list = []  # (observed vehicle id, Detection) waiting for that vehicle's frame
         self._rejected: Counter[str] = Counter()
         self._seq = 0
         self._last: SolveReport | None = None
@@ -130,6 +134,7 @@ class Container:
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
                 self._associate(m)
+        self._cross_detections(t_min)
         for tid in self.tracker.expire(t):
             self.graph.remove_track(tid)
         self.graph.prune(t_min)
@@ -180,25 +185,21 @@ class Container:
             cov = s.cov[:3, :3] + (self.params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
             vehicles.append(VehicleCandidate(vid, s.pose[:3] + s.v_map * dt, cov))
         assignments, _ = self.tracker.associate(dets, vehicles)
+        batch = []
+        rotations: dict[int, np.ndarray] = {}
         for a in assignments:
             det = a.det
             obs = self.graph.vehicle_state(det.sender, det.t, 0.0)
             if obs is None:  # the observer's frame has left the window
                 self._counts["observer_gone"] += 1
                 continue
-            R_obs = geo.rpy_to_matrix(*obs.pose[3:])
+            R_obs = rotations.get(obs.key)
+            if R_obs is None:
+                R_obs = rotations[obs.key] = geo.rpy_to_matrix(*obs.pose[3:])
             if a.kind == "vehicle":
-                if not self.params.cross_localization:
-                    continue
-                target = self.graph.vehicle_state(a.target, det.t, self.params.cross_obs_max_dt_s)
-                if target is None:
-                    self._counts["cross_no_state"] += 1
-                    continue
-                delta = det.t - target.t  # the target moved v delta since its frame
-                z = det.p_body - R_obs.T @ target.v_map * delta
-                cov = det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3)
-                self.graph.add_cross_detection(obs.key, target.key, z, cov)
-                self._counts["cross_detections"] += 1
+                if self.params.cross_localization:
+                    self._cross.append((a.target, det))
+                    self._counts["cross_pending"] += 1
             else:
                 tr = self.tracker.by_id(a.target)
                 cls = tr.cls if tr is not None else det.cls
@@ -209,8 +210,40 @@ class Container:
                 if delta != 0.0 and tr is not None:
                     z = z - R_obs.T @ tr.x[3:] * delta
                     cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
-                self.graph.add_detection(obs.key, state, z, cov)
-                self._counts["detections"] += 1
+                k = self.params.huber_k
+                d = float(np.sqrt(a.d2))
+                weight = 1.0 if k is None or d <= k else k / d
+                batch.append((obs.key, state, z, cov, weight))
+        self.graph.add_detections(batch)
+        self._counts["detections"] += len(batch)
+
+    def _cross_detections(self, t_min: float) -> None:
+        """Tie detections of connected vehicles to the observed vehicle's pose at (about) the same time.
+
+        A detection waits (up to the window) for the observed vehicle's message of its instant, which
+        may arrive later than the observer's. The observed vehicle moved v * delta between its frame and
+        the detection; that is taken out of the detection and its uncertainty added.
+        """
+        waiting = []
+        for vid, det in self._cross:
+            if det.t < t_min:
+                self._counts["cross_no_state"] += 1
+                continue
+            obs = self.graph.vehicle_state(det.sender, det.t, 0.0)
+            if obs is None:
+                self._counts["observer_gone"] += 1
+                continue
+            target = self.graph.vehicle_state(vid, det.t, self.params.cross_obs_max_dt_s)
+            if target is None:
+                waiting.append((vid, det))
+                continue
+            R_obs = geo.rpy_to_matrix(*obs.pose[3:])
+            delta = det.t - target.t
+            z = det.p_body - R_obs.T @ target.v_map * delta
+            cov = det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3)
+            self.graph.add_cross_detection(obs.key, target.key, z, cov)
+            self._counts["cross_detections"] += 1
+        self._cross = waiting
 
     def _output(self, t: float) -> FusedState:
         g = self.graph
@@ -224,7 +257,7 @@ class Container:
             else:
                 cov = pose_cov_from_tangent(pose, cov_xi)
             poses.append(pose)
-            pose_covs.append(upper_from_sym(_make_pd(cov)))
+            pose_covs.append(cov)
         ids, cls, ps, vs, covs = [], [], [], [], []
         for tid, tr in sorted(self.tracker.confirmed().items()):
             if tid not in g.tracks:
@@ -240,7 +273,7 @@ class Container:
             cls.append(tr.cls)
             ps.append(p + v * dt)
             vs.append(v)
-            covs.append(upper_from_sym(_make_pd(cov)))
+            covs.append(cov)
         self._seq += 1
         return FusedState(
             fleet=self.fleet,
@@ -250,12 +283,12 @@ class Container:
             t_sent=t,
             vehicle_ids=vids,
             vehicle_pose=np.array(poses, dtype=np.float32).reshape(-1, 6),
-            vehicle_pose_cov=np.array(pose_covs, dtype=np.float32).reshape(-1, 21),
+            vehicle_pose_cov=upper_from_sym(_make_pd(np.array(pose_covs).reshape(-1, 6, 6))).astype(np.float32),
             object_id=np.array(ids, dtype=np.uint32),
             object_cls=np.array(cls, dtype=np.uint8),
             object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
             object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
-            object_cov=np.array(covs, dtype=np.float32).reshape(-1, 6),
+            object_cov=upper_from_sym(_make_pd(np.array(covs).reshape(-1, 3, 3))).astype(np.float32),
             messages_fused=sum(len(c.tkeys) for c in g.vehicles.values()),
         )
 
@@ -275,7 +308,8 @@ class Container:
             "last_error_before": last.error_before if last else float("nan"),
             "last_error_after": last.error_after if last else float("nan"),
             "last_cycle_ms": self._last_cycle_ms,
-            "covariance_fallbacks": last.covariance_fallbacks if last else 0,
+            "cliques_below_root": last.cliques_below_root if last else 0,
+            "reweighted": last.reweighted if last else 0,
             "factors": self.graph.num_factors,
             "variables": self.graph.num_variables,
             "vehicles": len(self.graph.vehicles),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import stats
 
@@ -29,6 +31,9 @@ class FusionParams(BaseModel):
     gate_probability: float = Field(
         0.99, gt=0, lt=1, description="chi-square (3 DoF) probability of the Mahalanobis gate in the map frame"
     )
+    pregate_m: float = Field(
+        15.0, gt=0, description="tracks farther than this (Euclidean) from every detection of a message are not gated"
+    )
     vehicle_gate_probability: float = Field(
         0.9999, gt=0, lt=1, description="gate for matching a detection to a connected vehicle's reported position"
     )
@@ -48,11 +53,29 @@ class FusionParams(BaseModel):
     cross_obs_max_dt_s: float = Field(
         0.06, ge=0, description="a detection of a connected vehicle is tied to its pose state at most this far in time"
     )
-    birth_hits: int = Field(3, ge=1, description="a tentative track is confirmed after detections at this many instants")
-    tentative_timeout_s: float = Field(0.35, gt=0, description="a tentative track without a detection this long is dropped")
+    birth_hits: int = Field(
+        3, ge=1, description="a tentative track is confirmed after detections at this many instants"
+    )
+    tentative_timeout_s: float = Field(
+        0.35, gt=0, description="a tentative track without a detection this long is dropped"
+    )
     death_s: float = Field(1.0, gt=0, description="a confirmed track without a detection this long is deleted")
 
     # ---- measurement models
+    detection_factor: Literal["linearized", "reference_frame"] = Field(
+        "linearized",
+        description=(
+            "body-frame detection factor (graph.py docstring): 'linearized' — the exact Cartesian model with the"
+            " helper point eliminated analytically (one LinearContainerFactor; Huber by IRLS across cycles);"
+            " 'reference_frame' — helper Point3 with a robust PriorFactorPoint3 tied by"
+            " ReferenceFrameFactorPoint3Pose3 (two factors and a variable per detection; ~1.5x the solve time)"
+        ),
+    )
+    reweight_s: float = Field(
+        0.5, ge=0, description="linearized detections get new Huber weights from the estimate while younger than this"
+    )
+    relinearize_rad: float = Field(0.02, gt=0, description="re-linearise a detection when its pose rotated this much")
+    relinearize_m: float = Field(0.5, gt=0, description="... or moved this far from its linearization point")
     reference_frame_sigma_m: float = Field(
         0.01,
         gt=0,
@@ -74,14 +97,22 @@ class FusionParams(BaseModel):
     )
     accel_psd_pedestrian: float = Field(0.5, gt=0, description="... of pedestrians and cyclists, horizontal (m^2/s^3)")
     accel_psd_vertical: float = Field(0.01, gt=0, description="... vertical, every class (m^2/s^3)")
-    speed_prior_vehicle_mps: float = Field(15.0, gt=0, description="zero-mean velocity prior sigma on a vehicle track's first state")
-    speed_prior_pedestrian_mps: float = Field(3.0, gt=0, description="... on a pedestrian or cyclist track's first state")
+    speed_prior_vehicle_mps: float = Field(
+        15.0, gt=0, description="zero-mean velocity prior sigma on a vehicle track's first state"
+    )
+    speed_prior_pedestrian_mps: float = Field(
+        3.0, gt=0, description="... on a pedestrian or cyclist track's first state"
+    )
     vehicle_velocity_sigma_mps: float = Field(
         0.5, gt=0, description="error of a reported v_map, used by the motion factor between a vehicle's frames (m/s)"
     )
-    vehicle_accel_sigma_mps2: float = Field(3.0, gt=0, description="unmodelled acceleration in that motion factor (m/s^2)")
+    vehicle_accel_sigma_mps2: float = Field(
+        3.0, gt=0, description="unmodelled acceleration in that motion factor (m/s^2)"
+    )
     vehicle_rate_sigma_radps: float = Field(
-        0.6, gt=0, description="rotation rate sigma of that motion factor (the relative rotation is not reported) (rad/s)"
+        0.6,
+        gt=0,
+        description="rotation rate sigma of that motion factor (the relative rotation is not reported) (rad/s)",
     )
     motion_factor_max_dt_s: float = Field(0.5, gt=0, description="no motion factor between frames further apart")
 

@@ -53,6 +53,8 @@ class OraclePriors:
                 pose_cov=cov_to_upper(self.pose_cov),
                 v_map=v,
                 quality=LocalizationQuality(mode="map_matching"),
-                objects=ObjectObservations(p_body_cm=frame.objects.p_body_cm, cov=frame.objects.cov, cls=frame.objects.cls),
+                objects=ObjectObservations(
+                    p_body_cm=frame.objects.p_body_cm, cov=frame.objects.cov, cls=frame.objects.cls
+                ),
             )
         return out

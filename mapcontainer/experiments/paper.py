@@ -1,0 +1,838 @@
+"""Reproduce the paper's results (sections "Simulation Validation" and "Test Vehicle Evaluation").
+
+What is run (every run is one :func:`mapcontainer.pipeline.run_pipeline` call on the simulated clock,
+ideal V2X channel, distributed mode unless stated; each run draws its own noise from seed s + i while
+the traffic of a scenario is the same in every run, as in the paper's 200 VISSIM repetitions):
+
+* **simulation** (figure exp_sim): ``runs`` Monte Carlo runs of paper-urban and of paper-suburban,
+  each with two host views — "cooperative" (every vehicle's messages) and "ego_only" (cv0's own).
+  Ego self-positioning RMSE (eq. rms1, horizontal) of GNSS alone (the raw fix), map matching alone
+  (the ego's VehiclePrior pose) and cooperative (the ego pose fused by the cooperative view); target
+  relative-positioning RMSE (eq. rms2, in the ego frame, true targets within ``radius_m`` of the ego)
+  of both views.
+* **overlap** (Table res1): scenario "overlap", three views: the ego car's messages only, the
+  connected car's only, both ("fused"); RMSE of the obstacle's map-frame horizontal position.
+* **blindspot** (Table res2): scenarios "blindspot-occluded" (ii) and "blindspot-beyond" (iii);
+  horizontal RMSE of the connected car's fused pose and of the obstacle, cooperative view.
+* **anees**: NEES of fused object positions (3-D, cooperative view, urban); see :func:`anees_summary`.
+* **bytes_per_message**: mean V2X payload of the urban runs (VehiclePrior) and of one short
+  centralized-mode run (RawObservations).
+
+Every run skips a warm-up (``warmup_s``): vehicles initialise from GNSS and the map matcher needs a
+few frames before it is in its basin; the host needs ``birth_hits`` frames to confirm a track.
+Only frames with t >= warmup_s are scored.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+import platform
+import time
+from collections import defaultdict
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..metrics import anees_band
+from ..pipeline import View, run_pipeline
+from .progress import Progress
+from .scoring import horizontal_sq_error, obstacle_errors, relative_target_errors, rmse_sq, vehicle_pose
+
+__all__ = [
+    "PAPER",
+    "PaperSettings",
+    "anees_summary",
+    "evaluate_claims",
+    "evaluate_targets",
+    "run_paper_experiment",
+    "run_task",
+]
+
+EGO = "cv0"  # the first connected vehicle of every preset is the ego (pipeline.py: world.vehicle_ids[0])
+CONNECTED = "cv1"  # the connected car of the real-vehicle scenarios
+
+PAPER: dict[str, Any] = {
+    "res1": {  # Table res1: experiments 1 and 2
+        "ego_car_m": (0.33, 0.37),
+        "connected_car_m": (0.35, 0.34),
+        "fused_m": (0.23, 0.29),
+    },
+    "res2": {  # Table res2: experiment 1 = scenario (ii), 2 = (iii)
+        "ii": {"connected_car_m": 0.18, "obstacle_m": 0.29},
+        "iii": {"connected_car_m": 0.18, "obstacle_m": 0.33},
+    },
+}
+SIM_SCENARIOS = {"urban": "paper-urban", "suburban": "paper-suburban"}
+BLINDSPOT_SCENARIOS = {"ii": "blindspot-occluded", "iii": "blindspot-beyond"}
+GROSS_ERROR_M = 3.0  # an ego map-matching error beyond this (GNSS level) in a scored frame = a localization failure
+
+
+@dataclass(frozen=True)
+class PaperSettings:
+    """How much to run. Durations are simulated seconds per run, warm-up included."""
+
+    runs: int = 200
+    seed: int = 0
+    workers: int = 2
+    duration_s: float = 2.0
+    warmup_s: float = 1.0
+    rv_runs: int | None = None  # real-vehicle scenarios: runs each (None: min(runs, 10))
+    rv_duration_s: float = 6.0
+    central_duration_s: float = 2.0
+    radius_m: float = 50.0  # the ego's perception range for rms2
+
+    def __post_init__(self):
+        if self.runs < 1 or self.workers < 1:
+            raise ValueError(f"runs and workers must be >= 1, got runs={self.runs}, workers={self.workers}")
+        if self.duration_s <= self.warmup_s or self.rv_duration_s <= self.warmup_s:
+            raise ValueError(
+                f"durations ({self.duration_s}, {self.rv_duration_s} s) must exceed warmup_s={self.warmup_s}"
+            )
+        if self.rv_runs is not None and self.rv_runs < 1:
+            raise ValueError(f"rv_runs must be >= 1, got {self.rv_runs}")
+
+    @property
+    def real_vehicle_runs(self) -> int:
+        return self.rv_runs if self.rv_runs is not None else min(self.runs, 10)
+
+
+# ------------------------------------------------------------------------------------------ runs
+
+
+def _scored(records, warmup_s: float):
+    return [r for r in records if r.t >= warmup_s - 1e-9]
+
+
+def _sim_run(scenario: str, seed: int, s: PaperSettings) -> dict:
+    views = (View("cooperative"), View("ego_only", (EGO,)))
+    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views)
+    if res.ego != EGO:
+        raise ValueError(f"scenario {scenario}: the pipeline's ego is {res.ego}, expected {EGO}")
+    ego = {"gnss": [], "map_matching": [], "cooperative": []}
+    allv = {"gnss": [], "map_matching": [], "cooperative": []}
+    target = {"ego_only": [], "cooperative": []}
+    common = {"ego_only": [], "cooperative": []}
+    matched = {"ego_only": 0, "cooperative": 0}
+    near_total, ego_missing = 0, 0
+    nees = []  # (frame index, obstacle id, 3-D NEES, horizontal NEES)
+    mm_max = 0.0
+    for k, rec in enumerate(_scored(res.records, s.warmup_s)):
+        truth = rec.truth
+        coop = rec.fused["cooperative"]
+        for vid in truth.vehicle_ids:
+            p_true = vehicle_pose(truth, vid)
+            est = {
+                "gnss": rec.gnss.get(vid),
+                "map_matching": rec.priors.get(vid),
+                "cooperative": vehicle_pose(coop, vid),
+            }
+            for name, p in est.items():
+                if p is None:
+                    if vid == EGO and name == "cooperative":
+                        ego_missing += 1
+                    continue
+                sq = horizontal_sq_error(p, p_true)
+                allv[name].append(sq)
+                if vid == EGO:
+                    ego[name].append(sq)
+                    if name == "map_matching":
+                        mm_max = max(mm_max, math.sqrt(sq))
+        per_view = {}
+        for name in target:
+            ids, err, n_near = relative_target_errors(rec.fused[name], truth, EGO, s.radius_m)
+            per_view[name] = dict(zip(ids.tolist(), np.sum(err**2, axis=1).tolist(), strict=True))
+            target[name].extend(per_view[name].values())
+            matched[name] += len(ids)
+        near_total += n_near
+        both = per_view["ego_only"].keys() & per_view["cooperative"].keys()
+        for name in common:
+            common[name].extend(per_view[name][i] for i in sorted(both))
+        ids, err, cov = obstacle_errors(coop, truth)
+        if len(ids):
+            n3 = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+            n2 = np.einsum("ni,ni->n", err[:, :2], np.linalg.solve(cov[:, :2, :2], err[:, :2, None])[..., 0])
+            nees.extend(zip([k] * len(ids), ids.tolist(), n3.tolist(), n2.tolist(), strict=True))
+    return {
+        "ego_sq": ego,
+        "all_sq": allv,
+        "target_sq": target,
+        "common_sq": common,
+        "target_matched": matched,
+        "target_near": near_total,
+        "ego_missing": ego_missing,
+        "mm_max_m": mm_max,
+        "nees": nees,
+        "tx_bytes": int(sum(res.tx_bytes.values())),
+        "tx_msgs": int(sum(res.tx_msgs.values())),
+    }
+
+
+def _overlap_run(scenario: str, seed: int, s: PaperSettings) -> dict:
+    views = (View("ego_car", (EGO,)), View("connected_car", (CONNECTED,)), View("fused"))
+    res = run_pipeline(scenario, seed=seed, duration_s=s.rv_duration_s, views=views)
+    sq = {v.name: [] for v in views}
+    frames = 0
+    for rec in _scored(res.records, s.warmup_s):
+        frames += 1
+        for name in sq:
+            _, err, _ = obstacle_errors(rec.fused[name], rec.truth)
+            sq[name].extend(np.sum(err[:, :2] ** 2, axis=1).tolist())
+    return {"obstacle_sq": sq, "frames": frames, "obstacles": len(res.records[-1].truth.obstacle_id)}
+
+
+def _blindspot_run(scenario: str, seed: int, s: PaperSettings) -> dict:
+    views = (View("cooperative"), View("ego_only", (EGO,)))
+    res = run_pipeline(scenario, seed=seed, duration_s=s.rv_duration_s, views=views)
+    car, obstacle, ego_only_obstacle = [], [], []
+    frames, car_missing = 0, 0
+    for rec in _scored(res.records, s.warmup_s):
+        frames += 1
+        coop = rec.fused["cooperative"]
+        p = vehicle_pose(coop, CONNECTED)
+        if p is None:
+            car_missing += 1
+        else:
+            car.append(horizontal_sq_error(p, vehicle_pose(rec.truth, CONNECTED)))
+        _, err, _ = obstacle_errors(coop, rec.truth)
+        obstacle.extend(np.sum(err[:, :2] ** 2, axis=1).tolist())
+        _, err, _ = obstacle_errors(rec.fused["ego_only"], rec.truth)
+        ego_only_obstacle.extend(np.sum(err[:, :2] ** 2, axis=1).tolist())
+    return {
+        "car_sq": car,
+        "obstacle_sq": obstacle,
+        "ego_only_obstacle_sq": ego_only_obstacle,
+        "frames": frames,
+        "car_missing": car_missing,
+        "obstacles": len(res.records[-1].truth.obstacle_id),
+    }
+
+
+def _central_run(scenario: str, seed: int, s: PaperSettings) -> dict:
+    res = run_pipeline(scenario, seed=seed, duration_s=s.central_duration_s, mode="centralized")
+    return {"tx_bytes": int(sum(res.tx_bytes.values())), "tx_msgs": int(sum(res.tx_msgs.values()))}
+
+
+_RUNNERS = {"sim": _sim_run, "overlap": _overlap_run, "blindspot": _blindspot_run, "central": _central_run}
+
+
+def run_task(task: tuple[str, str, str, int, dict]) -> dict:
+    """One independent run (the multiprocessing work item): (kind, key, scenario, seed, settings)."""
+    kind, key, scenario, seed, settings = task
+    t0 = time.perf_counter()
+    out = _RUNNERS[kind](scenario, seed, PaperSettings(**settings))
+    out.update(kind=kind, key=key, scenario=scenario, seed=seed, wall_s=time.perf_counter() - t0)
+    return out
+
+
+def _tasks(s: PaperSettings) -> list[tuple[str, str, str, int, dict]]:
+    cfg = asdict(s)
+    tasks = [("central", "urban", SIM_SCENARIOS["urban"], s.seed, cfg)]
+    for i in range(s.runs):  # suburban first in each pair: the longer run, for load balance
+        tasks.append(("sim", "suburban", SIM_SCENARIOS["suburban"], s.seed + i, cfg))
+        tasks.append(("sim", "urban", SIM_SCENARIOS["urban"], s.seed + i, cfg))
+    for i in range(s.real_vehicle_runs):
+        tasks.append(("overlap", "overlap", "overlap", s.seed + i, cfg))
+        for key, sc in BLINDSPOT_SCENARIOS.items():
+            tasks.append(("blindspot", key, sc, s.seed + i, cfg))
+    return tasks
+
+
+def _execute(tasks: list, workers: int, progress: bool) -> list[dict]:
+    bar = Progress(len(tasks), "experiment paper", enabled=progress)
+    out = []
+    try:
+        if workers == 1:
+            for task in tasks:
+                out.append(run_task(task))
+                bar.update(note=f"{task[1]} seed {task[3]}")
+        else:
+            with mp.get_context("spawn").Pool(workers) as pool:
+                for r in pool.imap_unordered(run_task, tasks):
+                    out.append(r)
+                    bar.update(note=f"{r['key']} seed {r['seed']}")
+    finally:
+        bar.close()
+    return out
+
+
+# ------------------------------------------------------------------------------------ aggregation
+
+
+def _cat(results: list[dict], *path) -> list[float]:
+    out: list[float] = []
+    for r in results:
+        v = r
+        for p in path:
+            v = v[p]
+        out.extend(v)
+    return out
+
+
+def _r(x: float, nd: int = 4) -> float:
+    return float(round(x, nd)) if math.isfinite(x) else float("nan")
+
+
+def anees_summary(sim_results: list[dict], dof: int = 3, min_runs_per_cell: int = 5) -> dict:
+    """ANEES of fused object positions over independent runs, with the 95 % chi-square band.
+
+    Samples within one run are correlated in time (a sliding-window smoother, slowly varying
+    localization errors), so they are not n independent NEES values. The headline figure is the
+    mean over runs of each run's mean NEES, and the band is :func:`anees_band` with n = the number
+    of runs, i.e. each run counts as one dof-dimensional sample. The mean of a run's correlated
+    samples has a smaller variance than one sample, so this band is wider than the exact one: a
+    value outside it is a real inconsistency, a value inside it is necessary, not sufficient.
+    ``per_step`` is the Monte Carlo check that needs no independence assumption in time: for
+    every (scored frame index, obstacle) cell estimated in >= ``min_runs_per_cell`` runs, the
+    average NEES over those m independent runs has the band anees_band(dof, m); it gives the
+    fraction of cells inside their band (0.95 expected for a consistent estimator).
+    """
+    key = 2 if dof == 3 else 3
+    per_run, cells = [], defaultdict(list)
+    steps: dict[int, list[float]] = defaultdict(list)
+    step_runs: dict[int, set[int]] = defaultdict(set)
+    for j, r in enumerate(sim_results):
+        vals = [row[key] for row in r["nees"]]
+        if vals:
+            per_run.append(float(np.mean(vals)))
+        for row in r["nees"]:
+            cells[(row[0], row[1])].append(row[key])
+            steps[row[0]].append(row[key])
+            step_runs[row[0]].add(j)
+    n = len(per_run)
+    out: dict[str, Any] = {"value": float("nan"), "dof": dof, "band": [float("nan"), float("nan")], "n": n}
+    if n == 0:
+        return out
+    lo, hi = anees_band(dof, n)
+    value = float(np.mean(per_run))
+    inside, used = 0, 0
+    for vals in cells.values():
+        if len(vals) >= min_runs_per_cell:
+            a, b = anees_band(dof, len(vals))
+            used += 1
+            inside += a <= float(np.mean(vals)) <= b
+    out.update(
+        value=_r(value),
+        band=[_r(lo), _r(hi)],
+        inside=bool(lo <= value <= hi),
+        samples=int(sum(len(r["nees"]) for r in sim_results)),
+        n_meaning="independent runs (one averaged NEES per run)",
+        per_run_quantiles={str(q): _r(float(np.percentile(per_run, q))) for q in (5, 50, 95)},
+        per_step={
+            "cells": used,
+            "inside_fraction": _r(inside / used) if used else float("nan"),
+            "expected_inside_fraction": 0.95,
+            "min_runs_per_cell": min_runs_per_cell,
+        },
+        # [frame index after warm-up, mean NEES over runs and objects, runs contributing]
+        per_step_mean=[[int(k), _r(float(np.mean(v))), len(step_runs[k])] for k, v in sorted(steps.items())],
+    )
+    return out
+
+
+def _aggregate(results: list[dict], s: PaperSettings, wall_s: float) -> dict:
+    by_kind: dict[str, list[dict]] = defaultdict(list)
+    for r in results:
+        by_kind[r["kind"]].append(r)
+    for v in by_kind.values():
+        v.sort(key=lambda r: (r["key"], r["seed"]))
+    simulation = {}
+    for key in SIM_SCENARIOS:
+        rs = [r for r in by_kind["sim"] if r["key"] == key]
+        near = sum(r["target_near"] for r in rs)
+        simulation[key] = {
+            "ego_rmse_m": {m: _r(rmse_sq(_cat(rs, "ego_sq", m))) for m in ("gnss", "map_matching", "cooperative")},
+            "target_rmse_m": {m: _r(rmse_sq(_cat(rs, "target_sq", m))) for m in ("ego_only", "cooperative")},
+            "target_rmse_common_m": {m: _r(rmse_sq(_cat(rs, "common_sq", m))) for m in ("ego_only", "cooperative")},
+            "target_coverage": {
+                m: _r(sum(r["target_matched"][m] for r in rs) / near) if near else float("nan")
+                for m in ("ego_only", "cooperative")
+            },
+            "all_vehicles_rmse_m": {
+                m: _r(rmse_sq(_cat(rs, "all_sq", m))) for m in ("gnss", "map_matching", "cooperative")
+            },
+            "runs": len(rs),
+            "frames": len(_cat(rs, "ego_sq", "gnss")),
+            "ego_missing_frames": int(sum(r["ego_missing"] for r in rs)),
+            "localization_failures": int(sum(r["mm_max_m"] > GROSS_ERROR_M for r in rs)),
+        }
+    ov = by_kind["overlap"]
+    overlap: dict[str, Any] = {
+        f"{name}_m": _r(rmse_sq(_cat(ov, "obstacle_sq", name))) for name in ("ego_car", "connected_car", "fused")
+    }
+    frames = sum(r["frames"] * r["obstacles"] for r in ov)
+    overlap["coverage"] = {
+        name: _r(len(_cat(ov, "obstacle_sq", name)) / frames) if frames else float("nan")
+        for name in ("ego_car", "connected_car", "fused")
+    }
+    a, b = overlap["ego_car_m"], overlap["connected_car_m"]
+    overlap["independent_fusion_m"] = _r((a**-2 + b**-2) ** -0.5) if a > 0 and b > 0 else float("nan")
+    overlap["runs"] = len(ov)
+    blindspot = {}
+    for key in BLINDSPOT_SCENARIOS:
+        rs = [r for r in by_kind["blindspot"] if r["key"] == key]
+        frames = sum(r["frames"] for r in rs)
+        obst_frames = sum(r["frames"] * r["obstacles"] for r in rs)
+        blindspot[key] = {
+            "connected_car_m": _r(rmse_sq(_cat(rs, "car_sq"))),
+            "obstacle_m": _r(rmse_sq(_cat(rs, "obstacle_sq"))),
+            "connected_car_coverage": _r(1 - sum(r["car_missing"] for r in rs) / frames) if frames else float("nan"),
+            "obstacle_coverage": _r(len(_cat(rs, "obstacle_sq")) / obst_frames) if obst_frames else float("nan"),
+            "ego_only_obstacle_coverage": _r(len(_cat(rs, "ego_only_obstacle_sq")) / obst_frames)
+            if obst_frames
+            else float("nan"),
+            "runs": len(rs),
+        }
+    urban = [r for r in by_kind["sim"] if r["key"] == "urban"]
+    dist = sum(r["tx_bytes"] for r in urban) / max(1, sum(r["tx_msgs"] for r in urban))
+    cen = by_kind["central"][0] if by_kind["central"] else {"tx_bytes": 0, "tx_msgs": 0}
+    central = cen["tx_bytes"] / cen["tx_msgs"] if cen["tx_msgs"] else float("nan")
+    walls = defaultdict(list)
+    for r in results:
+        walls[f"{r['kind']}:{r['key']}"].append(r["wall_s"])
+    out = {
+        "simulation": simulation,
+        "overlap": overlap,
+        "blindspot": blindspot,
+        "anees": anees_summary(urban, dof=3),
+        "anees_horizontal": anees_summary(urban, dof=2),
+        "bytes_per_message": {
+            "distributed": _r(dist, 1),
+            "centralized": _r(central, 1),
+            "ratio": _r(central / dist, 2),
+        },
+        "runs": s.runs,
+        "seed": s.seed,
+        "settings": {**asdict(s), "real_vehicle_runs": s.real_vehicle_runs, "gross_error_m": GROSS_ERROR_M},
+        "wall_s": _r(wall_s, 1),
+        "run_wall_s_mean": {k: _r(float(np.mean(v)), 2) for k, v in sorted(walls.items())},
+        "host": {"python": platform.python_version(), "machine": platform.machine()},
+    }
+    out["targets"] = evaluate_targets(out)
+    out["claims"] = evaluate_claims(out)
+    return out
+
+
+def evaluate_targets(res: dict) -> list[dict]:
+    """The issue's pass/fail targets."""
+    ov, bs, an, by = res["overlap"], res["blindspot"], res["anees"], res["bytes_per_message"]
+    bound = 1.1 * ov["independent_fusion_m"]
+    rows = [
+        {
+            "target": "overlap: fused <= 1.1 (1/a^2 + 1/b^2)^-1/2",
+            "value": ov["fused_m"],
+            "threshold": _r(bound),
+            "pass": bool(ov["fused_m"] <= bound),
+        }
+    ]
+    for key in BLINDSPOT_SCENARIOS:
+        rows.append(
+            {
+                "target": f"blind spot ({key}): connected car <= 0.18 m",
+                "value": bs[key]["connected_car_m"],
+                "threshold": 0.18,
+                "pass": bool(bs[key]["connected_car_m"] <= 0.18),
+            }
+        )
+        rows.append(
+            {
+                "target": f"blind spot ({key}): obstacle <= 0.35 m",
+                "value": bs[key]["obstacle_m"],
+                "threshold": 0.35,
+                "pass": bool(bs[key]["obstacle_m"] <= 0.35),
+            }
+        )
+    rows.append(
+        {
+            "target": f"ANEES (object position, {an['dof']}-D) inside its 95 % band",
+            "value": an["value"],
+            "threshold": an["band"],
+            "pass": bool(an.get("inside", False)),
+        }
+    )
+    rows.append(
+        {
+            "target": "distributed bytes/message >= 10x smaller than centralized",
+            "value": by["ratio"],
+            "threshold": 10.0,
+            "pass": bool(by["ratio"] >= 10.0),
+        }
+    )
+    return rows
+
+
+def evaluate_claims(res: dict) -> list[dict]:
+    """The paper's qualitative claims about figure exp_sim, checked on our numbers."""
+    sim = res["simulation"]
+    rows = []
+    for key in SIM_SCENARIOS:
+        e = sim[key]["ego_rmse_m"]
+        rows.append(
+            {
+                "claim": f"{key}: ego positioning cooperative < map matching < GNSS",
+                "holds": bool(e["cooperative"] < e["map_matching"] < e["gnss"]),
+                "values": [e["cooperative"], e["map_matching"], e["gnss"]],
+            }
+        )
+    for key in SIM_SCENARIOS:
+        t = sim[key]["target_rmse_m"]
+        rows.append(
+            {
+                "claim": f"{key}: targets cooperative < ego only",
+                "holds": bool(t["cooperative"] < t["ego_only"]),
+                "values": [t["cooperative"], t["ego_only"]],
+            }
+        )
+    u, s = sim["urban"], sim["suburban"]
+    for name, group, m in (
+        ("ego map matching", "ego_rmse_m", "map_matching"),
+        ("ego cooperative", "ego_rmse_m", "cooperative"),
+        ("targets cooperative", "target_rmse_m", "cooperative"),
+    ):
+        rows.append(
+            {
+                "claim": f"urban better than suburban: {name}",
+                "holds": bool(u[group][m] < s[group][m]),
+                "values": [u[group][m], s[group][m]],
+            }
+        )
+    return rows
+
+
+# -------------------------------------------------------------------------------------- outputs
+
+
+def _fmt(x, nd: int = 2) -> str:
+    if isinstance(x, (list, tuple)):
+        return "[" + ", ".join(_fmt(v, nd) for v in x) + "]"
+    if isinstance(x, float):
+        return "n/a" if not math.isfinite(x) else f"{x:.{nd}f}"
+    return str(x)
+
+
+def _report(res: dict) -> str:
+    s = res["settings"]
+    sim, ov, bs, an, by = res["simulation"], res["overlap"], res["blindspot"], res["anees"], res["bytes_per_message"]
+    p1 = PAPER["res1"]
+    L = [
+        "# Map Container: reproduction of the paper's results",
+        "",
+        f"`mapc experiment paper --runs {res['runs']} --seed {res['seed']}` — wall time {res['wall_s']:.0f} s "
+        f"with {s['workers']} worker processes. Raw numbers: `results.json`; per-run figures: `runs.csv`.",
+        "",
+        "## Method",
+        "",
+        f"* **Monte Carlo**: {res['runs']} runs per simulated scenario (paper-urban, paper-suburban); run *i* draws "
+        f"all sensor and channel noise from seed {res['seed']} + *i*; the traffic (actors, trajectories, map) is the "
+        "same in every run, as in the paper's 200 repetitions with independent noise.",
+        f"* **Durations**: {s['duration_s']} s per simulation run, of which the first {s['warmup_s']} s are a warm-up "
+        "that is not scored (vehicles initialise from GNSS, the map matcher needs a few frames to reach its basin, "
+        "and the host needs three detections to confirm a track); scored frames are those with "
+        f"t >= {s['warmup_s']} s, at 10 Hz. The real-vehicle scenarios: {s['real_vehicle_runs']} runs each of "
+        f"{s['rv_duration_s']} s (the paper ran each experiment twice). Chosen so that `--runs 200` fits in "
+        "15 minutes on 2 cores (measured mean cost per run: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in res["run_wall_s_mean"].items())
+        + ").",
+        "* **Channel**: ideal (no latency or loss) and distributed mode: this experiment is about estimation; "
+        "`mapc experiment network` sweeps the channel.",
+        "* **rms1** (ego self-positioning): horizontal map-frame error of the ego (cv0) stacked over runs and "
+        "scored frames. *GNSS* = the raw fix, *map matching* = the pose the ego sends (its VehiclePrior), "
+        "*cooperative* = the ego pose fused by the host from every vehicle's messages.",
+        f"* **rms2** (targets): true obstacles within {s['radius_m']:.0f} m of the ego, matched to fused objects "
+        "(Hungarian, 3 m gate in the map frame), error of the horizontal position in the ego's body frame "
+        "(fused ego pose vs true ego pose). *Ego only* = a host fed only the ego's own messages; *cooperative* = "
+        "all messages. Both views come from the same run. Unmatched targets are not errors but misses: "
+        "the coverage (matched / in range) is reported next to the RMSE, and the RMSE on the targets that both "
+        "views estimate is given too, because the cooperative view also estimates targets only other vehicles "
+        "see (usually farther away, so harder).",
+        "* **Real-vehicle scenarios** (simulated here): horizontal map-frame RMSE of the obstacle (and of the "
+        "connected car's fused pose), frames where it is estimated. *Ego car* / *connected car* = the same host "
+        "estimator fed with that one vehicle's messages only.",
+        "",
+        "## Simulation (paper figure exp_sim)",
+        "",
+        "The paper's figure exp_sim is a bar chart without printed values; its claims are qualitative.",
+        "",
+        "| RMSE (m) | urban | suburban |",
+        "|---|---|---|",
+    ]
+    for m, label in (
+        ("gnss", "ego: GNSS alone"),
+        ("map_matching", "ego: map matching alone"),
+        ("cooperative", "ego: cooperative (fused)"),
+    ):
+        L.append(f"| {label} | {_fmt(sim['urban']['ego_rmse_m'][m])} | {_fmt(sim['suburban']['ego_rmse_m'][m])} |")
+    for m, label in (("ego_only", "targets: ego only"), ("cooperative", "targets: cooperative")):
+        L.append(
+            f"| {label} | {_fmt(sim['urban']['target_rmse_m'][m])} | {_fmt(sim['suburban']['target_rmse_m'][m])} |"
+        )
+    for m, label in (
+        ("ego_only", "targets both views estimate: ego only"),
+        ("cooperative", "targets both views estimate: cooperative"),
+    ):
+        L.append(
+            f"| {label} | {_fmt(sim['urban']['target_rmse_common_m'][m])} | "
+            f"{_fmt(sim['suburban']['target_rmse_common_m'][m])} |"
+        )
+    for m, label in (("ego_only", "target coverage: ego only"), ("cooperative", "target coverage: cooperative")):
+        L.append(
+            f"| {label} | {_fmt(sim['urban']['target_coverage'][m])} | {_fmt(sim['suburban']['target_coverage'][m])} |"
+        )
+    for m, label in (
+        ("gnss", "all 4 vehicles: GNSS"),
+        ("map_matching", "all 4 vehicles: map matching"),
+        ("cooperative", "all 4 vehicles: cooperative"),
+    ):
+        L.append(
+            f"| {label} | {_fmt(sim['urban']['all_vehicles_rmse_m'][m])} | "
+            f"{_fmt(sim['suburban']['all_vehicles_rmse_m'][m])} |"
+        )
+    L.append(
+        f"| scored frames / runs with an ego map-matching failure (> {s['gross_error_m']:.0f} m) | "
+        f"{sim['urban']['frames']} / {sim['urban']['localization_failures']} | "
+        f"{sim['suburban']['frames']} / {sim['suburban']['localization_failures']} |"
+    )
+    L += ["", "Paper's claims, on our numbers:", ""]
+    for c in res["claims"]:
+        L.append(f"* {'HOLDS' if c['holds'] else 'DOES NOT HOLD'}: {c['claim']} ({_fmt(c['values'])})")
+    L += [
+        "",
+        "![exp_sim](exp_sim.png)",
+        "",
+        "![per-run distribution](exp_sim_runs.png)",
+        "",
+        "## Test-vehicle scenarios (Tables res1 and res2)",
+        "",
+        "Table res1, perception overlap (obstacle RMSE, m):",
+        "",
+        "| | ego car | connected car | fused (proposed) |",
+        "|---|---|---|---|",
+        *(
+            f"| paper, experiment {i + 1} | {p1['ego_car_m'][i]} | {p1['connected_car_m'][i]} | {p1['fused_m'][i]} |"
+            for i in range(2)
+        ),
+        f"| ours ({ov['runs']} runs) | {_fmt(ov['ego_car_m'])} | {_fmt(ov['connected_car_m'])} | "
+        f"{_fmt(ov['fused_m'])} |",
+        f"| ours: frames with the obstacle estimated | {_fmt(ov['coverage']['ego_car'])} | "
+        f"{_fmt(ov['coverage']['connected_car'])} | {_fmt(ov['coverage']['fused'])} |",
+        "",
+        f"Two independent estimates a, b fuse at best to (1/a² + 1/b²)^-1/2 = {_fmt(ov['independent_fusion_m'])} m; "
+        f"the paper's reduction is 14–34 %, ours is "
+        f"{_fmt(100 * (1 - ov['fused_m'] / min(ov['ego_car_m'], ov['connected_car_m'])), 0)} % "
+        "against the better single vehicle.",
+        "",
+        "Table res2, blind spot (RMSE, m):",
+        "",
+        "| | connected car (paper) | connected car (ours) | obstacle (paper) | obstacle (ours) | "
+        "obstacle estimated (ours) | ... by the ego alone |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for key, label in (("ii", "(ii) occluded by the connected car"), ("iii", "(iii) beyond the ego's range")):
+        b, p = bs[key], PAPER["res2"][key]
+        L.append(
+            f"| {label} | {p['connected_car_m']} | {_fmt(b['connected_car_m'])} | {p['obstacle_m']} | "
+            f"{_fmt(b['obstacle_m'])} | {_fmt(b['obstacle_coverage'])} | {_fmt(b['ego_only_obstacle_coverage'])} |"
+        )
+    L += [
+        "",
+        "![real-vehicle scenarios](real_vehicle.png)",
+        "",
+        "## Consistency (ANEES)",
+        "",
+        f"NEES of the fused 3-D object positions (cooperative view, urban) against their reported covariance: "
+        f"ANEES = {_fmt(an['value'])} for dof = {an['dof']}, 95 % band {_fmt(an['band'])} with n = {an['n']} "
+        f"({an.get('n_meaning', '')}; {an.get('samples', 0)} NEES samples in all). Samples of one run are "
+        "correlated in time, so n counts runs, not samples: each run contributes the mean of its NEES values. "
+        "That band is wider than the exact one (a run's mean varies less than a single sample), so a value outside "
+        "it is a real inconsistency. Per-time-step check over independent runs: "
+        f"{_fmt(an.get('per_step', {}).get('inside_fraction', float('nan')))} of "
+        f"{an.get('per_step', {}).get('cells', 0)} (frame, obstacle) cells estimated in >= "
+        f"{an.get('per_step', {}).get('min_runs_per_cell', 0)} runs have their run-average NEES inside that cell's "
+        "band (0.95 expected). Horizontal only (dof 2): ANEES "
+        f"{_fmt(res['anees_horizontal']['value'])}, band {_fmt(res['anees_horizontal']['band'])}.",
+        "",
+        "![ANEES](anees.png)",
+        "",
+        "## Bandwidth",
+        "",
+        f"Mean V2X payload per message: distributed (VehiclePrior, urban runs) {_fmt(by['distributed'], 0)} bytes; "
+        f"centralized (RawObservations incl. the lane-mask PNG, a {s['central_duration_s']} s urban run) "
+        f"{_fmt(by['centralized'], 0)} bytes; ratio {_fmt(by['ratio'], 1)}×.",
+        "",
+        "## Targets",
+        "",
+        "| target | ours | threshold | result |",
+        "|---|---|---|---|",
+    ]
+    for t in res["targets"]:
+        L.append(
+            f"| {t['target']} | {_fmt(t['value'], 3)} | {_fmt(t['threshold'], 3)} | {'PASS' if t['pass'] else 'FAIL'} |"
+        )
+    L.append("")
+    return "\n".join(L)
+
+
+_RUN_COLUMNS = (
+    "ego_gnss_m",
+    "ego_map_matching_m",
+    "ego_cooperative_m",
+    "target_ego_only_m",
+    "target_cooperative_m",
+    "obstacle_ego_car_m",
+    "obstacle_connected_car_m",
+    "obstacle_fused_m",
+    "connected_car_m",
+)
+
+
+def _runs_csv(results: list[dict]) -> str:
+    """One line per run with its own RMSE figures (empty where a figure does not apply)."""
+    lines = [",".join(("kind", "key", "seed", "wall_s", *_RUN_COLUMNS))]
+    for r in sorted(results, key=lambda r: (r["kind"], r["key"], r["seed"])):
+        v: dict[str, float] = {}
+        if r["kind"] == "sim":
+            for m in ("gnss", "map_matching", "cooperative"):
+                v[f"ego_{m}_m"] = rmse_sq(r["ego_sq"][m])
+            for m in ("ego_only", "cooperative"):
+                v[f"target_{m}_m"] = rmse_sq(r["target_sq"][m])
+        elif r["kind"] == "overlap":
+            for m in ("ego_car", "connected_car", "fused"):
+                v[f"obstacle_{m}_m"] = rmse_sq(r["obstacle_sq"][m])
+        elif r["kind"] == "blindspot":
+            v["obstacle_fused_m"] = rmse_sq(r["obstacle_sq"])
+            v["connected_car_m"] = rmse_sq(r["car_sq"])
+        cells = [f"{v[c]:.4f}" if c in v and math.isfinite(v[c]) else "" for c in _RUN_COLUMNS]
+        lines.append(",".join([r["kind"], r["key"], str(r["seed"]), f"{r['wall_s']:.2f}", *cells]))
+    return "\n".join(lines) + "\n"
+
+
+def _plots(res: dict, results: list[dict], out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    sim = res["simulation"]
+    keys = list(SIM_SCENARIOS)
+    x = np.arange(len(keys))
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for i, (m, label) in enumerate(
+        (("gnss", "GNSS"), ("map_matching", "map matching"), ("cooperative", "cooperative"))
+    ):
+        ax[0].bar(x + (i - 1) * 0.27, [sim[k]["ego_rmse_m"][m] for k in keys], 0.27, label=label)
+    ax[0].set(xticks=x, xticklabels=keys, ylabel="RMSE (m)", title="(a) ego self-positioning (rms1)", yscale="log")
+    ax[0].legend()
+    for i, (m, label) in enumerate((("ego_only", "ego only"), ("cooperative", "cooperative"))):
+        ax[1].bar(x + (i - 0.5) * 0.35, [sim[k]["target_rmse_m"][m] for k in keys], 0.35, label=label)
+    ax[1].set(xticks=x, xticklabels=keys, ylabel="RMSE (m)", title="(b) target relative positioning (rms2)")
+    ax[1].legend()
+    fig.suptitle(f"Simulation, {res['runs']} Monte Carlo runs")
+    fig.tight_layout()
+    written.append(out / "exp_sim.png")
+    fig.savefig(written[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    sims = [r for r in results if r["kind"] == "sim"]
+    data, labels = [], []
+    for k in keys:
+        for m in ("gnss", "map_matching", "cooperative"):
+            data.append([rmse_sq(r["ego_sq"][m]) for r in sims if r["key"] == k and r["ego_sq"][m]])
+            labels.append(f"{k}\n{m.replace('_', ' ')}")
+    ax[0].boxplot(data, showfliers=True)
+    ax[0].set_xticks(range(1, len(labels) + 1), labels, fontsize=7)
+    ax[0].set(ylabel="per-run RMSE (m)", title="ego self-positioning per run", yscale="log")
+    data, labels = [], []
+    for k in keys:
+        for m in ("ego_only", "cooperative"):
+            data.append([rmse_sq(r["target_sq"][m]) for r in sims if r["key"] == k and r["target_sq"][m]])
+            labels.append(f"{k}\n{m.replace('_', ' ')}")
+    ax[1].boxplot(data, showfliers=True)
+    ax[1].set_xticks(range(1, len(labels) + 1), labels, fontsize=7)
+    ax[1].set(ylabel="per-run RMSE (m)", title="targets per run")
+    fig.tight_layout()
+    written.append(out / "exp_sim_runs.png")
+    fig.savefig(written[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ov = res["overlap"]
+    names = ("ego_car", "connected_car", "fused")
+    xo = np.arange(3)
+    ax[0].bar(xo - 0.27, [PAPER["res1"][f"{n}_m"][0] for n in names], 0.27, label="paper exp. 1")
+    ax[0].bar(xo, [PAPER["res1"][f"{n}_m"][1] for n in names], 0.27, label="paper exp. 2")
+    ax[0].bar(xo + 0.27, [ov[f"{n}_m"] for n in names], 0.27, label="ours")
+    ax[0].axhline(ov["independent_fusion_m"], color="k", ls=":", lw=1, label="(1/a²+1/b²)^-1/2")
+    ax[0].set(
+        xticks=xo, xticklabels=["ego car", "connected car", "fused"], ylabel="obstacle RMSE (m)", title="overlap (res1)"
+    )
+    ax[0].legend(fontsize=7)
+    cols = [("ii", "connected_car_m"), ("ii", "obstacle_m"), ("iii", "connected_car_m"), ("iii", "obstacle_m")]
+    xb = np.arange(len(cols))
+    ax[1].bar(xb - 0.2, [PAPER["res2"][k][m] for k, m in cols], 0.4, label="paper")
+    ax[1].bar(xb + 0.2, [res["blindspot"][k][m] for k, m in cols], 0.4, label="ours")
+    ax[1].set(
+        xticks=xb,
+        xticklabels=[f"({k}) {m.replace('_m', '').replace('_', ' ')}" for k, m in cols],
+        ylabel="RMSE (m)",
+        title="blind spot (res2)",
+    )
+    ax[1].tick_params(axis="x", labelsize=7)
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    written.append(out / "real_vehicle.png")
+    fig.savefig(written[-1], dpi=110)
+    plt.close(fig)
+
+    an = res["anees"]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    if an.get("per_step_mean"):
+        from ..metrics import anees_band as band
+
+        steps = np.array(an["per_step_mean"], dtype=float)
+        t = res["settings"]["warmup_s"] + steps[:, 0] * 0.1
+        ax.plot(t, steps[:, 1], "o-", ms=3, label="mean NEES over runs and objects")
+        lo_hi = np.array([band(an["dof"], int(m)) for m in steps[:, 2]])
+        ax.fill_between(t, lo_hi[:, 0], lo_hi[:, 1], alpha=0.2, label="95 % band, n = runs at that step")
+    ax.axhline(an["dof"], color="k", lw=1, ls=":")
+    ax.set(xlabel="time (s)", ylabel="ANEES", title=f"object position NEES, dof {an['dof']}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    written.append(out / "anees.png")
+    fig.savefig(written[-1], dpi=110)
+    plt.close(fig)
+    return written
+
+
+def run_paper_experiment(out_dir: str | Path, settings: PaperSettings | None = None, progress: bool = True) -> dict:
+    """Run everything, write results.json, report.md, runs.csv and the PNG plots into ``out_dir``."""
+    s = settings or PaperSettings()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    results = _execute(_tasks(s), s.workers, progress)
+    res = _aggregate(results, s, time.perf_counter() - t0)
+    (out / "results.json").write_text(json.dumps(_finite_or_null(res), indent=2, allow_nan=False) + "\n")
+    (out / "runs.csv").write_text(_runs_csv(results))
+    files = _plots(res, results, out)
+    (out / "report.md").write_text(_report(res))
+    res["files"] = [str(p) for p in [out / "results.json", out / "report.md", out / "runs.csv", *files]]
+    return res
+
+
+def _finite_or_null(o):
+    """JSON without NaN/inf (strict parsers reject them): non-finite floats become null."""
+    if isinstance(o, dict):
+        return {str(k): _finite_or_null(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite_or_null(v) for v in o]
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return o

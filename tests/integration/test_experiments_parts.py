@@ -1,0 +1,139 @@
+"""The pieces of the experiments: scoring against the pipeline, age of information, ANEES summary,
+network rows and outputs, targets, the progress bar (fast: short runs, fixed seeds)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from mapcontainer.experiments import NETWORK_COLUMNS, Progress, run_network_point, sweep_profile, write_network_outputs
+from mapcontainer.experiments.paper import anees_summary, evaluate_targets
+from mapcontainer.experiments.scoring import age_of_information, relative_target_errors, rmse_sq
+from mapcontainer.pipeline import View, relative_errors, run_pipeline
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    return run_pipeline("paper-urban", seed=3, duration_s=1.5, views=(View("cooperative"), View("ego_only", ("cv0",))))
+
+
+def test_relative_target_errors_match_the_pipelines(short_run):
+    compared = 0
+    for rec in short_run.records[8:]:
+        for view in ("cooperative", "ego_only"):
+            ids, err, n_near = relative_target_errors(rec.fused[view], rec.truth, "cv0", 50.0)
+            ref, n_ref = relative_errors(rec.fused[view], rec.truth, "cv0", 50.0)
+            assert n_near == n_ref and len(ids) == len(err)
+            np.testing.assert_allclose(err, ref, atol=1e-9)
+            assert set(ids.tolist()) <= set(np.asarray(rec.truth.obstacle_id).tolist())
+            compared += len(err)
+    assert compared > 0
+    assert rmse_sq([]) != rmse_sq([]) and rmse_sq([9.0, 16.0]) == pytest.approx(math.sqrt(12.5))
+
+
+def test_age_of_information_is_time_since_the_newest_arrival():
+    deliveries = [("a", 0.0, 0.05), ("a", 0.1, 0.35), ("a", 0.2, 0.25), ("b", 0.0, 0.0)]
+    age = age_of_information(deliveries, ["a", "b", "c"], [0.0, 0.1, 0.3, 0.4], t_start=0.0)
+    # a: nothing by 0.0; t_meas 0.0 by 0.1; 0.2 (arrived 0.25, overtaking 0.1) by 0.3; still 0.2 by 0.4
+    np.testing.assert_allclose(age[:, 0], [0.0, 0.1, 0.1, 0.2])
+    np.testing.assert_allclose(age[:, 1], [0.0, 0.1, 0.3, 0.4])
+    np.testing.assert_allclose(age[:, 2], [0.0, 0.1, 0.3, 0.4])  # never heard from: since the start
+
+
+def _fake_sim(rng, runs, scale):
+    out = []
+    for _ in range(runs):
+        rows = [
+            (k, i, float(scale * rng.chisquare(3)), float(scale * rng.chisquare(2)))
+            for k in range(10)
+            for i in range(3)
+        ]
+        out.append({"nees": rows})
+    return out
+
+
+def test_anees_summary_band_over_runs():
+    rng = np.random.default_rng(0)
+    ok = anees_summary(_fake_sim(rng, 50, 1.0), dof=3)
+    assert ok["n"] == 50 and ok["inside"] and ok["band"][0] < 3.0 < ok["band"][1]
+    lo, hi = stats.chi2.ppf([0.025, 0.975], 150) / 50
+    assert ok["band"] == pytest.approx([lo, hi], abs=1e-3)
+    assert 0.85 <= ok["per_step"]["inside_fraction"] <= 1.0 and ok["per_step"]["cells"] == 30
+    bad = anees_summary(_fake_sim(rng, 50, 3.0), dof=3)  # covariance 3x too small
+    assert not bad["inside"] and bad["value"] > bad["band"][1]
+    assert bad["per_step"]["inside_fraction"] < 0.2
+    assert anees_summary(_fake_sim(rng, 50, 1.0), dof=2)["inside"]
+
+
+def test_targets_pass_and_fail_honestly():
+    res = {
+        "overlap": {"ego_car_m": 0.33, "connected_car_m": 0.35, "fused_m": 0.27, "independent_fusion_m": 0.2401},
+        "blindspot": {
+            "ii": {"connected_car_m": 0.17, "obstacle_m": 0.30},
+            "iii": {"connected_car_m": 0.2, "obstacle_m": 0.5},
+        },
+        "anees": {"value": 3.1, "dof": 3, "band": [2.7, 3.3], "inside": True},
+        "bytes_per_message": {"distributed": 370.0, "centralized": 2700.0, "ratio": 7.3},
+    }
+    verdict = {t["target"]: t["pass"] for t in evaluate_targets(res)}
+    assert verdict["overlap: fused <= 1.1 (1/a^2 + 1/b^2)^-1/2"] is False  # 0.27 > 1.1 * 0.2401
+    assert verdict["blind spot (ii): connected car <= 0.18 m"] is True
+    assert verdict["blind spot (iii): connected car <= 0.18 m"] is False
+    assert verdict["blind spot (ii): obstacle <= 0.35 m"] is True
+    assert verdict["blind spot (iii): obstacle <= 0.35 m"] is False
+    assert verdict["distributed bytes/message >= 10x smaller than centralized"] is False
+    assert sum(verdict.values()) == 3
+
+
+def test_network_point_row_on_an_ideal_and_a_starved_link():
+    ideal = run_network_point(sweep_profile(0.0, 0.0, None), "distributed", seed=1, duration=1.5)
+    assert tuple(ideal) == NETWORK_COLUMNS
+    assert ideal["delivered_fraction"] == 1.0 and ideal["age_s_mean"] == 0.0 and ideal["latency_s_p50"] == 0.0
+    assert ideal["object_rmse_m"] < 1.0 and 0.0 < ideal["object_coverage"] <= 1.0
+    assert 100 < ideal["bytes_per_message"] < 1000 and ideal["msgs_per_s_per_vehicle"] == pytest.approx(10.0)
+    starved = run_network_point(sweep_profile(100.0, 0.0, 2e4), "centralized", seed=1, duration=1.5)
+    assert starved["queue_bytes"] == 1500 and starved["delivered_fraction"] < 0.2
+    assert starved["dropped_queue_fraction"] > 0.8 and starved["age_s_mean"] > ideal["age_s_mean"]
+
+
+def test_write_network_outputs_accepts_live_rows(tmp_path):
+    rows = [
+        {"source": "pipeline", "mode": "distributed", "latency_ms": 0.0, "loss": 0.0, "bandwidth_bps": 6e6,
+         "object_rmse_m": 0.3, "delivered_fraction": 1.0, "bytes_per_s_per_vehicle": 3700.0},
+        {"source": "pipeline", "mode": "distributed", "latency_ms": 0.0, "loss": 0.0, "bandwidth_bps": 2e4,
+         "object_rmse_m": 0.4, "delivered_fraction": 0.7, "bytes_per_s_per_vehicle": 3700.0},
+        {"source": "pipeline", "mode": "centralized", "latency_ms": 0.0, "loss": 0.0, "bandwidth_bps": 6e6,
+         "object_rmse_m": 0.3, "delivered_fraction": 1.0, "bytes_per_s_per_vehicle": 27000.0},
+        {"source": "live", "mode": "centralized", "latency_ms": 0.0, "loss": 0.0, "bandwidth_bps": 2e4,
+         "object_rmse_m": float("nan"), "delivered_fraction": 0.01, "bytes_per_s_per_vehicle": 27000.0,
+         "wall_clock_skew_s": 0.002},
+    ]  # fmt: skip
+    paths = write_network_outputs(rows, tmp_path, {"seed": 0, "duration_s": 4.0, "warmup_s": 1.0})
+    header = next(csv.reader((tmp_path / "network.csv").open()))
+    assert header[: len(NETWORK_COLUMNS)] == list(NETWORK_COLUMNS) and header[-1] == "wall_clock_skew_s"
+    doc = json.loads((tmp_path / "results.json").read_text())  # strict JSON: NaN written as null
+    assert doc["rows"][3]["object_rmse_m"] is None
+    md = (tmp_path / "network.md").read_text()
+    assert "20 kbit/s" in md and "still fuses" in md
+    assert {"csv", "md", "json", "png_latency", "png_bandwidth"} <= set(paths)
+    assert all(p.exists() for p in paths.values())
+
+
+def test_progress_bar_writes_deciles_to_a_file():
+    buf = io.StringIO()
+    bar = Progress(20, "work", stream=buf)
+    for _ in range(20):
+        bar.update(note="x")
+    bar.close()
+    lines = buf.getvalue().splitlines()
+    assert lines[0].startswith("work [") and "0/20" in lines[0]
+    assert len(lines) == 11 and "20/20" in lines[-1] and "done" in lines[-1]
+    silent = io.StringIO()
+    Progress(3, stream=silent, enabled=False).update()
+    assert silent.getvalue() == ""

@@ -1,0 +1,157 @@
+"""Association: map-frame transform and its covariance, gating, Hungarian, track birth/death/merge."""
+
+import numpy as np
+import pytest
+
+from mapcontainer import geometry as geo
+from mapcontainer.fusion import FusionParams
+from mapcontainer.fusion.association import (
+    Detection,
+    Tracker,
+    VehicleCandidate,
+    cv_predict,
+    mahalanobis_matrix,
+    observations_to_map,
+)
+from schemas import ObjectClass
+
+PED, VEH = int(ObjectClass.PEDESTRIAN), int(ObjectClass.VEHICLE)
+S = np.diag([0.3, 0.2, 0.05]) ** 2
+
+
+def test_map_transform_and_covariance_propagation_numerically():
+    pose = np.array([3.0, -1.0, 0.2, 0.02, -0.01, 1.2])
+    z = np.array([[12.0, 3.0, 0.5], [30.0, -8.0, 0.0]])
+    m, Sm = observations_to_map(pose, np.zeros((6, 6)), z, np.zeros((2, 3, 3)))
+    np.testing.assert_allclose(m, geo.transform_points(geo.pose_to_matrix(pose), z), atol=1e-12)
+    # pose part of the covariance: J = d m / d pose, by central differences
+    C_pose = np.diag([0.1, 0.2, 0.05, 0.01, 0.02, 0.03]) ** 2
+    _, Sp = observations_to_map(pose, C_pose, z, np.zeros((2, 3, 3)))
+    for n in range(2):
+        J = np.zeros((3, 6))
+        for i in range(6):
+            d = np.zeros(6)
+            d[i] = 1e-6
+            J[:, i] = (
+                geo.transform_points(geo.pose_to_matrix(pose + d), z[n])
+                - geo.transform_points(geo.pose_to_matrix(pose - d), z[n])
+            ) / 2e-6
+        np.testing.assert_allclose(Sp[n], J @ C_pose @ J.T, rtol=1e-6, atol=1e-12)
+    # detection part: rotated
+    _, Sz = observations_to_map(pose, np.zeros((6, 6)), z[:1], S[None])
+    R = geo.rpy_to_matrix(*pose[3:])
+    np.testing.assert_allclose(Sz[0], R @ S @ R.T, atol=1e-15)
+
+
+def test_mahalanobis_matrix():
+    m = np.array([[0.0, 0, 0], [10.0, 0, 0]])
+    c = np.array([[1.0, 0, 0]])
+    d2 = mahalanobis_matrix(m, np.stack([np.eye(3)] * 2), c, np.stack([np.eye(3)]))
+    np.testing.assert_allclose(d2, [[0.5], [40.5]])
+    assert mahalanobis_matrix(m, np.stack([np.eye(3)] * 2), np.zeros((0, 3)), np.zeros((0, 3, 3))).shape == (2, 0)
+
+
+def test_cv_predict():
+    x = np.array([0.0, 0, 0, 2.0, -1.0, 0])
+    P = np.eye(6) * 0.01
+    x1, P1 = cv_predict(x, P, 0.5, [1.0, 1.0, 0.0])
+    np.testing.assert_allclose(x1[:3], [1.0, -0.5, 0.0])
+    assert P1[0, 0] == pytest.approx(0.01 + 0.25 * 0.01 + 0.5**3 / 3)
+    xb, Pb = cv_predict(x1, P1, -0.5, [1.0, 1.0, 0.0])  # backwards for late detections
+    np.testing.assert_allclose(xb, x)
+    assert np.all(np.linalg.eigvalsh(Pb) > 0)
+
+
+def _det(p, t, sender="cv0", cls=VEH, index=0, cov=S):
+    p = np.asarray(p, dtype=float)
+    return Detection(sender, t, index, p, cov, cls, p, cov)
+
+
+def _feed(tracker, frames):
+    """frames: list of (t, [positions]) from cv0; returns all assignments."""
+    out = []
+    for t, ps in frames:
+        a, _ = tracker.associate([_det(p, t, index=i) for i, p in enumerate(ps)], [])
+        out += a
+    return out
+
+
+def test_birth_after_m_hits_and_stable_ids():
+    tr = Tracker(FusionParams(birth_hits=3))
+    a = _feed(tr, [(0.0, [[10, 0, 0]]), (0.1, [[10.5, 0, 0]])])
+    assert a == [] and len(tr.tracks) == 1 and not tr.confirmed()
+    a = _feed(tr, [(0.2, [[11.0, 0, 0]])])
+    assert [x.target for x in a] == [1, 1, 1]  # the held detections enter the graph on confirmation
+    assert [x.det.t for x in a] == [0.0, 0.1, 0.2]
+    a = _feed(tr, [(0.3, [[11.5, 0, 0], [40, 40, 0]])])
+    assert [(x.kind, x.target, x.det.index) for x in a] == [("track", 1, 0)]
+    assert tr.counts["new_tentative"] == 2 and list(tr.confirmed()) == [1]
+
+
+def test_gating_rejects_far_detections_and_hungarian_picks_the_best_pairs():
+    tr = Tracker(FusionParams(birth_hits=1))
+    _feed(tr, [(0.0, [[0, 0, 0], [4, 0, 0]])])  # two confirmed tracks at once
+    assert sorted(tr.confirmed()) == [1, 2]
+    for t in tr.tracks.values():
+        t.P = np.diag([0.01, 0.01, 0.01, 0.01, 0.01, 0.01])
+    # detections swapped in order and slightly off: each goes to its own track
+    dets = [_det([4.1, 0.1, 0], 0.1, index=0), _det([0.2, -0.1, 0], 0.1, index=1), _det([2.0, 0, 0], 0.1, index=2)]
+    a, _ = tr.associate(dets, [])
+    got = {x.det.index: x.target for x in a}
+    assert got[0] == 2 and got[1] == 1
+    assert got[2] == 3  # the one in between (2 m from both) is outside both gates: a new track
+
+
+def test_classes_must_agree():
+    tr = Tracker(FusionParams(birth_hits=1))
+    _feed(tr, [(0.0, [[0, 0, 0]])])
+    a, _ = tr.associate([_det([0.1, 0, 0], 0.1, cls=PED)], [])
+    assert [x.target for x in a] == [2]  # a pedestrian detection does not update vehicle track 1
+
+
+def test_connected_vehicles_are_matched_to_their_reported_position():
+    tr = Tracker(FusionParams())
+    cv = VehicleCandidate("cv1", np.array([6.0, -3.5, 0.0]), np.eye(3) * 0.01)
+    a, _ = tr.associate([_det([6.2, -3.4, 0.05], 0.0), _det([20.0, 0, 0], 0.0, index=1)], [cv])
+    assert [(x.kind, x.target, x.det.index) for x in a] == [("vehicle", "cv1", 0)]
+    assert len(tr.tracks) == 1  # the other one starts a tentative track; the vehicle does not
+    a, _ = tr.associate([_det([6.2, -3.4, 0.05], 0.1, cls=PED)], [cv])
+    assert a == []  # a pedestrian is not a vehicle
+
+
+def test_unassigned_detection_close_to_an_untaken_track_starts_no_duplicate():
+    tr = Tracker(FusionParams(birth_hits=1))
+    _feed(tr, [(0.0, [[0, 0, 0]])])
+    tr.tracks[1].P = np.eye(6) * 1e-4
+    # just outside the 99 % gate, well inside the 99.99 % birth exclusion
+    a, _ = tr.associate([_det([0.0, 0.75, 0.0], 0.0)], [])
+    assert a == [] and len(tr.tracks) == 1 and tr.counts["birth_suppressed"] == 1
+
+
+def test_death_after_silence():
+    tr = Tracker(FusionParams(birth_hits=2, tentative_timeout_s=0.3, death_s=0.8))
+    _feed(tr, [(0.0, [[0, 0, 0], [50, 0, 0]]), (0.1, [[0.5, 0, 0]])])
+    assert list(tr.confirmed()) == [1] and len(tr.tracks) == 2
+    assert tr.expire(0.35) == [] and len(tr.tracks) == 1  # the tentative one went
+    assert tr.expire(0.85) == []
+    assert tr.expire(0.95) == [1] and not tr.tracks
+
+
+def test_duplicate_tracks_are_merged_into_the_older_id():
+    tr = Tracker(FusionParams(birth_hits=1, merge_cycles=3))
+    a, _ = tr.associate([_det([0, 0, 0], 0.0, sender="cv0")], [])
+    b, _ = tr.associate([_det([30, 0, 0], 0.0, sender="cv1")], [])
+    t2 = tr.tracks[2]
+    t2.x[:3] = [0.05, 0.0, 0.0]  # the same object, seen by another vehicle, as a second track
+    for k in range(2):
+        assert tr.merge_duplicates(0.1 * k) == []
+    assert tr.merge_duplicates(0.2) == [2]
+    assert list(tr.confirmed()) == [1] and tr.counts["merged"] == 1
+
+
+def test_objects_seen_together_by_one_vehicle_are_never_merged():
+    tr = Tracker(FusionParams(birth_hits=1, merge_cycles=1))
+    tr.associate([_det([0, 0, 0], 0.0, index=0), _det([0.4, 0, 0], 0.0, index=1)], [])
+    for t in tr.tracks.values():
+        t.P = np.eye(6)  # very uncertain: statistically indistinguishable
+    assert tr.merge_duplicates(0.0) == [] and len(tr.confirmed()) == 2
