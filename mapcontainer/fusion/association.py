@@ -418,7 +418,7 @@ class Tracker:
             if len(tr.frames) > 64:
                 tr.frames = {k: v for k, v in tr.frames.items() if v >= horizon}
         for uid, tr in list(self.tracks.items()):
-            limit = self.params.death_s if tr.confirmed else self.params.tentative_timeout_s
+            limit = self.params.track_death_s if tr.confirmed else self.params.tentative_timeout_s
             if t - tr.t_last > limit:
                 del self.tracks[uid]
                 if tr.confirmed:

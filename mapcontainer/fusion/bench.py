@@ -84,7 +84,7 @@ def bench_fusion(
 
     pose_cov = pose_covariance()
     L_pose = np.linalg.cholesky(pose_cov)
-    p = params or FusionParams(window_s=window * dt, death_s=min(1.0, window * dt))
+    p = params or FusionParams(window_s=window * dt)
     vids = [f"cv{i}" for i in range(vehicles)]
     box = Container(p, "bench", "cv0", known_senders=set(vids))
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas import FusedState, Rejection, VehiclePrior, decode
+from schemas.models import MAX_OBJECTS
 
 from .. import geometry as geo
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
@@ -260,7 +261,7 @@ class Container:
             pose_covs.append(cov)
         ids, cls, ps, vs, covs = [], [], [], [], []
         for tid, tr in sorted(self.tracker.confirmed().items()):
-            if tid not in g.tracks:
+            if tid not in g.tracks or len(ids) >= MAX_OBJECTS:
                 continue
             ts, p, v, C = g.track_estimate(tid)
             if C is None:

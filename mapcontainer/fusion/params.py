@@ -13,8 +13,9 @@ __all__ = ["FusionParams"]
 class FusionParams(BaseModel):
     """Everything the host container's estimator and tracker can be tuned with.
 
-    Defaults are calibrated on the simulator's detector (configs/sensors/default.yaml) and on vehicle
-    priors of about 0.1 m / 0.3 deg; see mapcontainer/fusion/README notes in the module docstrings.
+    Defaults suit the simulator's detector (configs/sensors/default.yaml) and vehicle priors of about
+    0.1 m / 0.3 deg; the models they tune are described in mapcontainer/fusion/graph.py and
+    association.py.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -59,7 +60,9 @@ class FusionParams(BaseModel):
     tentative_timeout_s: float = Field(
         0.35, gt=0, description="a tentative track without a detection this long is dropped"
     )
-    death_s: float = Field(1.0, gt=0, description="a confirmed track without a detection this long is deleted")
+    death_s: float | None = Field(
+        None, gt=0, description="a confirmed track without a detection this long is deleted (None: window_s)"
+    )
 
     # ---- measurement models
     detection_factor: Literal["linearized", "reference_frame"] = Field(
@@ -68,7 +71,7 @@ class FusionParams(BaseModel):
             "body-frame detection factor (graph.py docstring): 'linearized' — the exact Cartesian model with the"
             " helper point eliminated analytically (one LinearContainerFactor; Huber by IRLS across cycles);"
             " 'reference_frame' — helper Point3 with a robust PriorFactorPoint3 tied by"
-            " ReferenceFrameFactorPoint3Pose3 (two factors and a variable per detection; ~1.5x the solve time)"
+            " ReferenceFrameFactorPoint3Pose3 (two factors and a variable per detection; cycles 1.1-1.4x as long)"
         ),
     )
     reweight_s: float = Field(
@@ -132,9 +135,16 @@ class FusionParams(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self):
-        if self.death_s > self.window_s + 1e-9:
-            raise ValueError(f"death_s ({self.death_s}) must not exceed window_s ({self.window_s})")
+        if self.death_s is not None and self.death_s > self.window_s + 1e-9:
+            raise ValueError(
+                f"death_s ({self.death_s}) must not exceed window_s ({self.window_s}): its states are gone"
+            )
         return self
+
+    @property
+    def track_death_s(self) -> float:
+        """death_s, or the window when unset."""
+        return self.window_s if self.death_s is None else self.death_s
 
     @property
     def gate_chi2(self) -> float:

@@ -63,7 +63,10 @@ def _envelope(msgpack, payload: bytes) -> tuple[str, float] | None:
 
 def fusion_process(spec: FusionSpec, inbox, outbox, parent_pid: int) -> None:
     """The worker process's entry point: Ctrl-C and SIGINT go to the service, which sends ("stop",)."""
+    from mapcontainer.fusion import limit_blas_threads
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    limit_blas_threads(1)  # small dense solves: one BLAS thread is faster and steadier here
     fusion_loop(spec, inbox, outbox, parent_pid)
 
 

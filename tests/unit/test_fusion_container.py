@@ -234,3 +234,25 @@ def test_anees_inside_the_chi2_band_when_the_world_follows_the_model():
                     nees.append(float(e @ np.linalg.solve(sym_from_upper(fused.object_cov[i]), e)))
     lo, hi = anees_band(3, len(nees))
     assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_random_valid_traffic_never_breaks_it(seed):
+    """Random senders, poses, clutter, times out of order, repeats: always a valid FusedState."""
+    rng = np.random.default_rng(seed)
+    box = Container(FusionParams(), "f", "host")
+    seq = {}
+    for k in range(60):
+        t_now = 0.1 * k
+        for _ in range(int(rng.integers(0, 4))):
+            vid = f"cv{int(rng.integers(0, 3))}"
+            t = round(t_now - float(rng.choice([0.0, 0.0, 0.1, 0.3, 1.5])), 1)
+            seq[vid] = seq.get(vid, 0) + int(rng.integers(0, 2))
+            pose = np.concatenate(
+                [rng.uniform(-50, 50, 2), rng.normal(0, 0.1, 1), rng.normal(0, 0.05, 2), rng.uniform(-3, 3, 1)]
+            )
+            objs = rng.uniform([-5, -40, -1], [60, 40, 2], (int(rng.integers(0, 12)), 3))
+            box.ingest(encode(prior(vid, seq[vid], t, pose=pose, objects=objs, v=rng.normal(0, 5, 3))), t_now)
+        out = box.fuse(t_now)
+        assert isinstance(decode(encode(out), FusedState), FusedState)
+    assert box.stats()["fused_cycles"] == 60

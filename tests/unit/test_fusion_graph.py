@@ -135,7 +135,7 @@ def test_window_summary_preserves_the_estimate():
     tiny = POSE_COV * 1e-6
 
     def run(window_s):
-        g = FusionGraph(FusionParams(window_s=window_s, death_s=min(window_s, 1.0), huber_k=None))
+        g = FusionGraph(FusionParams(window_s=window_s, huber_k=None))
         rng = np.random.default_rng(5)
         for k in range(30):
             t = 0.1 * k
