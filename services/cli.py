@@ -5,7 +5,9 @@ The core package never imports zenoh or ``services``; the commands that need a l
 
 ``mapc fleet up [--scenario S] [--vehicles N] [--network P] [--duration S] [--fleet NAME]
 [--mode distributed|centralized] [--detach] [--dry-run]``, ``mapc fleet status [--json]``,
-``mapc fleet down [--fleet NAME]``, ``mapc health [--fleet NAME] [--json] [--watch]``.
+``mapc fleet down [--fleet NAME]``, ``mapc health [--fleet NAME] [--json] [--watch]``, and
+``mapc experiment network --live --out DIR [--profiles ideal,dsrc,...] [--mode distributed|centralized|both]
+[--duration S]`` (the network profiles on the live fleet, beside the in-process figures).
 """
 
 from __future__ import annotations
@@ -156,6 +158,63 @@ def _cmd_health(args: argparse.Namespace) -> int:
         session.close()
 
 
+# ------------------------------------------------------------------------------ live experiment
+
+
+def _cmd_experiment_network_live(args: argparse.Namespace) -> int:
+    from .launcher.live_experiment import MODES, run_live_network
+
+    profiles = [p.strip() for p in args.profiles.split(",") if p.strip()]
+    modes = list(MODES) if args.mode == "both" else [args.mode]
+    duration = 20.0 if args.duration is None else args.duration
+    try:
+        res = run_live_network(
+            args.out,
+            profiles=profiles,
+            modes=modes,
+            duration=duration,
+            seed=args.seed,
+            scenario=args.scenario,
+            vehicles=args.vehicles,
+            inprocess=not args.no_inprocess,
+            progress=not args.quiet,
+        )
+    except ValueError as exc:
+        print(f"mapc: {exc}", file=sys.stderr)
+        return 2
+    except RuntimeError as exc:
+        print(f"mapc: {exc}", file=sys.stderr)
+        return 1
+    n_live, n_inproc = len(res["live"]), len(res["inprocess"])
+    print(json.dumps({"out": str(args.out), "live_points": n_live, "inprocess_points": n_inproc}))
+    return 0
+
+
+def _add_live_network_args(parser: argparse.ArgumentParser) -> None:
+    """Add ``--live`` and its options to the core ``experiment network`` subcommand."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    exp = next(a for a in sub.choices["experiment"]._actions if isinstance(a, argparse._SubParsersAction))
+    en = exp.choices["network"]
+    core = en.get_default("func")
+    g = en.add_argument_group("live fleet (--live)")
+    g.add_argument(
+        "--live", action="store_true", help="run network profiles on the live multi-process fleet (mapc fleet up)"
+    )
+    g.add_argument(
+        "--profiles", default="ideal,dsrc,lossy,degraded", help="comma-separated presets from configs/network/"
+    )
+    g.add_argument("--mode", choices=["distributed", "centralized", "both"], default="both")
+    g.add_argument("--vehicles", type=int, default=None, help="connected vehicles (default: the fleet's)")
+    g.add_argument("--no-inprocess", action="store_true", help="skip the in-process side-by-side")
+
+    def dispatch(args: argparse.Namespace) -> int:
+        if args.live:
+            return _cmd_experiment_network_live(args)
+        return core(args)
+
+    en.set_defaults(func=dispatch)
+
+
 # ------------------------------------------------------------------------------ parser
 
 
@@ -200,6 +259,8 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     h.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for answers")
     h.add_argument("--runs-dir", default=None)
     h.set_defaults(func=_cmd_health)
+
+    _add_live_network_args(parser)
 
 
 def main(argv: list[str] | None = None) -> int:
