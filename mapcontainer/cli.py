@@ -80,15 +80,19 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
 def _cmd_experiment_paper(args: argparse.Namespace) -> int:
     from .experiments.paper import PaperSettings, run_paper_experiment
 
-    settings = PaperSettings(
-        runs=args.runs,
-        seed=args.seed,
-        workers=args.workers,
-        duration_s=args.duration,
-        warmup_s=args.warmup,
-        rv_runs=args.rv_runs,
-        rv_duration_s=args.rv_duration,
-    )
+    try:
+        settings = PaperSettings(
+            runs=args.runs,
+            seed=args.seed,
+            workers=args.workers,
+            duration_s=args.duration,
+            warmup_s=args.warmup,
+            rv_runs=args.rv_runs,
+            rv_duration_s=args.rv_duration,
+        )
+    except ValueError as exc:
+        print(f"mapc: {exc}", file=sys.stderr)
+        return 2
     res = run_paper_experiment(args.out, settings, progress=not args.quiet)
     targets = {t["target"]: "PASS" if t["pass"] else "FAIL" for t in res["targets"]}
     print(json.dumps({"out": str(args.out), "wall_s": res["wall_s"], "runs": res["runs"], "targets": targets}))
@@ -98,6 +102,9 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
 def _cmd_experiment_network(args: argparse.Namespace) -> int:
     from .experiments.network import run_network_sweep
 
+    if args.duration is not None and args.duration <= 1.0:
+        print(f"mapc: --duration must exceed the 1 s warm-up, got {args.duration}", file=sys.stderr)
+        return 2
     rows = run_network_sweep(
         args.out,
         quick=args.quick,

@@ -273,7 +273,7 @@ def _cell(v) -> str:
     if isinstance(v, float):
         if not math.isfinite(v):
             return "inf" if v == float("inf") else ""
-        return f"{v:.4g}"
+        return f"{v:.0f}" if abs(v) >= 1000 else f"{v:.4g}"
     return "" if v is None else str(v)
 
 
@@ -377,6 +377,7 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         ("object_rmse_m", "object RMSE (m)"),
         ("object_coverage", "obj. cov."),
         ("vehicle_rmse_m", "vehicle RMSE (m)"),
+        ("vehicle_coverage", "veh. cov."),
         ("bytes_per_s_per_vehicle", "bytes/s/veh"),
         ("delivered_fraction", "delivered"),
         ("latency_s_p50", "latency p50 (s)"),
@@ -391,7 +392,9 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         f"per-link capacity with a queue of {m.get('queue_s', QUEUE_S)} s of traffic (at least {MIN_QUEUE_BYTES} "
         "bytes); Bernoulli loss; no jitter. Column definitions: module docstring of "
         "`mapcontainer/experiments/network.py` (delivered = delivered / messages whose fate was decided; age = "
-        "fuse time minus the newest t_meas received from each remote vehicle, averaged).",
+        "fuse time minus the newest t_meas received from each remote vehicle, averaged). Vehicle RMSE is over the "
+        "vehicles present in the fused state (coverage beside it); the fused state carries each vehicle's newest "
+        "pose, not a prediction to the fuse time, so this error grows with the age of the information.",
         "",
         "## Key comparison",
         "",
