@@ -118,13 +118,16 @@ class LaneLine:
     def polyline(self) -> Polyline:
         return Polyline(self.points, self.closed)
 
-    def painted_samples(self, spacing: float) -> np.ndarray:
-        """Sample points (M, 3) every ``spacing`` m on the painted parts only."""
-        line = self.polyline
-        s = np.arange(0.0, line.length, spacing)
+    def painted_arcs(self, spacing: float) -> np.ndarray:
+        """Arc lengths (M,) every ``spacing`` m along the line that fall on painted parts."""
+        s = np.arange(0.0, self.polyline.length, spacing)
         if self.kind == "dashed":
             s = s[np.mod(s, self.dash_m + self.gap_m) < self.dash_m]
-        return line.point_at(s)
+        return s
+
+    def painted_samples(self, spacing: float) -> np.ndarray:
+        """Sample points (M, 3) every ``spacing`` m on the painted parts only."""
+        return self.polyline.point_at(self.painted_arcs(spacing))
 
 
 @dataclass(frozen=True)

@@ -368,12 +368,13 @@ class MapMatcher:
         self._pole_top = np.array([f.top for f in hdmap.poles], dtype=float).reshape(-1, 3)
         samples, solid, tangents, widths = [], [], [], []
         for ln in hdmap.lane_lines:
-            s = ln.painted_samples(self.params.lane_spacing_m)
+            line = ln.polyline
+            arcs = ln.painted_arcs(self.params.lane_spacing_m)
+            s = line.point_at(arcs)
             samples.append(s)
             solid.append(np.full(len(s), ln.kind == "solid"))
             widths.append(np.full(len(s), ln.width_m))
-            line = ln.polyline
-            tangents.append(line.tangent_at(np.array([line.project(q) for q in s])))
+            tangents.append(line.tangent_at(arcs))
         self._lane_xyz = np.vstack(samples) if samples else np.zeros((0, 3))
         self._lane_tan = np.vstack(tangents) if tangents else np.zeros((0, 3))
         self._lane_solid = np.concatenate(solid) if solid else np.zeros(0, bool)
