@@ -76,7 +76,7 @@ byte_edits = st.lists(
 )
 
 
-def check(data: Any, model: type[BaseModel]) -> None:
+def assert_decodes_or_rejects(data: Any, model: type[BaseModel]) -> None:
     """decode must not raise; an accepted message must round trip through the codec unchanged."""
     out = decode(data, model)
     if isinstance(out, Rejection):
@@ -113,20 +113,20 @@ def field_names(model: type[BaseModel]) -> list[str]:
 @FAST
 @given(model=models, data=st.binary(max_size=512))
 def test_arbitrary_bytes_never_raise(model: type[BaseModel], data: bytes) -> None:
-    check(data, model)
+    assert_decodes_or_rejects(data, model)
 
 
 @FAST
 @given(model=models, data=st.binary(max_size=256))
 def test_arbitrary_bytes_after_a_map_header_never_raise(model: type[BaseModel], data: bytes) -> None:
-    check(b"\x86\xaeschema_version\x01" + data, model)
+    assert_decodes_or_rejects(b"\x86\xaeschema_version\x01" + data, model)
 
 
 @FAST
 @given(msg=valid, cut=st.integers(min_value=0, max_value=4096))
 def test_truncated_valid_messages_never_raise(msg: Encoded, cut: int) -> None:
     model, data = msg
-    check(data[: cut % (len(data) + 1)], model)
+    assert_decodes_or_rejects(data[: cut % (len(data) + 1)], model)
 
 
 @FAST
@@ -136,7 +136,7 @@ def test_mutated_valid_messages_never_raise(msg: Encoded, edits: list[tuple[int,
     buf = bytearray(data)
     for pos, byte in edits:
         buf[pos % len(buf)] = byte
-    check(bytes(buf), model)
+    assert_decodes_or_rejects(bytes(buf), model)
 
 
 @FAST
@@ -146,7 +146,7 @@ def test_inserted_or_deleted_bytes_never_raise(
 ) -> None:
     model, data = msg
     i = pos % len(data)
-    check(data[:i] + data[i + len(junk):] if delete else data[:i] + junk + data[i:], model)
+    assert_decodes_or_rejects(data[:i] + data[i + len(junk):] if delete else data[:i] + junk + data[i:], model)
 
 
 @FAST
@@ -156,7 +156,7 @@ def test_random_maps_never_raise(data: st.DataObject, model: type[BaseModel]) ->
     obj = data.draw(st.dictionaries(keys, values, max_size=12))
     if data.draw(st.booleans()):
         obj["schema_version"] = SCHEMA_VERSION  # get past the version check most of the time
-    check(msgpack.packb(obj, use_bin_type=True), model)
+    assert_decodes_or_rejects(msgpack.packb(obj, use_bin_type=True), model)
 
 
 @FAST
@@ -172,7 +172,7 @@ def test_valid_map_with_fields_replaced_never_raises(data: st.DataObject, msg: E
             node = node[data.draw(st.sampled_from(sorted(nested)))]
         key = data.draw(st.sampled_from(sorted(node)) | st.text(max_size=8))
         node[key] = data.draw(values)
-    check(msgpack.packb(obj, use_bin_type=True), model)
+    assert_decodes_or_rejects(msgpack.packb(obj, use_bin_type=True), model)
 
 
 @FAST
@@ -186,4 +186,4 @@ def test_valid_map_with_arrays_resized_never_raises(data: st.DataObject, msg: En
     bins = sorted(k for k, v in node.items() if isinstance(v, bytes))
     if bins:
         node[data.draw(st.sampled_from(bins))] = data.draw(st.binary(max_size=200))
-    check(msgpack.packb(obj, use_bin_type=True), model)
+    assert_decodes_or_rejects(msgpack.packb(obj, use_bin_type=True), model)

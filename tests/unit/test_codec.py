@@ -248,7 +248,7 @@ def test_covariance_upper_triangle_order() -> None:
 # ------------------------------------------------------------------------------ rejections
 
 
-def rejected(data: Any, model: type[BaseModel], reason: str) -> Rejection:
+def assert_rejected(data: Any, model: type[BaseModel], reason: str) -> Rejection:
     out = decode(data, model)
     assert isinstance(out, Rejection), f"expected a rejection ({reason}), decoded {type(out).__name__}"
     assert out.reason in REASONS
@@ -276,7 +276,7 @@ def test_truncated_bytes_are_malformed(case: str) -> None:
     msg = CASES[case]()
     data = encode(msg)
     for cut in (0, 1, len(data) // 3, len(data) // 2, len(data) - 1):
-        rejected(data[:cut], type(msg), "malformed")
+        assert_rejected(data[:cut], type(msg), "malformed")
 
 
 MODELS = [SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus]
@@ -286,46 +286,46 @@ MODELS = [SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, H
 def test_random_bytes_are_malformed(model: type[BaseModel]) -> None:
     rng = np.random.default_rng(5)
     for _ in range(50):
-        rejected(rng.bytes(int(rng.integers(1, 200))), model, "malformed")
+        assert_rejected(rng.bytes(int(rng.integers(1, 200))), model, "malformed")
 
 
 @pytest.mark.parametrize("top", [[1, 2, 3], 5, "fused", b"\x00", None, 1.5])
 def test_non_map_top_level_is_malformed(top: Any) -> None:
-    rejected(pack(top), FusedState, "malformed")
+    assert_rejected(pack(top), FusedState, "malformed")
 
 
 def test_not_bytes_is_malformed() -> None:
-    rejected("not bytes", FusedState, "malformed")  # type: ignore[arg-type]
+    assert_rejected("not bytes", FusedState, "malformed")  # type: ignore[arg-type]
 
 
 def test_map_with_non_string_keys_is_malformed() -> None:
-    rejected(pack({1: 2, "schema_version": 1}), FusedState, "malformed")
+    assert_rejected(pack({1: 2, "schema_version": 1}), FusedState, "malformed")
 
 
 @pytest.mark.parametrize("version", [0, 2, SCHEMA_VERSION + 1, -1, "1", 1.0, True, None, [1], ...])
 def test_wrong_or_missing_schema_version(version: Any) -> None:
-    rejected(with_changes(fused_state(True), (("schema_version",), version)), FusedState, "schema_version")
+    assert_rejected(with_changes(fused_state(True), (("schema_version",), version)), FusedState, "schema_version")
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_float_field(bad: float) -> None:
-    rejected(with_changes(vehicle_prior(True), (("t_meas",), bad)), VehiclePrior, "non_finite")
+    assert_rejected(with_changes(vehicle_prior(True), (("t_meas",), bad)), VehiclePrior, "non_finite")
     frame = observations(SensorFrame, True)
-    rejected(with_changes(frame, (("gnss", "sigma_h_m"), bad)), SensorFrame, "non_finite")
-    rejected(with_changes(health(True), (("figures", "fused_objects"), bad)), HealthStatus, "non_finite")
+    assert_rejected(with_changes(frame, (("gnss", "sigma_h_m"), bad)), SensorFrame, "non_finite")
+    assert_rejected(with_changes(health(True), (("figures", "fused_objects"), bad)), HealthStatus, "non_finite")
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_non_finite_array(bad: float) -> None:
     pose = np.array([1, 2, 3, 0, 0, bad], "<f4").tobytes()
-    rejected(with_changes(vehicle_prior(True), (("pose",), pose)), VehiclePrior, "non_finite")
+    assert_rejected(with_changes(vehicle_prior(True), (("pose",), pose)), VehiclePrior, "non_finite")
     msg = fused_state(True)
     p = msg.object_p_map.copy()
     p[2, 1] = bad
-    rejected(with_changes(msg, (("object_p_map",), p.astype("<f4").tobytes())), FusedState, "non_finite")
+    assert_rejected(with_changes(msg, (("object_p_map",), p.astype("<f4").tobytes())), FusedState, "non_finite")
     cov = observations(SensorFrame, True).objects.cov.copy()
     cov[0, 0] = bad
-    rejected(
+    assert_rejected(
         with_changes(observations(SensorFrame, True), (("objects", "cov"), cov.astype("<f2").tobytes())),
         SensorFrame,
         "non_finite",
@@ -335,67 +335,67 @@ def test_non_finite_array(bad: float) -> None:
 def test_non_positive_definite_covariances() -> None:
     bad6 = cov_to_upper(np.diag([1.0, 1.0, 1.0, 1.0, 1.0, -0.1])).astype("<f4").tobytes()
     npd = "not_positive_definite"
-    rejected(with_changes(vehicle_prior(True), (("pose_cov",), bad6)), VehiclePrior, npd)
+    assert_rejected(with_changes(vehicle_prior(True), (("pose_cov",), bad6)), VehiclePrior, npd)
     singular = cov_to_upper(np.ones((6, 6))).astype("<f4").tobytes()
-    rejected(with_changes(vehicle_prior(True), (("pose_cov",), singular)), VehiclePrior, npd)
+    assert_rejected(with_changes(vehicle_prior(True), (("pose_cov",), singular)), VehiclePrior, npd)
 
     msg = vehicle_prior(True)
     cov = msg.objects.cov.copy()
     cov[1] = cov_to_upper(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))  # eigenvalue -1
-    rejected(with_changes(msg, (("objects", "cov"), cov.astype("<f2").tobytes())), VehiclePrior, npd)
+    assert_rejected(with_changes(msg, (("objects", "cov"), cov.astype("<f2").tobytes())), VehiclePrior, npd)
 
     msg = fused_state(True)
     cov = msg.object_cov.copy()
     cov[0] = -cov[0]
-    rejected(with_changes(msg, (("object_cov",), cov.tobytes())), FusedState, npd)
+    assert_rejected(with_changes(msg, (("object_cov",), cov.tobytes())), FusedState, npd)
 
 
 def test_mismatched_array_lengths() -> None:
     msg = vehicle_prior(True)
-    rejected(with_changes(msg, (("objects", "cls"), msg.objects.cls[:-1].tobytes())), VehiclePrior, "invalid")
+    assert_rejected(with_changes(msg, (("objects", "cls"), msg.objects.cls[:-1].tobytes())), VehiclePrior, "invalid")
     msg = fused_state(True)
-    rejected(with_changes(msg, (("object_v_map",), msg.object_v_map[:-1].tobytes())), FusedState, "invalid")
-    rejected(with_changes(msg, (("vehicle_ids",), ["veh-1"])), FusedState, "invalid")
+    assert_rejected(with_changes(msg, (("object_v_map",), msg.object_v_map[:-1].tobytes())), FusedState, "invalid")
+    assert_rejected(with_changes(msg, (("vehicle_ids",), ["veh-1"])), FusedState, "invalid")
     msg = observations(SensorFrame, True)
-    rejected(with_changes(msg, (("points_cls",), b"\x01")), SensorFrame, "invalid")
+    assert_rejected(with_changes(msg, (("points_cls",), b"\x01")), SensorFrame, "invalid")
     msg = ground_truth(True)
-    rejected(with_changes(msg, (("obstacle_yaw",), msg.obstacle_yaw[:3].tobytes())), GroundTruth, "invalid")
+    assert_rejected(with_changes(msg, (("obstacle_yaw",), msg.obstacle_yaw[:3].tobytes())), GroundTruth, "invalid")
 
 
 def test_wrong_bin_length() -> None:
     msg = vehicle_prior(True)
-    rejected(with_changes(msg, (("pose",), np.zeros(5, "<f4").tobytes())), VehiclePrior, "invalid")  # 5 of 6
-    rejected(with_changes(msg, (("pose",), b"\x00" * 7)), VehiclePrior, "invalid")  # not whole float32s
-    rejected(with_changes(msg, (("objects", "p_body_cm"), b"\x00" * 10)), VehiclePrior, "invalid")  # 5 int16s
-    rejected(with_changes(fused_state(True), (("vehicle_pose_cov",), b"")), FusedState, "invalid")
+    assert_rejected(with_changes(msg, (("pose",), np.zeros(5, "<f4").tobytes())), VehiclePrior, "invalid")  # 5 of 6
+    assert_rejected(with_changes(msg, (("pose",), b"\x00" * 7)), VehiclePrior, "invalid")  # not whole float32s
+    assert_rejected(with_changes(msg, (("objects", "p_body_cm"), b"\x00" * 10)), VehiclePrior, "invalid")  # 5 int16s
+    assert_rejected(with_changes(fused_state(True), (("vehicle_pose_cov",), b"")), FusedState, "invalid")
 
 
 def test_out_of_range_int16_positions() -> None:
     msg = vehicle_prior(True)
     n = len(msg.objects)
     too_far = [[40000, 0, 0]] + [[0, 0, 0]] * (n - 1)  # 400 m does not fit int16 centimetres
-    rejected(with_changes(msg, (("objects", "p_body_cm"), too_far)), VehiclePrior, "invalid")
+    assert_rejected(with_changes(msg, (("objects", "p_body_cm"), too_far)), VehiclePrior, "invalid")
     with pytest.raises(ValidationError):
         ObjectObservations.from_metres([[400.0, 0.0, 0.0]], np.eye(3)[None], [1])
 
 
 def test_missing_required_and_wrong_types() -> None:
-    rejected(with_changes(vehicle_prior(True), (("pose",), ...)), VehiclePrior, "invalid")
-    rejected(with_changes(vehicle_prior(True), (("quality",), "good")), VehiclePrior, "invalid")
-    rejected(with_changes(vehicle_prior(True), (("sender",), "veh/1")), VehiclePrior, "invalid")
-    rejected(with_changes(vehicle_prior(True), (("seq",), -1)), VehiclePrior, "invalid")
-    rejected(with_changes(health(True), (("state",), "sleepy")), HealthStatus, "invalid")
+    assert_rejected(with_changes(vehicle_prior(True), (("pose",), ...)), VehiclePrior, "invalid")
+    assert_rejected(with_changes(vehicle_prior(True), (("quality",), "good")), VehiclePrior, "invalid")
+    assert_rejected(with_changes(vehicle_prior(True), (("sender",), "veh/1")), VehiclePrior, "invalid")
+    assert_rejected(with_changes(vehicle_prior(True), (("seq",), -1)), VehiclePrior, "invalid")
+    assert_rejected(with_changes(health(True), (("state",), "sleepy")), HealthStatus, "invalid")
     frame = observations(SensorFrame, True)
-    rejected(with_changes(frame, (("lane_mask_png",), b"GIF89a")), SensorFrame, "invalid")
+    assert_rejected(with_changes(frame, (("lane_mask_png",), b"GIF89a")), SensorFrame, "invalid")
 
 
 def test_oversize_payloads() -> None:
-    rejected(b"\x80" + b"\x00" * MAX_MESSAGE_BYTES, FusedState, "too_large")
+    assert_rejected(b"\x80" + b"\x00" * MAX_MESSAGE_BYTES, FusedState, "too_large")
     msg = observations(SensorFrame, True)
     big_png = b"\x89PNG\r\n\x1a\n" + b"\x00" * MAX_MASK_BYTES
-    rejected(with_changes(msg, (("lane_mask_png",), big_png)), SensorFrame, "invalid")
+    assert_rejected(with_changes(msg, (("lane_mask_png",), big_png)), SensorFrame, "invalid")
     many = MAX_LANDMARKS + 1
-    rejected(
+    assert_rejected(
         with_changes(
             msg,
             (("points_uv",), np.zeros((many, 2), "<f4").tobytes()),
