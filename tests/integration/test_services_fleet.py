@@ -108,7 +108,12 @@ def test_fleet_up_health_kill_restart_and_down(
         exited = next(e for e in ev if e["event"] == "exited")
         assert exited["returncode"] == -signal.SIGKILL
         assert exited["t_wall"] - t_kill_wall < 2.0
-        vehicle = next(p for p in _state(run_dir)["processes"] if p["name"] == "vehicle-cv1")
+
+        def restarted_in_state():  # state.json is rewritten periodically: it may lag the event log
+            v = next(p for p in _state(run_dir)["processes"] if p["name"] == "vehicle-cv1")
+            return v if v["restarts"] >= 1 else None
+
+        vehicle = wait_for(restarted_in_state, timeout=10, what="the restart in state.json")
         assert vehicle["restarts"] == 1 and vehicle["pid"] != victim["pid"]
         pgids.add(vehicle["pgid"])
     finally:
