@@ -11,41 +11,23 @@ import json
 import queue
 from pathlib import Path
 
-import msgpack
 import numpy as np
 import pytest
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
-def decode_fused_state(data: bytes) -> dict:
-    """schemas/README.md, "Decoding without our code", verbatim."""
-    msg = msgpack.unpackb(data, raw=False)
-    if msg.get("schema_version") != 1:
-        raise ValueError(f"unsupported schema_version {msg.get('schema_version')!r}")
+README = Path(__file__).resolve().parents[2] / "schemas" / "README.md"
 
-    def arr(name, dtype, cols=None):  # msgpack bin -> little-endian, row-major array
-        a = np.frombuffer(msg.get(name, b""), dtype=np.dtype(dtype).newbyteorder("<"))
-        return a if cols is None else a.reshape(-1, cols)
 
-    def full_cov(upper, n):  # row-major upper triangle -> symmetric (N, n, n)
-        iu = np.triu_indices(n)
-        cov = np.zeros((len(upper), n, n))
-        cov[:, iu[0], iu[1]] = upper
-        cov[:, iu[1], iu[0]] = upper
-        return cov
-
-    return {
-        "t_meas": msg["t_meas"],
-        "vehicle_ids": msg.get("vehicle_ids", []),
-        "vehicle_pose": arr("vehicle_pose", "f4", 6),
-        "vehicle_pose_cov": full_cov(arr("vehicle_pose_cov", "f4", 21), 6),
-        "object_id": arr("object_id", "u4"),
-        "object_cls": arr("object_cls", "u1"),
-        "object_p_map": arr("object_p_map", "f4", 3),
-        "object_v_map": arr("object_v_map", "f4", 3),
-        "object_cov": full_cov(arr("object_cov", "f4", 6), 3),
-    }
+def readme_decoder():
+    """The ``decode_fused_state`` recipe exactly as schemas/README.md prints it, run as a reader would."""
+    text = README.read_text(encoding="utf-8")
+    blocks = text.split("```python")[1:]
+    code = next(b.split("```")[0] for b in blocks if "def decode_fused_state" in b)
+    namespace: dict = {}
+    exec(code, namespace)  # noqa: S102 - the README's own code
+    return namespace["decode_fused_state"]
 
 
 def test_stock_zenoh_client_subscribes_to_fused_and_decodes_with_plain_msgpack(tmp_path, fleet_name, mapc):
@@ -78,7 +60,7 @@ def test_stock_zenoh_client_subscribes_to_fused_and_decodes_with_plain_msgpack(t
             finally:
                 sub.undeclare()
         assert key.startswith(f"mc/{fleet_name}/host/") and key.endswith("/fused")
-        fused = decode_fused_state(payload)
+        fused = readme_decoder()(payload)
         v = len(fused["vehicle_ids"])
         assert v >= 1 and fused["vehicle_pose"].shape == (v, 6)
         assert fused["vehicle_pose_cov"].shape == (v, 6, 6)
