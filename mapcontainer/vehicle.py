@@ -54,13 +54,16 @@ class VehicleAgent:
         fleet: str,
         mode: Mode = "distributed",
         params: LocalizerParams | None = None,
+        initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
     ):
+        """``initial_pose``: (pose (6,), covariance 6x6) known at start, see :meth:`Localizer.reset`;
+        without it the vehicle initialises from GNSS, the map's driving directions and the camera."""
         if mode not in ("distributed", "centralized"):
             raise ValueError(f"mode must be 'distributed' or 'centralized', got {mode!r}")
         self.vehicle_id = vehicle_id
         self.fleet = fleet
         self.mode = mode
-        self.localizer = Localizer(hdmap, params or LocalizerParams(report="frame"))
+        self.localizer = Localizer(hdmap, params or LocalizerParams(report="frame"), initial_pose=initial_pose)
         self._seq = 0
         self.last: VehiclePrior | None = None
 

@@ -52,10 +52,12 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
 
 from ..geometry import wrap_angle
 from ..hdmap.model import HDMap
 from .matcher import CameraFrame, MapMatcher, MatcherParams, MatchResult
+from .search import PoseSearch, PoseSearchParams
 
 __all__ = ["GnssMeasurement", "LocalizationResult", "Localizer", "LocalizerParams", "OdometryMeasurement"]
 
@@ -95,6 +97,16 @@ class LocalizerParams(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     matcher: MatcherParams = Field(default_factory=MatcherParams)
+    search: PoseSearchParams = Field(default_factory=PoseSearchParams)
+    search_sigma_m: float = Field(
+        1.0,
+        gt=0,
+        description="a prediction whose horizontal 1-sigma exceeds this (m) is matched by the global pose "
+        "search (start-up, recovery) instead of one local solve",
+    )
+    search_sigma_yaw_rad: float = Field(
+        np.radians(3.0), gt=0, description="... or whose yaw 1-sigma exceeds this (rad)"
+    )
     report: Literal["filtered", "frame"] = Field(
         "filtered",
         description="what pose/cov carry while map matching: the tracker's posterior ('filtered'), or this "
@@ -105,30 +117,20 @@ class LocalizerParams(BaseModel):
     speed_sigma_mps: float = Field(0.1, gt=0, description="1-sigma of the wheel speed, white (m/s)")
     speed_scale_sigma: float = Field(0.005, ge=0, description="relative 1-sigma of the wheel speed, white")
     yaw_rate_sigma_radps: float = Field(0.01, gt=0, description="1-sigma of the gyro yaw rate, white (rad/s)")
-    lateral_sigma_mps: float = Field(
-        0.1, ge=0, description="sideways velocity noise (slip, model error) (m/s)"
-    )
+    lateral_sigma_mps: float = Field(0.1, ge=0, description="sideways velocity noise (slip, model error) (m/s)")
     z_sigma_mps: float = Field(0.1, ge=0, description="random walk of the height (m/sqrt(s))")
-    roll_pitch_sigma_radps: float = Field(
-        0.01, ge=0, description="random walk of roll and pitch (rad/sqrt(s))"
-    )
+    roll_pitch_sigma_radps: float = Field(0.01, ge=0, description="random walk of roll and pitch (rad/sqrt(s))")
     scale_init_sigma: float = Field(0.02, gt=0, description="prior 1-sigma of the wheel-speed scale factor")
     scale_rw_sigma: float = Field(1e-4, ge=0, description="random walk of the scale factor (1/sqrt(s))")
-    gyro_bias_init_sigma_radps: float = Field(
-        0.005, gt=0, description="prior 1-sigma of the gyro bias (rad/s)"
-    )
+    gyro_bias_init_sigma_radps: float = Field(0.005, gt=0, description="prior 1-sigma of the gyro bias (rad/s)")
     gyro_bias_rw_sigma: float = Field(1e-4, ge=0, description="random walk of the gyro bias (rad/s/sqrt(s))")
     # GNSS: fix = position + bias + white noise.
-    gnss_bias_sigma_m: float = Field(
-        1.5, gt=0, description="stationary 1-sigma of the receiver's bias per axis (m)"
-    )
+    gnss_bias_sigma_m: float = Field(1.5, gt=0, description="stationary 1-sigma of the receiver's bias per axis (m)")
     gnss_bias_tau_s: float = Field(60.0, gt=0, description="correlation time of the bias (s)")
     gnss_white_min_sigma_m: float = Field(
         0.5, gt=0, description="white part = sqrt(reported_sigma_h^2 - bias_sigma^2), at least this (m)"
     )
-    gnss_gate_chi2: float = Field(
-        13.8, gt=0, description="fixes beyond this chi^2 (2 dof, 99.9 %) are dropped"
-    )
+    gnss_gate_chi2: float = Field(13.8, gt=0, description="fixes beyond this chi^2 (2 dof, 99.9 %) are dropped")
     gnss_soft_chi2: float = Field(
         5.99,
         gt=0,
@@ -148,30 +150,23 @@ class LocalizerParams(BaseModel):
         "covariance are widened and the match is tried again",
     )
     # Fallback ground constraint (the matcher's r_n when there is no match).
-    ground_sigma_m: float = Field(
-        0.2, gt=0, description="1-sigma of the height above the road in fallback (m)"
-    )
-    ground_roll_pitch_sigma_rad: float = Field(
-        0.02, gt=0, description="1-sigma of roll, pitch in fallback (rad)"
-    )
+    ground_sigma_m: float = Field(0.2, gt=0, description="1-sigma of the height above the road in fallback (m)")
+    ground_roll_pitch_sigma_rad: float = Field(0.02, gt=0, description="1-sigma of roll, pitch in fallback (rad)")
     # Start-up.
     init_extra_sigma_m: float = Field(
         2.5,
         ge=0,
         description="added to the initial position 1-sigma for a multipath jump in the first fix (m)",
     )
-    init_yaw_sigma_rad: float = Field(
-        0.05, gt=0, description="1-sigma of a given or map-derived initial heading"
-    )
+    init_yaw_sigma_rad: float = Field(0.05, gt=0, description="1-sigma of a given or map-derived initial heading")
     init_lane_search_m: float = Field(
-        6.0, gt=0, description="centre lines this close to the GNSS fix give headings"
+        6.0, gt=0, description="centre lines at least this close to the GNSS fix give headings (m)"
     )
-    init_course_distance_m: float = Field(
-        12.0, gt=0, description="GNSS travel that gives a course over ground (m)"
+    init_heading_window_rad: float = Field(
+        np.radians(6.0), ge=0, description="a vehicle's heading within this of its lane's direction (rad)"
     )
-    init_min_speed_mps: float = Field(
-        1.0, ge=0, description="dead reckoning for the course only above this speed"
-    )
+    init_course_distance_m: float = Field(12.0, gt=0, description="GNSS travel that gives a course over ground (m)")
+    init_min_speed_mps: float = Field(1.0, ge=0, description="dead reckoning for the course only above this speed")
     max_gap_s: float = Field(5.0, gt=0, description="a longer gap between steps re-initialises")
 
 
@@ -236,9 +231,7 @@ def _as_gnss(g) -> GnssMeasurement | None:
         return None
     if isinstance(g, tuple | list):
         return GnssMeasurement(np.asarray(g[0], dtype=float).reshape(-1), float(g[1]), float(g[2]))
-    return GnssMeasurement(
-        np.asarray(g.p_map, dtype=float).reshape(-1), float(g.sigma_h_m), float(g.sigma_v_m)
-    )
+    return GnssMeasurement(np.asarray(g.p_map, dtype=float).reshape(-1), float(g.sigma_h_m), float(g.sigma_v_m))
 
 
 class Localizer:
@@ -258,18 +251,48 @@ class Localizer:
     takes over when needed (recovery).
     """
 
-    def __init__(self, hdmap: HDMap, params: LocalizerParams | None = None, initial_yaw: float | None = None):
+    def __init__(
+        self,
+        hdmap: HDMap,
+        params: LocalizerParams | None = None,
+        initial_yaw: float | None = None,
+        initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
         self.params = params or LocalizerParams()
         self.hdmap = hdmap
         self.matcher = MapMatcher(hdmap, self.params.matcher)
+        self.search = PoseSearch(self.matcher, self.params.search)
         self.stats: dict[str, int] = {}
-        self._lanes = [c.polyline for c in hdmap.centerlines]
-        self.reset(initial_yaw)
+        xy, yaw = [], []
+        for c in hdmap.centerlines:
+            arcs = np.arange(0.0, c.polyline.length, 1.0)
+            tng = c.polyline.tangent_at(arcs)
+            xy.append(c.polyline.point_at(arcs)[:, :2])
+            yaw.append(np.arctan2(tng[:, 1], tng[:, 0]))
+        self._cl_tree = cKDTree(np.vstack(xy)) if xy else None  # centre-line samples: driving directions
+        self._cl_yaw = np.concatenate(yaw) if yaw else np.zeros(0)
+        self.reset(initial_yaw, initial_pose)
 
     # ------------------------------------------------------------------ public
 
-    def reset(self, initial_yaw: float | None = None) -> None:
-        """Forget the state; the next steps initialise again (from GNSS and a heading)."""
+    def reset(
+        self, initial_yaw: float | None = None, initial_pose: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> None:
+        """Forget the state; the next steps initialise again: from ``initial_pose`` (pose (6,), 6x6
+        covariance: a pose known at start, e.g. the last estimate before the vehicle was parked) if
+        given, else from GNSS and a heading."""
+        if initial_pose is not None:
+            pose0, cov0 = (np.asarray(a, dtype=float) for a in initial_pose)
+            if (
+                pose0.shape != (6,)
+                or cov0.shape != (6, 6)
+                or not (np.all(np.isfinite(pose0)) and np.all(np.isfinite(cov0)))
+            ):
+                raise ValueError("initial_pose must be a finite (pose (6,), covariance 6x6) pair")
+            if np.any(np.linalg.eigvalsh(0.5 * (cov0 + cov0.T)) <= 0):
+                raise ValueError("initial_pose covariance is not positive definite")
+            initial_pose = (pose0, 0.5 * (cov0 + cov0.T))
+        self._initial_pose = initial_pose
         self.y: np.ndarray | None = None  # see the module doc
         self.P: np.ndarray | None = None
         self.t_prev: float | None = None
@@ -277,6 +300,7 @@ class Localizer:
         self._initial_yaw = initial_yaw
         self._init = _Init()
         self._jumps = 0
+        self._init_match: MatchResult | None = None
         self._last: LocalizationResult | None = None
 
     @property
@@ -288,9 +312,7 @@ class Localizer:
         """The current (filtered) pose estimate."""
         return None if self.y is None else self.y[:6].copy()
 
-    def step(
-        self, t: float, frame: CameraFrame | None, odometry: Any | None, gnss: Any | None
-    ) -> LocalizationResult:
+    def step(self, t: float, frame: CameraFrame | None, odometry: Any | None, gnss: Any | None) -> LocalizationResult:
         """Advance to time t with this frame's camera detections, odometry and GNSS fix (each may be None)."""
         p = self.params
         try:
@@ -321,7 +343,9 @@ class Localizer:
 
         match, reason = None, ""
         self._attempt = None
-        if frame is None:
+        if self._init_match is not None:
+            match, self._attempt, self._init_match = self._init_match, self._init_match, None
+        elif frame is None:
             reason = "no camera frame"
         elif frame.is_empty():
             reason = "no features"
@@ -429,11 +453,21 @@ class Localizer:
     def _match(self, frame: CameraFrame, y, P) -> tuple[MatchResult | None, str]:
         """Match from the predicted pose; the result if accepted, else None and the reason.
 
-        The last attempt (accepted or not) is kept in ``self._attempt`` for the quality figures.
+        A wide prediction (start-up, recovery) goes to the global pose search over the basins of
+        the cost; a tracked one to one local solve, whose result must not jump against the
+        prediction. The last local attempt (accepted or not) is kept in ``self._attempt`` for the
+        quality figures.
         """
         p = self.params
         x_pred, Pxx = y[:6], P[:6, :6]
         try:
+            if self._wide(Pxx):
+                self._count("search")
+                out = self._search(frame, x_pred, Pxx)
+                self._attempt = out.match
+                if out.match is None:
+                    return None, f"search: {out.reason}"
+                return out.match, ""
             match = self.matcher.match(frame, x_pred, Pxx, None)
             self._attempt = match
         except ValueError as exc:  # a malformed frame: count it, go on without it
@@ -449,6 +483,28 @@ class Localizer:
             self._jumps += 1
             return None, f"jump: chi2 {chi2:.1f} > {p.jump_gate_chi2}"
         return match, ""
+
+    def _wide(self, Pxx) -> bool:
+        """The prediction is too uncertain for one local solve."""
+        p = self.params
+        sig_h = float(np.sqrt(max(np.linalg.eigvalsh(Pxx[:2, :2])[-1], 0.0)))
+        return sig_h > p.search_sigma_m or float(np.sqrt(max(Pxx[5, 5], 0.0))) > p.search_sigma_yaw_rad
+
+    def _search(self, frame: CameraFrame, x_pred, Pxx):
+        """The global pose search around the prediction: 3-sigma in position and heading.
+
+        Beyond +-30 degrees of heading the candidates are the map's driving directions nearby.
+        """
+        step = self.params.search.yaw_step_rad
+        radius = 3.0 * float(np.sqrt(max(np.linalg.eigvalsh(Pxx[:2, :2])[-1], 0.0)))
+        half = 3.0 * float(np.sqrt(max(Pxx[5, 5], 0.0)))
+        yaws = None
+        if half > np.radians(30.0):
+            yaws = self._map_yaws(x_pred[:2], radius)
+        if yaws is None or len(yaws) == 0:
+            k = int(np.ceil(min(half, np.pi) / step))
+            yaws = wrap_angle(x_pred[5] + np.arange(-k, k + 1) * step)
+        return self.search.search(frame, x_pred, Pxx, yaws, radius)
 
     def _widen(self, P, gnss: GnssMeasurement | None) -> np.ndarray:
         """P with the position and yaw variance raised to what GNSS alone would give."""
@@ -567,19 +623,20 @@ class Localizer:
         sigma = float(2.0 * np.sqrt(2.0) * gnss.sigma_h_m / dist)
         return float(wrap_angle(offset + it.theta)), sigma
 
-    def _map_headings(self, p_xy) -> list[float]:
-        """Driving directions of the centre lines near p_xy (deduplicated within 20 deg)."""
-        out: list[float] = []
-        for line in self._lanes:
-            s = line.project(np.array([p_xy[0], p_xy[1], 0.0]))
-            q = line.point_at(s)
-            if np.hypot(q[0] - p_xy[0], q[1] - p_xy[1]) > self.params.init_lane_search_m:
-                continue
-            tng = line.tangent_at(s)
-            yaw = float(np.arctan2(tng[1], tng[0]))
-            if all(abs(wrap_angle(yaw - o)) > np.radians(20.0) for o in out):
-                out.append(yaw)
-        return out
+    def _map_yaws(self, p_xy, radius_m: float) -> np.ndarray:
+        """Candidate headings: the driving directions of the centre lines within radius_m of p_xy, each
+        widened by init_heading_window_rad, on the search's heading grid."""
+        p = self.params
+        if self._cl_tree is None:
+            return np.zeros(0)
+        idx = self._cl_tree.query_ball_point(np.asarray(p_xy[:2], dtype=float), max(radius_m, p.init_lane_search_m))
+        if not idx:
+            return np.zeros(0)
+        step = p.search.yaw_step_rad
+        base = np.unique(np.round(self._cl_yaw[idx] / step))
+        k = int(np.ceil(p.init_heading_window_rad / step))
+        grid = (base[:, None] + np.arange(-k, k + 1)[None, :]).reshape(-1) * step
+        return np.unique(np.round(wrap_angle(grid), 9))
 
     def _init_state(self, gnss: GnssMeasurement, yaw: float, sigma_yaw: float) -> None:
         """State at the GNSS fix with heading yaw; position error = -(bias + white): tied to the bias."""
@@ -615,42 +672,52 @@ class Localizer:
         self.P[0, 8] = self.P[8, 0] = self.P[1, 9] = self.P[9, 1] = -vb
 
     def _try_initialise(self, frame, gnss: GnssMeasurement | None) -> bool:
-        """Set the state from GNSS and a heading if one is available now (see the module doc)."""
+        """Set the state from GNSS and a heading if one is available now (see the module doc).
+
+        On a two-way road the camera decides: the global pose search over both directions; its
+        match is kept in ``self._init_match`` for this step.
+        """
         p = self.params
+        self._init_match = None
         if gnss is None:
             return False
+        if self._initial_pose is not None:
+            pose0, cov0 = self._initial_pose
+            self._init_state(gnss, pose0[5], 1.0)
+            self.y[:6] = pose0
+            self.P[:6, :] = self.P[:, :6] = 0.0
+            self.P[:6, :6] = cov0
+            self._initial_pose = None  # used once: a later reset starts from GNSS
+            return True
         if self._initial_yaw is not None:
             self._init_state(gnss, self._initial_yaw, p.init_yaw_sigma_rad)
             return True
-        cands = self._map_headings(gnss.p_map[:2])
         course = self._course(gnss)
-        if len(cands) == 1:
-            self._init_state(gnss, cands[0], p.init_yaw_sigma_rad)
-            return True
-        if cands and course is not None:
-            best = min(cands, key=lambda yaw: abs(wrap_angle(yaw - course[0])))
-            if abs(wrap_angle(best - course[0])) < max(3.0 * course[1], np.radians(30.0)):
-                self._init_state(gnss, best, p.init_yaw_sigma_rad)
-                return True
-        if cands and frame is not None and not frame.is_empty():
-            # Try each candidate heading with the camera: exactly one should converge.
-            converged = []
-            for yaw in cands:
-                self._init_state(gnss, yaw, p.init_yaw_sigma_rad)
-                try:
-                    res = self.matcher.match(frame, self.y[:6], self.P[:6, :6], None)
-                except ValueError:
-                    break
-                if res.converged:
-                    converged.append((2 * res.n_points + res.n_poles, yaw))
-            self.y = self.P = None
-            if len(converged) == 1:
-                self._init_state(gnss, converged[0][1], p.init_yaw_sigma_rad)
-                return True
-        if not cands and course is not None:
+        if course is not None:
             self._init_state(gnss, course[0], max(course[1], p.init_yaw_sigma_rad))
             return True
-        return False
+        radius = 3.0 * float(np.sqrt(p.gnss_bias_sigma_m**2 + self._gnss_white_var(gnss) + p.init_extra_sigma_m**2))
+        yaws = self._map_yaws(gnss.p_map[:2], radius)
+        if len(yaws) == 0:
+            return False
+        centre = float(np.angle(np.mean(np.exp(1j * yaws))))
+        spread = float(np.max(np.abs(wrap_angle(yaws - centre))))
+        if spread < np.radians(45.0):  # one driving direction (a one-way road): that is the heading
+            self._init_state(gnss, centre, max(spread / 2.0, p.init_yaw_sigma_rad))
+            return True
+        if frame is None or frame.is_empty():
+            return False
+        self._init_state(gnss, centre, np.sqrt(_UNIFORM_YAW_VAR))
+        try:
+            out = self.search.search(frame, self.y[:6], self.P[:6, :6], yaws, radius)
+        except ValueError:
+            out = None
+        if out is None or out.match is None:
+            self._count("initialising: search")
+            self.y = self.P = None
+            return False
+        self._init_match = out.match
+        return True
 
     # ------------------------------------------------------------------ results
 

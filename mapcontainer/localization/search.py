@@ -1,0 +1,209 @@
+"""Global pose search for start-up and recovery: which basin of the map-matching cost is the right one.
+
+The map matcher (:mod:`.matcher`) converges from within about a metre and a few degrees. A GNSS
+fix is metres off and a two-way road leaves the heading open, so at start-up (and when a track is
+lost) the prediction is too wide for one local solve: a solve from the fix can settle in a wrong
+basin -- one lane over, one lamp post along, or facing backwards -- and with only three constraints
+fit it exactly. The search makes that choice explicit:
+
+1. **Grid.** Hypotheses on a grid of positions within ``radius`` of the prediction (step
+   ``grid_step_m``) times the candidate headings, at the prediction's height, roll and pitch. Each is
+   scored by how well the map's landmarks explain the detections: per detection, the squared pixel
+   distance to the nearest projected landmark of its class (points) or to the projected pole at the
+   detection's mid-height (poles), truncated at ``gate_px``, plus the prediction prior on position
+   and heading. Vectorised over the whole grid; no lanes (they repeat every lane width).
+2. **Refine.** The best ``n_starts`` hypotheses that lie apart from each other are solved in full by
+   the matcher (association rounds, LM, lanes once the basin is reached), each from the hypothesis,
+   with the real prediction as the prior.
+3. **Decide.** Each solution's score is the matcher's: its robust cost plus ``inlier_chi2`` for every
+   detection it leaves unexplained. The best is accepted if it is well constrained
+   (``min_constraints`` on x, y, yaw: 2 per point inlier, 1 per pole inlier, 2 for the lanes) and no
+   distinct solution (farther than ``distinct_m`` or ``distinct_rad``) scores within ``margin`` of it.
+   Otherwise the result says "ambiguous" (or why not), and the caller waits for the next frame.
+
+Everything here is pure and deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..geometry import rpy_to_matrix_jac, wrap_angle
+from .matcher import CameraFrame, FrameData, MapMatcher, MatchResult
+
+__all__ = ["PoseSearch", "PoseSearchParams", "SearchOutcome"]
+
+
+class PoseSearchParams(BaseModel):
+    """Parameters of :class:`PoseSearch` (pixels at the camera's full resolution, SI units otherwise)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    grid_step_m: float = Field(0.75, gt=0, description="position grid step (m)")
+    yaw_step_rad: float = Field(np.radians(1.5), gt=0, description="heading grid step (rad)")
+    max_radius_m: float = Field(9.0, gt=0, description="the position grid reaches at most this far (m)")
+    gate_px: float = Field(50.0, gt=0, description="a detection's grid residual is truncated here (px)")
+    n_starts: int = Field(6, ge=1, description="hypotheses solved in full")
+    start_sigma_m: float = Field(0.75, gt=0, description="position 1-sigma of a start (association gate)")
+    start_sigma_rad: float = Field(np.radians(2.0), gt=0, description="heading 1-sigma of a start")
+    distinct_m: float = Field(1.0, gt=0, description="solutions this far apart are different basins (m)")
+    distinct_rad: float = Field(np.radians(5.0), gt=0, description="... or this far apart in heading (rad)")
+    margin: float = Field(
+        9.0,
+        ge=0,
+        description="the best solution's score must beat every distinct one by this much (about one "
+        "detection explained better)",
+    )
+    min_constraints: int = Field(
+        5, ge=3, description="constraints on (x, y, yaw) a solution needs: the 3 unknowns and 2 more"
+    )
+    min_landmarks: int = Field(2, ge=1, description="... of which at least this many landmark inliers")
+
+
+@dataclass(frozen=True)
+class SearchOutcome:
+    """The accepted solution (None if none) and what the search saw."""
+
+    match: MatchResult | None
+    reason: str
+    hypotheses: int
+    solutions: int
+    best_score: float = np.inf
+    runner_up_score: float = np.inf
+
+
+class PoseSearch:
+    """Grid search + full solves over the basins of the map-matching cost (see the module doc)."""
+
+    def __init__(self, matcher: MapMatcher, params: PoseSearchParams | None = None):
+        self.matcher = matcher
+        self.params = params or PoseSearchParams()
+
+    def search(self, frame: CameraFrame, pose_pred, cov_pred, yaws, radius_m: float) -> SearchOutcome:
+        """Search around the prediction (pose_pred, cov_pred: its prior) over positions within
+        ``radius_m`` and the headings ``yaws`` (absolute, rad). Raises ValueError on malformed input."""
+        p, mp = self.params, self.matcher.params
+        fd = self.matcher.prepare(frame, pose_pred, cov_pred, None)
+        n_det = len(fd.pt_uv) + len(fd.pole_M1)
+        if n_det == 0:
+            return SearchOutcome(None, "no landmark detections", 0, 0)
+        x0 = fd.x_prior
+        yaws = np.unique(np.round(np.asarray(yaws, dtype=float) / 1e-6) * 1e-6)
+        radius = min(float(radius_m), p.max_radius_m)
+        k = int(np.ceil(radius / p.grid_step_m))
+        g = np.arange(-k, k + 1) * p.grid_step_m
+        off = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+        off = off[np.hypot(off[:, 0], off[:, 1]) <= radius + 1e-9]
+        scores = self._grid_scores(fd, x0, off, yaws)
+        # Prediction prior on (x, y, yaw) for every hypothesis.
+        P0 = np.linalg.inv(fd.I_prior)
+        idx3 = [0, 1, 5]
+        I3 = np.linalg.inv(P0[np.ix_(idx3, idx3)])
+        dyaw = wrap_angle(yaws - x0[5])
+        D = np.zeros((len(off), len(yaws), 3))
+        D[..., :2] = off[:, None, :]
+        D[..., 2] = dyaw[None, :]
+        scores = scores + np.einsum("pyi,ij,pyj->py", D, I3, D)
+
+        starts = self._starts(scores, off, yaws, x0)
+        P_start = np.diag([p.start_sigma_m**2, p.start_sigma_m**2, P0[2, 2], P0[3, 3], P0[4, 4], p.start_sigma_rad**2])
+        sols = []
+        for h in starts:
+            x, ev, rd, iterations, lm_ok = self.matcher._solve(h, P_start, fd)
+            res = self.matcher._result(x, ev, rd, fd, iterations, lm_ok)
+            n_in = res.n_points + res.n_poles
+            sols.append((ev.cost + mp.inlier_chi2 * (n_det - n_in), res))
+        sols.sort(key=lambda s: s[0])
+        best_score, best = sols[0]
+        runner = next((s for s, r in sols[1:] if self._distinct(r.pose_filtered, best.pose_filtered)), np.inf)
+        out = dict(hypotheses=scores.size, solutions=len(sols), best_score=best_score, runner_up_score=runner)
+        constraints = 2 * best.n_points + best.n_poles + 2 * (best.n_lane >= mp.min_lane_samples)
+        if not best.converged:
+            return SearchOutcome(None, best.reason, **out)
+        if constraints < p.min_constraints or best.n_points + best.n_poles < p.min_landmarks:
+            return SearchOutcome(None, f"too few features ({constraints} constraints)", **out)
+        if runner - best_score < p.margin:
+            return SearchOutcome(None, f"ambiguous: {runner - best_score:.1f} < margin {p.margin}", **out)
+        return SearchOutcome(replace(best, reason=""), "", **out)
+
+    # ------------------------------------------------------------------ internals
+
+    def _distinct(self, a, b) -> bool:
+        return bool(
+            np.hypot(a[0] - b[0], a[1] - b[1]) > self.params.distinct_m
+            or abs(wrap_angle(a[5] - b[5])) > self.params.distinct_rad
+        )
+
+    def _starts(self, scores: np.ndarray, off: np.ndarray, yaws: np.ndarray, x0) -> list[np.ndarray]:
+        """The n_starts best hypotheses, each distinct from the ones before it."""
+        out: list[np.ndarray] = []
+        for flat in np.argsort(scores, axis=None, kind="stable"):
+            i, j = divmod(int(flat), len(yaws))
+            h = x0.copy()
+            h[:2] += off[i]
+            h[5] = yaws[j]
+            if all(self._distinct(h, o) for o in out):
+                out.append(h)
+                if len(out) == self.params.n_starts:
+                    break
+        return out
+
+    def _grid_scores(self, fd: FrameData, x0, off: np.ndarray, yaws: np.ndarray) -> np.ndarray:
+        """Truncated squared pixel residuals of all detections, per (position, heading): (len(off), len(yaws))."""
+        p, m = self.params, self.matcher
+        gate2 = p.gate_px**2
+        total = np.zeros((len(off), len(yaws)))
+        reach = m.params.range_m + float(np.max(np.hypot(off[:, 0], off[:, 1]), initial=0.0))
+        if len(fd.pt_uv):
+            near = np.flatnonzero(np.hypot(*(m._pt_xyz[:, :2] - x0[:2]).T) <= reach)
+            near = near[np.isin(m._pt_cls[near], fd.pt_cls)]
+            best = np.full((len(off), len(yaws), len(fd.pt_uv)), gate2)
+            if len(near):
+                u, v, z = self._project(fd, x0, off, yaws, m._pt_xyz[near])
+                vis = z > m.params.min_depth_m
+                for c in np.unique(fd.pt_cls):
+                    dets = np.flatnonzero(fd.pt_cls == c)
+                    lm = m._pt_cls[near] == c
+                    if not lm.any():
+                        continue
+                    du = u[..., lm, None] - fd.pt_uv[dets, 0]
+                    dv = v[..., lm, None] - fd.pt_uv[dets, 1]
+                    d2 = np.where(vis[..., lm, None], du * du + dv * dv, np.inf)
+                    best[..., dets] = np.minimum(d2.min(axis=2), gate2)
+            total += best.sum(axis=2)
+        if len(fd.pole_M1):
+            near = np.flatnonzero(np.hypot(*(m._pole_base[:, :2] - x0[:2]).T) <= reach)
+            mid = 0.5 * (fd.pole_M1 + fd.pole_M2)  # (D, 2)
+            best = np.full((len(off), len(yaws), len(mid)), gate2)
+            if len(near):
+                ub, vb, zb = self._project(fd, x0, off, yaws, m._pole_base[near])
+                ut, vt, zt = self._project(fd, x0, off, yaws, m._pole_top[near])
+                vis = (zb > m.params.min_depth_m) & (zt > m.params.min_depth_m)
+                dv_pole = np.where(np.abs(vb - vt) > 1e-6, vb - vt, 1e-6)
+                s = (vb[..., None] - mid[:, 1]) / dv_pole[..., None]  # 0 at the base, 1 at the top
+                u_at = ub[..., None] + s * (ut - ub)[..., None]
+                inside = (s >= -0.3) & (s <= 1.3) & vis[..., None]
+                d2 = np.where(inside, (u_at - mid[:, 0]) ** 2, np.inf)
+                best = np.minimum(d2.min(axis=2), gate2)
+            total += best.sum(axis=2)
+        return total
+
+    def _project(self, fd: FrameData, x0, off: np.ndarray, yaws: np.ndarray, pts: np.ndarray):
+        """u, v (px), depth of map points pts (K, 3) from every hypothesis: each (len(off), len(yaws), K)."""
+        R_rp = rpy_to_matrix_jac(x0[3], x0[4], 0.0)[0]
+        M = fd.T_bc[:3, :3].T @ R_rp.T
+        o = fd.T_bc[:3, :3].T @ fd.T_bc[:3, 3]
+        d = pts[None, :, :] - x0[:3] - np.concatenate([off, np.zeros((len(off), 1))], axis=1)[:, None, :]
+        c, s = np.cos(yaws)[None, :, None], np.sin(yaws)[None, :, None]
+        rx = c * d[:, None, :, 0] + s * d[:, None, :, 1]
+        ry = -s * d[:, None, :, 0] + c * d[:, None, :, 1]
+        rz = d[:, None, :, 2]
+        X = M[0, 0] * rx + M[0, 1] * ry + M[0, 2] * rz - o[0]
+        Y = M[1, 0] * rx + M[1, 1] * ry + M[1, 2] * rz - o[1]
+        Z = M[2, 0] * rx + M[2, 1] * ry + M[2, 2] * rz - o[2]
+        intr = fd.intr
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return intr.fx * X / Z + intr.cx, intr.fy * Y / Z + intr.cy, Z
