@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 from ..geometry import wrap_angle
 from ..hdmap.model import HDMap
 from .matcher import CameraFrame, MapMatcher, MatcherParams, MatchResult
-from .search import PoseSearch, PoseSearchParams
+from .search import PoseSearch, PoseSearchParams, SearchOutcome
 
 __all__ = ["GnssMeasurement", "LocalizationResult", "Localizer", "LocalizerParams", "OdometryMeasurement"]
 
@@ -218,6 +218,24 @@ class _Init:
     p: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
 
+@dataclass
+class _Hypothesis:
+    """One candidate start-up track (a basin the pose search found), scored over the frames since.
+
+    ``y_pred``/``P_pred``: the state predicted to the last frame, before its match ``last``.
+    """
+
+    y: np.ndarray
+    P: np.ndarray
+    score: float
+    constraints: int
+    landmarks: int
+    misses: int = 0
+    y_pred: np.ndarray | None = None
+    P_pred: np.ndarray | None = None
+    last: MatchResult | None = None
+
+
 def _as_odometry(o) -> OdometryMeasurement | None:
     if o is None:
         return None
@@ -301,6 +319,7 @@ class Localizer:
         self._init = _Init()
         self._jumps = 0
         self._init_match: MatchResult | None = None
+        self._hyps: list[_Hypothesis] = []
         self._last: LocalizationResult | None = None
 
     @property
@@ -323,9 +342,10 @@ class Localizer:
         if bad:
             return self._bad_input(t, bad)
         if not self.initialized:
+            dt_init = t - self.t_prev if self.t_prev is not None else 0.0
             self._advance_init(t, odometry, gnss)
-            self.t_prev, self._odo_prev = t, odometry
-            if not self._try_initialise(frame, gnss):
+            odo_prev, self.t_prev, self._odo_prev = self._odo_prev, t, odometry
+            if not self._try_initialise(frame, gnss, dt_init, odo_prev, odometry):
                 reason = "initialising: no heading yet" if gnss is not None else "initialising: no GNSS fix"
                 self._last = self._uninitialised(t, gnss, reason)
                 return self._last
@@ -338,26 +358,30 @@ class Localizer:
                 log.warning("gap of %.2f s > max_gap_s: re-initialising", dt)
                 self.reset(None)
                 return self.step(t, frame, odometry, gnss)
-        y_pred, P_pred = self._predict(dt, self._odo_prev, odometry)
+        odo_prev = self._odo_prev
+        y_pred, P_pred = self._predict(self.y, self.P, dt, odo_prev, odometry)
         self.t_prev, self._odo_prev = t, odometry
 
         match, reason = None, ""
         self._attempt = None
         if self._init_match is not None:
             match, self._attempt, self._init_match = self._init_match, self._init_match, None
+        elif self._wide(P_pred[:6, :6]):
+            match, reason, y_pred, P_pred = self._recover(frame, y_pred, P_pred, dt, odo_prev, odometry)
         elif frame is None:
             reason = "no camera frame"
         elif frame.is_empty():
             reason = "no features"
         else:
+            self._hyps = []
             match, reason = self._match(frame, y_pred, P_pred)
             if match is None and self._jumps >= p.jump_reset_after:
-                # The prediction keeps disagreeing with converged matches: distrust it and try again.
+                # The prediction keeps disagreeing with converged matches: distrust it and search.
                 self._count("jump_reset")
-                P_wide = self._widen(P_pred, gnss)
-                match, reason = self._match(frame, y_pred, P_wide)
-                if match is not None:
-                    P_pred = P_wide
+                self._jumps = 0
+                match, reason, y_pred, P_pred = self._recover(
+                    frame, y_pred, self._widen(P_pred, gnss), 0.0, odo_prev, odometry
+                )
         if match is not None:
             self._jumps = 0
             y, P = self._match_update(y_pred, P_pred, match)
@@ -403,10 +427,10 @@ class Localizer:
 
     # ------------------------------------------------------------------ prediction and updates
 
-    def _predict(self, dt: float, odo_a, odo_b) -> tuple[np.ndarray, np.ndarray]:
-        """Unicycle prediction of the state over dt with the mean of the two odometry readings."""
+    def _predict(self, y, P, dt: float, odo_a, odo_b) -> tuple[np.ndarray, np.ndarray]:
+        """Unicycle prediction of the state (y, P) over dt with the mean of the two odometry readings."""
         p = self.params
-        y, P = self.y.copy(), self.P.copy()
+        y, P = y.copy(), P.copy()
         if dt <= 0.0:
             return y, P
         odos = [o for o in (odo_a, odo_b) if o is not None]
@@ -451,23 +475,14 @@ class Localizer:
         return y, 0.5 * (P + P.T)
 
     def _match(self, frame: CameraFrame, y, P) -> tuple[MatchResult | None, str]:
-        """Match from the predicted pose; the result if accepted, else None and the reason.
+        """One local solve from the predicted pose; the result if accepted, else None and the reason.
 
-        A wide prediction (start-up, recovery) goes to the global pose search over the basins of
-        the cost; a tracked one to one local solve, whose result must not jump against the
-        prediction. The last local attempt (accepted or not) is kept in ``self._attempt`` for the
-        quality figures.
+        Rejected if it did not converge or jumped against the prediction. The attempt (accepted or
+        not) is kept in ``self._attempt`` for the quality figures.
         """
         p = self.params
         x_pred, Pxx = y[:6], P[:6, :6]
         try:
-            if self._wide(Pxx):
-                self._count("search")
-                out = self._search(frame, x_pred, Pxx)
-                self._attempt = out.match
-                if out.match is None:
-                    return None, f"search: {out.reason}"
-                return out.match, ""
             match = self.matcher.match(frame, x_pred, Pxx, None)
             self._attempt = match
         except ValueError as exc:  # a malformed frame: count it, go on without it
@@ -483,6 +498,33 @@ class Localizer:
             self._jumps += 1
             return None, f"jump: chi2 {chi2:.1f} > {p.jump_gate_chi2}"
         return match, ""
+
+    def _recover(self, frame, y_pred, P_pred, dt: float, odo_a, odo_b):
+        """Match a wide prediction (start-up, recovery): the global pose search, then its candidate
+        basins tracked as hypotheses until one wins (see :meth:`_try_initialise`).
+
+        Returns (match or None, reason, y_pred, P_pred): a winning hypothesis brings its own prediction.
+        """
+        if self._hyps:
+            win = self._advance_hypotheses(frame, dt, odo_a, odo_b)
+            if win is not None:
+                self._attempt = win.last
+                return win.last, "", win.y_pred, win.P_pred
+            if self._hyps:
+                return None, f"searching: {len(self._hyps)} hypotheses", y_pred, P_pred
+        if frame is None or frame.is_empty():
+            return None, "no features", y_pred, P_pred
+        self._count("search")
+        try:
+            out = self._search(frame, y_pred[:6], P_pred[:6, :6])
+        except ValueError as exc:
+            self._count("frame invalid")
+            return None, f"frame invalid: {exc}", y_pred, P_pred
+        self._attempt = out.match
+        if out.match is not None:
+            return out.match, "", y_pred, P_pred
+        self._spawn(y_pred, P_pred, out)
+        return None, f"search: {out.reason}", y_pred, P_pred
 
     def _wide(self, Pxx) -> bool:
         """The prediction is too uncertain for one local solve."""
@@ -671,11 +713,14 @@ class Localizer:
         )
         self.P[0, 8] = self.P[8, 0] = self.P[1, 9] = self.P[9, 1] = -vb
 
-    def _try_initialise(self, frame, gnss: GnssMeasurement | None) -> bool:
+    def _try_initialise(self, frame, gnss: GnssMeasurement | None, dt: float, odo_a, odo_b) -> bool:
         """Set the state from GNSS and a heading if one is available now (see the module doc).
 
-        On a two-way road the camera decides: the global pose search over both directions; its
-        match is kept in ``self._init_match`` for this step.
+        On a two-way road the camera decides. The global pose search over both directions either
+        finds one clear solution, or a few candidate basins: those are tracked as hypotheses over
+        the next frames (odometry prediction, local match, accumulated score) until one of them
+        is well constrained and beats every other by the search's margin. The winning match of
+        this frame is kept in ``self._init_match``, with the state set to its prediction.
         """
         p = self.params
         self._init_match = None
@@ -694,8 +739,14 @@ class Localizer:
             return True
         course = self._course(gnss)
         if course is not None:
+            self._hyps = []
             self._init_state(gnss, course[0], max(course[1], p.init_yaw_sigma_rad))
             return True
+        if self._hyps:
+            win = self._advance_hypotheses(frame, dt, odo_a, odo_b)
+            if win is not None:
+                self.y, self.P, self._init_match = win.y_pred, win.P_pred, win.last
+            return win is not None
         radius = 3.0 * float(np.sqrt(p.gnss_bias_sigma_m**2 + self._gnss_white_var(gnss) + p.init_extra_sigma_m**2))
         yaws = self._map_yaws(gnss.p_map[:2], radius)
         if len(yaws) == 0:
@@ -703,21 +754,78 @@ class Localizer:
         centre = float(np.angle(np.mean(np.exp(1j * yaws))))
         spread = float(np.max(np.abs(wrap_angle(yaws - centre))))
         if spread < np.radians(45.0):  # one driving direction (a one-way road): that is the heading
-            self._init_state(gnss, centre, max(spread / 2.0, p.init_yaw_sigma_rad))
+            self._init_state(gnss, centre, max(spread, p.init_yaw_sigma_rad))
             return True
         if frame is None or frame.is_empty():
             return False
         self._init_state(gnss, centre, np.sqrt(_UNIFORM_YAW_VAR))
+        y0, P0 = self.y, self.P
+        self.y = self.P = None
         try:
-            out = self.search.search(frame, self.y[:6], self.P[:6, :6], yaws, radius)
+            out = self.search.search(frame, y0[:6], P0[:6, :6], yaws, radius)
         except ValueError:
-            out = None
-        if out is None or out.match is None:
-            self._count("initialising: search")
-            self.y = self.P = None
+            self._count("frame invalid")
             return False
-        self._init_match = out.match
-        return True
+        if out.match is not None:
+            self.y, self.P, self._init_match = y0, P0, out.match
+            return True
+        self._count("initialising: " + out.reason.split(":")[0])
+        self._spawn(y0, P0, out)
+        return False
+
+    def _spawn(self, y0, P0, out: SearchOutcome) -> None:
+        """Start-up hypotheses from the search's converged solutions (each folded into (y0, P0))."""
+        self._hyps = []
+        for sol in out.solutions:
+            if sol.converged:
+                y, P = self._match_update(y0, P0, sol)
+                self._hyps.append(_Hypothesis(y, P, sol.score, sol.constraints, sol.n_points + sol.n_poles))
+
+    def _advance_hypotheses(self, frame, dt: float, odo_a, odo_b) -> _Hypothesis | None:
+        """Predict and match every hypothesis with this frame; the winner, if one has won (it ends the search)."""
+        p, sp = self.params, self.params.search
+        n_det = 0 if frame is None or frame.is_empty() else len(frame.points_uv) + len(frame.poles_uv)
+        for h in self._hyps:
+            h.y_pred, h.P_pred = self._predict(h.y, h.P, dt, odo_a, odo_b)
+            h.y, h.P, h.last = h.y_pred, h.P_pred, None
+            if n_det == 0:
+                continue
+            try:
+                res = self.matcher.match(frame, h.y_pred[:6], h.P_pred[:6, :6], None)
+            except ValueError:
+                self._count("frame invalid")
+                return None
+            if res.converged:
+                h.y, h.P = self._match_update(h.y_pred, h.P_pred, res)
+                h.score += res.score
+                h.constraints += res.constraints
+                h.landmarks += res.n_points + res.n_poles
+                h.last, h.misses = res, 0
+            else:  # nothing explained: every detection costs like an outlier
+                h.score += p.matcher.inlier_chi2 * n_det
+                h.misses += 1
+        # Merge hypotheses that reached one basin; drop the hopeless and the lost.
+        self._hyps.sort(key=lambda h: h.score)
+        kept: list[_Hypothesis] = []
+        for h in self._hyps:
+            if h.misses >= 3 or h.score > self._hyps[0].score + 5.0 * sp.margin:
+                continue
+            if all(self.search._distinct(h.y, k.y) for k in kept):
+                kept.append(h)
+        self._hyps = kept
+        if not kept:
+            return None
+        best = kept[0]
+        runner = kept[1].score if len(kept) > 1 else np.inf
+        if (
+            best.last is None
+            or best.constraints < sp.min_constraints
+            or best.landmarks < sp.min_landmarks
+            or runner - best.score < sp.margin
+        ):
+            return None
+        self._hyps = []
+        return best
 
     # ------------------------------------------------------------------ results
 

@@ -38,7 +38,7 @@ Newton step, ``x_w = x_f + H_w^-1 (1 - 1/k) I_p (x_f - x_pred)``, ``H_w = H_meas
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -69,9 +69,7 @@ class MatcherParams(BaseModel):
 
     # Measurement noise.
     point_sigma_px: float = Field(2.0, gt=0, description="1-sigma of a point detection incl. map error (px)")
-    pole_sigma_px: float = Field(
-        2.0, gt=0, description="1-sigma of a pole segment endpoint across the pole (px)"
-    )
+    pole_sigma_px: float = Field(2.0, gt=0, description="1-sigma of a pole segment endpoint across the pole (px)")
     pole_floor_px: float = Field(1.0, ge=0, description="extra 1-sigma of D_L for map and model error (px)")
     lane_sigma_px: float = Field(
         2.0,
@@ -79,9 +77,7 @@ class MatcherParams(BaseModel):
         description="1-sigma of one lane EDT residual (px), before the marking's width: the residual is 0 "
         "anywhere on the painted width w, so each sample also gets (w/2)^2/3 (uniform) added to its variance",
     )
-    lane_cap_px: float = Field(
-        10.0, gt=0, description="cap of the lane distance; a larger one pulls into wrong lanes"
-    )
+    lane_cap_px: float = Field(10.0, gt=0, description="cap of the lane distance; a larger one pulls into wrong lanes")
     lane_effective_samples: float = Field(
         30.0,
         gt=0,
@@ -92,31 +88,19 @@ class MatcherParams(BaseModel):
     # The soft constraint r_n and the GNSS antenna.
     sigma_roll_pitch_rad: float = Field(0.01, gt=0, description="r_n: 1/lambda_n on roll and pitch (rad)")
     sigma_height_m: float = Field(0.05, gt=0, description="r_n: 1/lambda_n on the camera height (m)")
-    nominal_roll_pitch_rad: tuple[float, float] = Field(
-        (0.0, 0.0), description="roll, pitch of the body at rest"
-    )
-    body_height_m: float = Field(
-        0.0, description="body origin above the road; H = this + camera z in the body (m)"
-    )
-    gnss_lever_arm_m: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0), description="GNSS antenna in the body (m)"
-    )
+    nominal_roll_pitch_rad: tuple[float, float] = Field((0.0, 0.0), description="roll, pitch of the body at rest")
+    body_height_m: float = Field(0.0, description="body origin above the road; H = this + camera z in the body (m)")
+    gnss_lever_arm_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="GNSS antenna in the body (m)")
     prior_inflation: float = Field(
         25.0, ge=1.0, description="the per-frame estimate keeps 1/this of the prediction's information"
     )
     # What is used.
     range_m: float = Field(70.0, gt=0, description="landmarks farther than this are not projected (m)")
     min_depth_m: float = Field(1.0, gt=0, description="nearest depth along the optical axis that is used (m)")
-    lane_range_m: tuple[float, float] = Field(
-        (3.0, 40.0), description="lane samples this far ahead (body x, m)"
-    )
-    lane_spacing_m: float = Field(
-        1.0, gt=0, description="spacing of the precomputed painted lane samples (m)"
-    )
+    lane_range_m: tuple[float, float] = Field((3.0, 40.0), description="lane samples this far ahead (body x, m)")
+    lane_spacing_m: float = Field(1.0, gt=0, description="spacing of the precomputed painted lane samples (m)")
     lane_max_samples: int = Field(300, ge=1, description="at most this many lane samples per frame")
-    lane_enable_sigma_m: float = Field(
-        0.75, gt=0, description="lanes are used once the lateral 1-sigma is below (m)"
-    )
+    lane_enable_sigma_m: float = Field(0.75, gt=0, description="lanes are used once the lateral 1-sigma is below (m)")
     lane_enable_sigma_yaw_rad: float = Field(0.02, gt=0, description="... and the yaw 1-sigma below (rad)")
     lane_dashed_sigma_m: float = Field(
         1.0,
@@ -130,9 +114,7 @@ class MatcherParams(BaseModel):
         description="samples where the distance transform's gradient is farther than this from the line's "
         "normal (the marking ends there) are left out",
     )
-    min_pole_length_px: float = Field(
-        8.0, gt=0, description="shorter detected or projected poles are ignored (px)"
-    )
+    min_pole_length_px: float = Field(8.0, gt=0, description="shorter detected or projected poles are ignored (px)")
     # Association.
     gate_chi2: float = Field(13.8, gt=0, description="Mahalanobis association gate (2 dof, 99.9 %)")
     gate_px: tuple[float, ...] = Field(
@@ -149,15 +131,11 @@ class MatcherParams(BaseModel):
         ge=0,
         description="a detected segment must overlap the projected pole (tolerance, fraction of its length)",
     )
-    inlier_chi2: float = Field(
-        9.21, gt=0, description="a landmark is an inlier below this chi^2 (2 dof, 99 %)"
-    )
+    inlier_chi2: float = Field(9.21, gt=0, description="a landmark is an inlier below this chi^2 (2 dof, 99 %)")
     # Lane search when the prediction is too uncertain for the lane basin.
     search_lateral_max_m: float = Field(7.0, gt=0, description="lane search: at most this lateral shift (m)")
     search_yaw_max_rad: float = Field(0.1, gt=0, description="lane search: at most this yaw shift (rad)")
-    search_lateral_step_m: float = Field(
-        0.125, gt=0, description="lane search: fine lateral step; coarse 4x (m)"
-    )
+    search_lateral_step_m: float = Field(0.125, gt=0, description="lane search: fine lateral step; coarse 4x (m)")
     search_yaw_step_rad: float = Field(0.002, gt=0, description="lane search: fine yaw step; coarse 4x (rad)")
     search_candidates: int = Field(3, ge=1, description="lane search: local minima solved as start poses")
     # Solver.
@@ -165,9 +143,7 @@ class MatcherParams(BaseModel):
     max_iterations: int = Field(10, ge=1, description="LM iterations per round")
     tol_cost: float = Field(1e-4, gt=0, description="relative (predicted) cost decrease that ends a round")
     tol_step: float = Field(1e-5, gt=0, description="step (m, rad) that ends a round")
-    settle_m: float = Field(
-        0.01, ge=0, description="no further round after one that moved less than this (m) ..."
-    )
+    settle_m: float = Field(0.01, ge=0, description="no further round after one that moved less than this (m) ...")
     settle_rad: float = Field(5e-4, ge=0, description="... and this (rad)")
     # Acceptance.
     min_constraints: int = Field(
@@ -215,7 +191,9 @@ class MatchResult:
     """The outcome of one :meth:`MapMatcher.match` (see the module doc for the two estimates).
 
     ``cost`` is the robust chi^2 per residual of the camera residuals (points, poles, lane samples
-    within the cap); ``reason`` says why ``converged`` is False.
+    within the cap); ``score`` is the whole robust objective (prior included) plus ``inlier_chi2``
+    for every detection left unexplained -- what competing solutions of one frame are ranked by;
+    ``reason`` says why ``converged`` is False.
     """
 
     pose: np.ndarray
@@ -229,10 +207,10 @@ class MatchResult:
     iterations: int
     converged: bool
     reason: str = ""
+    score: float = 0.0
+    constraints: int = 0  # on (x, y, yaw): 2 per point inlier, 1 per pole inlier, 2 for the lanes
     gnss_used: bool = False
-    point_pairs: np.ndarray = field(
-        default_factory=lambda: np.zeros((0, 2), int)
-    )  # (map index, detection index)
+    point_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))  # (map index, detection index)
     pole_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
 
 
@@ -391,29 +369,22 @@ class MapMatcher:
         localizer.GnssMeasurement), or None. Raises ValueError on malformed arguments; detections
         that are not finite are dropped.
         """
-        p = self.params
         fd = self.prepare(frame, pose_init, cov_init, gnss)
-        P0 = _safe_inv(fd.I_prior)
-        starts = [(fd.x_prior.copy(), P0)]
-        if fd.dt is not None and not self._lanes_allowed(fd.x_prior, P0):
-            hyps = self._lane_search(fd.x_prior, P0, fd)
+        return self.solve_from(fd, fd.x_prior, _safe_inv(fd.I_prior))
+
+    def solve_from(self, fd: FrameData, x, P) -> MatchResult:
+        """The best solution from start pose x with association covariance P (the prior stays fd's).
+
+        If P is too wide for the lanes' basin, the lane search gives a few start poses, each solved.
+        """
+        starts = [(np.asarray(x, dtype=float).copy(), P)]
+        if fd.dt is not None and not self._lanes_allowed(x, P):
+            hyps = self._lane_search(x, P, fd)
             if hyps:
-                starts = [(h, self._condition_lateral_yaw(h, P0), self._anchor(h)) for h in hyps]
-        best, best_score, iterations = None, np.inf, 0
-        n_det = len(fd.pt_uv) + len(fd.pole_M1)
-        for x, P, *anchor in starts:
-            sol = self._solve(x, P, fd, anchor[0] if anchor else None)
-            iterations += sol[3]
-            ev = sol[1]
-            n_in = int(
-                np.count_nonzero(ev.pt_chi2 <= p.inlier_chi2)
-                + np.count_nonzero(ev.pole_chi2 <= p.inlier_chi2)
-            )
-            score = ev.cost + p.inlier_chi2 * (n_det - n_in)  # an unexplained detection costs like an outlier
-            if score < best_score:
-                best, best_score = sol, score
-        x, ev, rd, _, lm_ok = best
-        return self._result(x, ev, rd, fd, iterations, lm_ok)
+                starts = [(h, self._condition_lateral_yaw(h, P), self._anchor(h)) for h in hyps]
+        results = [self._result(*self._solve(x, P, fd, anchor[0] if anchor else None), fd) for x, P, *anchor in starts]
+        best = min(results, key=lambda r: r.score)
+        return replace(best, iterations=sum(r.iterations for r in results))
 
     def prepare(self, frame: CameraFrame, pose_init, cov_init, gnss: Any | None = None) -> FrameData:
         """Validate the inputs, drop non-finite detections and compute the lane distance transform."""
@@ -449,9 +420,7 @@ class MapMatcher:
                 raise ValueError(f"lane_mask must be 2-D, got shape {mask.shape}")
             scale = mask.shape[1] / intr.width
             if abs(mask.shape[0] - intr.height * scale) > 1.0:
-                raise ValueError(
-                    f"lane_mask shape {mask.shape} does not match the image {intr.width}x{intr.height}"
-                )
+                raise ValueError(f"lane_mask shape {mask.shape} does not match the image {intr.width}x{intr.height}")
             top = self._road_top_row(x0, P0, T_bc, intr, scale, mask.shape[0])
             if top is not None:
                 row0 = top
@@ -642,14 +611,10 @@ class MapMatcher:
         near_pl = np.zeros(0, int)
         if len(fd.pole_M1) and len(self._pole_base):
             near_pl = np.flatnonzero(np.linalg.norm(self._pole_base[:, :2] - cam_c[:2], axis=1) <= p.range_m)
-        lanes = (
-            fd.dt is not None and sig_lat <= p.lane_enable_sigma_m and sig_yaw <= p.lane_enable_sigma_yaw_rad
-        )
+        lanes = fd.dt is not None and sig_lat <= p.lane_enable_sigma_m and sig_yaw <= p.lane_enable_sigma_yaw_rad
         lane_pts, lane_tan, lane_w = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
         if lanes:
-            lane_pts, lane_tan, lane_w = self._lane_ahead(
-                x, solid_only=sig_lon > p.lane_dashed_sigma_m, tangents=True
-            )
+            lane_pts, lane_tan, lane_w = self._lane_ahead(x, solid_only=sig_lon > p.lane_dashed_sigma_m, tangents=True)
         nP, nL, nS = len(near_pt), len(near_pl), len(lane_pts)
         batch = np.vstack(
             [
@@ -831,9 +796,7 @@ class MapMatcher:
             uvl = self._to_mask(uv[ls], fd)
             inside = self._in_mask(uvl, z[ls], fd)
             if inside.any():
-                val[inside], du[inside], dv[inside] = bilinear_with_grad(
-                    fd.dt, uvl[inside] - [0.0, fd.dt_row0]
-                )
+                val[inside], du[inside], dv[inside] = bilinear_with_grad(fd.dt, uvl[inside] - [0.0, fd.dt_row0])
             under = val < rd.lane_cap
             val = np.minimum(val, rd.lane_cap)
             du[~under] = 0.0
@@ -982,9 +945,7 @@ class MapMatcher:
         Jw = ev.J[:m] * ev.w[:m, None]
         return Jw.T @ ev.J[:m]
 
-    def _result(
-        self, x, ev: _Eval, rd: RoundData, fd: FrameData, iterations: int, lm_ok: bool
-    ) -> MatchResult:
+    def _result(self, x, ev: _Eval, rd: RoundData, iterations: int, lm_ok: bool, fd: FrameData) -> MatchResult:
         p = self.params
         H_meas = self._info(ev, prior=False)
         P_f = _safe_inv(H_meas + fd.I_prior)
@@ -1021,6 +982,8 @@ class MapMatcher:
             iterations=iterations,
             converged=not reason,
             reason=reason,
+            constraints=constraints,
+            score=float(ev.cost + p.inlier_chi2 * (len(fd.pt_uv) + len(fd.pole_M1) - landmarks)),
             gnss_used=fd.gnss is not None,
             point_pairs=np.column_stack([rd.pt_map, rd.pt_det]).astype(int).reshape(-1, 2),
             pole_pairs=np.column_stack([rd.pole_map, rd.pole_det]).astype(int).reshape(-1, 2),
@@ -1043,9 +1006,7 @@ def _local_minima(score: np.ndarray, n: int) -> list[tuple[int, int]]:
     """Up to n lowest local minima (8-neighbourhood) of a 2-D score grid, best first."""
     pad = np.pad(score, 1, constant_values=np.inf)
     h, w = score.shape
-    neigh = np.stack(
-        [pad[1 + a : 1 + a + h, 1 + b : 1 + b + w] for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
-    )
+    neigh = np.stack([pad[1 + a : 1 + a + h, 1 + b : 1 + b + w] for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b])
     idx = np.flatnonzero((score <= neigh.min(axis=0)).reshape(-1))
     idx = idx[np.argsort(score.reshape(-1)[idx], kind="stable")][:n]
     return [(int(i // w), int(i % w)) for i in idx]

@@ -65,12 +65,12 @@ class PoseSearchParams(BaseModel):
 
 @dataclass(frozen=True)
 class SearchOutcome:
-    """The accepted solution (None if none) and what the search saw."""
+    """The accepted solution (None if none), why not, and the distinct solutions it found."""
 
     match: MatchResult | None
     reason: str
     hypotheses: int
-    solutions: int
+    solutions: tuple[MatchResult, ...] = ()  # the distinct solutions, best first
     best_score: float = np.inf
     runner_up_score: float = np.inf
 
@@ -85,11 +85,11 @@ class PoseSearch:
     def search(self, frame: CameraFrame, pose_pred, cov_pred, yaws, radius_m: float) -> SearchOutcome:
         """Search around the prediction (pose_pred, cov_pred: its prior) over positions within
         ``radius_m`` and the headings ``yaws`` (absolute, rad). Raises ValueError on malformed input."""
-        p, mp = self.params, self.matcher.params
+        p = self.params
         fd = self.matcher.prepare(frame, pose_pred, cov_pred, None)
         n_det = len(fd.pt_uv) + len(fd.pole_M1)
         if n_det == 0:
-            return SearchOutcome(None, "no landmark detections", 0, 0)
+            return SearchOutcome(None, "no landmark detections", 0)
         x0 = fd.x_prior
         yaws = np.unique(np.round(np.asarray(yaws, dtype=float) / 1e-6) * 1e-6)
         radius = min(float(radius_m), p.max_radius_m)
@@ -110,17 +110,19 @@ class PoseSearch:
 
         starts = self._starts(scores, off, yaws, x0)
         P_start = np.diag([p.start_sigma_m**2, p.start_sigma_m**2, P0[2, 2], P0[3, 3], P0[4, 4], p.start_sigma_rad**2])
-        sols = []
+        sols: list[MatchResult] = []
         for h in starts:
-            x, ev, rd, iterations, lm_ok = self.matcher._solve(h, P_start, fd)
-            res = self.matcher._result(x, ev, rd, fd, iterations, lm_ok)
-            n_in = res.n_points + res.n_poles
-            sols.append((ev.cost + mp.inlier_chi2 * (n_det - n_in), res))
-        sols.sort(key=lambda s: s[0])
-        best_score, best = sols[0]
-        runner = next((s for s, r in sols[1:] if self._distinct(r.pose_filtered, best.pose_filtered)), np.inf)
-        out = dict(hypotheses=scores.size, solutions=len(sols), best_score=best_score, runner_up_score=runner)
-        constraints = 2 * best.n_points + best.n_poles + 2 * (best.n_lane >= mp.min_lane_samples)
+            res = self.matcher.solve_from(fd, h, P_start)
+            if all(self._distinct(res.pose_filtered, o.pose_filtered) for o in sols):
+                sols.append(res)
+            else:  # two starts fell into one basin: keep its better solution
+                i = next(i for i, o in enumerate(sols) if not self._distinct(res.pose_filtered, o.pose_filtered))
+                sols[i] = min(sols[i], res, key=lambda r: r.score)
+        sols.sort(key=lambda r: r.score)
+        best, best_score = sols[0], sols[0].score
+        runner = sols[1].score if len(sols) > 1 else np.inf
+        out = dict(hypotheses=scores.size, solutions=tuple(sols), best_score=best_score, runner_up_score=runner)
+        constraints = best.constraints
         if not best.converged:
             return SearchOutcome(None, best.reason, **out)
         if constraints < p.min_constraints or best.n_points + best.n_poles < p.min_landmarks:
