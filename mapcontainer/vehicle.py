@@ -19,7 +19,7 @@ from schemas.arrays import cov_to_upper
 
 from .geometry import CameraIntrinsics
 from .hdmap.model import HDMap
-from .localization import CameraFrame, Localizer, LocalizerParams
+from .localization import CameraFrame, LocalizationResult, Localizer, LocalizerParams
 
 __all__ = ["Mode", "VehicleAgent", "camera_frame"]
 
@@ -66,10 +66,11 @@ class VehicleAgent:
         self.localizer = Localizer(hdmap, params or LocalizerParams(report="frame"), initial_pose=initial_pose)
         self._seq = 0
         self.last: VehiclePrior | None = None
+        self.last_result: LocalizationResult | None = None  # the localizer's, with its filtered estimate
 
     def localize(self, t: float, obs: Observations) -> VehiclePrior:
         """Self-localization of this frame as a VehiclePrior (also used by the host in centralized mode)."""
-        res = self.localizer.step(obs.t_meas, camera_frame(obs), obs.odometry, obs.gnss)
+        res = self.last_result = self.localizer.step(obs.t_meas, camera_frame(obs), obs.odometry, obs.gnss)
         prior = VehiclePrior(
             fleet=self.fleet,
             sender=self.vehicle_id,

@@ -46,7 +46,10 @@ class PoseSearchParams(BaseModel):
     yaw_step_rad: float = Field(np.radians(1.5), gt=0, description="heading grid step (rad)")
     max_radius_m: float = Field(9.0, gt=0, description="the position grid reaches at most this far (m)")
     gate_px: float = Field(50.0, gt=0, description="a detection's grid residual is truncated here (px)")
-    n_starts: int = Field(6, ge=1, description="hypotheses solved in full")
+    n_starts: int = Field(4, ge=1, description="at most this many hypotheses are solved in full ...")
+    start_window: float = Field(
+        1.5, ge=0, description="... those with a grid score within this many gate_px^2 of the best one"
+    )
     start_sigma_m: float = Field(0.75, gt=0, description="position 1-sigma of a start (association gate)")
     start_sigma_rad: float = Field(np.radians(2.0), gt=0, description="heading 1-sigma of a start")
     distinct_m: float = Field(1.0, gt=0, description="solutions this far apart are different basins (m)")
@@ -140,10 +143,14 @@ class PoseSearch:
         )
 
     def _starts(self, scores: np.ndarray, off: np.ndarray, yaws: np.ndarray, x0) -> list[np.ndarray]:
-        """The n_starts best hypotheses, each distinct from the ones before it."""
+        """The best hypotheses, each distinct from the ones before: two, and up to n_starts within
+        start_window of the best."""
         out: list[np.ndarray] = []
+        limit = float(scores.min()) + self.params.start_window * self.params.gate_px**2
         for flat in np.argsort(scores, axis=None, kind="stable"):
             i, j = divmod(int(flat), len(yaws))
+            if scores[i, j] > limit and len(out) >= 2:  # two at least: ambiguity is judged on solutions
+                break
             h = x0.copy()
             h[:2] += off[i]
             h[5] = yaws[j]
