@@ -222,18 +222,35 @@ class _Init:
 class _Hypothesis:
     """One candidate start-up track (a basin the pose search found), scored over the frames since.
 
-    ``y_pred``/``P_pred``: the state predicted to the last frame, before its match ``last``.
+    ``y_pred``/``P_pred``: the state predicted to the last frame, before its match ``last``. Its
+    constraints count distinct map landmarks: seeing one pole ten times is still one pole.
     """
 
     y: np.ndarray
     P: np.ndarray
     score: float
-    constraints: int
-    landmarks: int
+    points: set[int]  # map landmarks matched so far (indices of the map's points, poles)
+    poles: set[int]
+    lanes: bool = False  # the lanes matched at least once
     misses: int = 0
     y_pred: np.ndarray | None = None
     P_pred: np.ndarray | None = None
     last: MatchResult | None = None
+
+    def add(self, m: MatchResult) -> None:
+        self.score += m.score
+        self.points.update(m.point_pairs[:, 0].tolist())
+        self.poles.update(m.pole_pairs[:, 0].tolist())
+        self.lanes |= m.constraints > 2 * m.n_points + m.n_poles
+        self.last, self.misses = m, 0
+
+    @property
+    def landmarks(self) -> int:
+        return len(self.points) + len(self.poles)
+
+    @property
+    def constraints(self) -> int:
+        return 2 * len(self.points) + len(self.poles) + 2 * self.lanes
 
 
 def _as_odometry(o) -> OdometryMeasurement | None:
@@ -778,8 +795,9 @@ class Localizer:
         self._hyps = []
         for sol in out.solutions:
             if sol.converged:
-                y, P = self._match_update(y0, P0, sol)
-                self._hyps.append(_Hypothesis(y, P, sol.score, sol.constraints, sol.n_points + sol.n_poles))
+                h = _Hypothesis(*self._match_update(y0, P0, sol), 0.0, set(), set())
+                h.add(sol)
+                self._hyps.append(h)
 
     def _advance_hypotheses(self, frame, dt: float, odo_a, odo_b) -> _Hypothesis | None:
         """Predict and match every hypothesis with this frame; the winner, if one has won (it ends the search)."""
@@ -797,10 +815,7 @@ class Localizer:
                 return None
             if res.converged:
                 h.y, h.P = self._match_update(h.y_pred, h.P_pred, res)
-                h.score += res.score
-                h.constraints += res.constraints
-                h.landmarks += res.n_points + res.n_poles
-                h.last, h.misses = res, 0
+                h.add(res)
             else:  # nothing explained: every detection costs like an outlier
                 h.score += p.matcher.inlier_chi2 * n_det
                 h.misses += 1

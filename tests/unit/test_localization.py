@@ -23,6 +23,7 @@ from mapcontainer.localization import (
     MatcherParams,
     OdometryMeasurement,
 )
+from mapcontainer.localization.search import PoseSearch, PoseSearchParams
 
 INTR = geo.CameraIntrinsics(1000.0, 1000.0, 639.5, 359.5, 1280, 720)
 T_BC = geo.camera_extrinsic(1.5, 0.0, 1.5, pitch=0.0)
@@ -197,10 +198,7 @@ def test_residual_jacobians_match_numerical(matcher, block):
         # The bilinear distance transform is piecewise smooth: compare away from cell borders and the cap.
         uv, z, _, _ = geo.project_points_jac(fd.intr, x, fd.T_bc, rd.lane_xyz)
         frac = uv - np.floor(uv)
-        smooth = (
-            np.all((frac > 0.01) & (frac < 0.99), axis=1)
-            & matcher.residual_blocks(x, fd, rd)["lanes_under_cap"]
-        )
+        smooth = np.all((frac > 0.01) & (frac < 0.99), axis=1) & matcher.residual_blocks(x, fd, rd)["lanes_under_cap"]
         assert smooth.sum() >= 10
         np.testing.assert_allclose(J[smooth], Jn[smooth], rtol=1e-3, atol=1e-3)
         assert np.abs(J).max() > 0
@@ -347,9 +345,7 @@ def test_non_finite_detections_are_dropped():
 def _drive(n, seed, *, dark=(), clutter=0.0, initial_yaw=True, lane=0, s0=10.0, v=10.0, params=None):
     """Drive n frames at 10 Hz along a centre line; ``dark`` frames have no detections and an empty mask."""
     rng = np.random.default_rng(seed)
-    loc = Localizer(
-        HDMAP, params or LocalizerParams(), initial_yaw=pose_on(s0, lane)[5] if initial_yaw else None
-    )
+    loc = Localizer(HDMAP, params or LocalizerParams(), initial_yaw=pose_on(s0, lane)[5] if initial_yaw else None)
     dt = 0.1
     bias = rng.normal(0.0, 1.5, 2)
     scale, gyro_bias = 1.0 + rng.normal(0.0, 0.01), rng.normal(0.0, 0.002)
@@ -359,9 +355,7 @@ def _drive(n, seed, *, dark=(), clutter=0.0, initial_yaw=True, lane=0, s0=10.0, 
         s = s0 + v * t
         truth = pose_on(s, lane)
         yaw_rate = geo.wrap_angle(pose_on(s + v * dt, lane)[5] - pose_on(s - v * dt, lane)[5]) / (2 * dt)
-        odo = OdometryMeasurement(
-            v * scale + rng.normal(0, 0.05), yaw_rate + gyro_bias + rng.normal(0, 0.005)
-        )
+        odo = OdometryMeasurement(v * scale + rng.normal(0, 0.05), yaw_rate + gyro_bias + rng.normal(0, 0.005))
         phi = np.exp(-dt / 60.0)
         bias = phi * bias + np.sqrt(1 - phi**2) * 1.5 * rng.normal(size=2)
         gnss = GnssMeasurement(truth[:3] + np.r_[bias + rng.normal(0, 0.8, 2), rng.normal(0, 1.5)], 2.0, 3.0)
@@ -448,9 +442,7 @@ def test_bad_input_is_counted_not_raised():
     np.testing.assert_allclose(res.pose, last.pose)
     res = loc.step(0.6, None, OdometryMeasurement(np.nan, 0.0), None)
     assert "odometry" in res.reason
-    res = loc.step(
-        0.6, None, (10.0, 0.0), (np.zeros(2), 2.0, 3.0)
-    )  # tuples are accepted; this fix is malformed
+    res = loc.step(0.6, None, (10.0, 0.0), (np.zeros(2), 2.0, 3.0))  # tuples are accepted; this fix is malformed
     assert "GNSS" in res.reason
     assert loc.stats["time went backwards"] == 1
     res = loc.step(0.6, None, (10.0, 0.0), (pose_on(16.0)[:3], 2.0, 3.0))
@@ -490,3 +482,65 @@ def test_frame_estimate_without_measurements_is_the_weak_prior():
     for i in (0, 1, 5):
         assert res.cov[i, i] == pytest.approx(k * P_TRACK[i, i], rel=1e-6)
         assert res.cov_filtered[i, i] == pytest.approx(P_TRACK[i, i], rel=1e-6)
+
+
+# --------------------------------------------------------------------------- start-up: global pose search
+
+
+def _yaws_both_ways(yaw, half_deg=6.0, step_deg=1.5):
+    k = np.arange(-half_deg, half_deg + 1e-9, step_deg)
+    return geo.wrap_angle(np.radians(np.concatenate([k, k + 180.0])) + yaw)
+
+
+@pytest.mark.parametrize("s", [10.0, 190.0, 205.0])
+def test_search_finds_the_basin_from_a_gnss_fix_facing_either_way(s):
+    rng = np.random.default_rng(int(s))
+    m = MapMatcher(HDMAP)
+    truth = pose_on(s)
+    frame, _ = synth_frame(truth, rng)
+    start = truth + np.array([2.5, -2.0, 0.0, 0.0, 0.0, np.pi])  # GNSS-level off and facing backwards
+    cov = np.diag([9.0, 9.0, 0.04, 4e-4, 4e-4, np.pi**2 / 3])
+    out = PoseSearch(m).search(frame, start, cov, _yaws_both_ways(truth[5]), radius_m=9.0)
+    assert out.match is not None, out.reason
+    e = pose_error(out.match.pose_filtered, truth)
+    assert np.hypot(*e[:2]) < 0.3 and abs(np.degrees(e[5])) < 0.5
+    assert out.runner_up_score - out.best_score >= PoseSearchParams().margin
+
+
+def test_search_does_not_guess_from_one_landmark():
+    rng = np.random.default_rng(7)
+    truth = pose_on(30.0)
+    frame, _ = synth_frame(truth, rng, lanes=False)
+    one = CameraFrame(frame.intr, frame.T_body_cam, frame.points_uv[:1], frame.points_cls[:1], np.zeros((0, 4)))
+    cov = np.diag([9.0, 9.0, 0.04, 4e-4, 4e-4, np.pi**2 / 3])
+    out = PoseSearch(MapMatcher(HDMAP)).search(one, truth, cov, _yaws_both_ways(truth[5]), radius_m=9.0)
+    assert out.match is None
+    assert out.reason  # too few features or ambiguous: said, not guessed
+
+
+@pytest.mark.parametrize(("seed", "s0", "min_matched"), [(11, 170.0, 30), (12, 190.0, 30), (13, 55.0, 0)])
+def test_cold_start_is_never_confidently_wrong(seed, s0, min_matched):
+    """No heading, GNSS metres off: until the camera settles it the result says fallback (honestly); after,
+    it is right. From s = 55 m the landmarks are too sparse to settle it within 4 s: fallback throughout."""
+    _, out = _drive(40, seed=seed, initial_yaw=False, s0=s0)
+    matched = [(truth, r) for truth, r in out if r.mode == "map_matching"]
+    assert len(matched) >= min_matched
+    for truth, r in matched:
+        e = pose_error(r.pose, truth)
+        assert np.hypot(*e[:2]) < 0.5 and abs(np.degrees(e[5])) < 1.0
+    for truth, r in out:
+        if r.mode == "fallback" and r.initialized:
+            e = pose_error(r.pose, truth)[:2]
+            assert e @ np.linalg.solve(r.cov[:2, :2], e) < 13.8  # within the 99.9 % ellipse
+
+
+def test_known_start_pose_matches_from_the_first_frame():
+    truth = pose_on(40.0)
+    cov = np.diag([0.09, 0.09, 0.01, 1e-4, 1e-4, np.radians(1.0) ** 2])
+    loc = Localizer(HDMAP, initial_pose=(truth + [0.2, -0.2, 0.0, 0.0, 0.0, 0.01], cov))
+    frame, _ = synth_frame(truth, np.random.default_rng(3))
+    res = loc.step(0.0, frame, OdometryMeasurement(10.0, 0.0), GnssMeasurement(truth[:3] + [2.0, 1.0, 0.0], 2.0, 3.0))
+    assert res.mode == "map_matching"
+    assert np.hypot(*pose_error(res.pose, truth)[:2]) < 0.2
+    with pytest.raises(ValueError, match="positive definite"):
+        Localizer(HDMAP, initial_pose=(truth, -np.eye(6)))
