@@ -24,18 +24,25 @@ fallback, the fixes then pull the position towards ``fix - bias``, and their inf
 accumulates below the bias' uncertainty (a low-cost receiver's errors are correlated for a minute:
 treated as white they would make the fallback overconfident).
 
-Heading at start-up (and after :meth:`Localizer.reset`), in this order:
+Start-up (and after :meth:`Localizer.reset`), in this order:
 
-1. ``initial_yaw`` given to the constructor or to ``reset``;
-2. the HD map: the driving directions of the lane centre lines near the GNSS fix. On a one-way
-   stretch that is the heading. On a two-way road the course over ground (GNSS displacement
-   over ``init_course_distance_m`` aligned with the dead-reckoned odometry path) picks the
-   direction; before that, each candidate heading is tried with the map matcher and is taken if
-   it is the only one that converges;
-3. without map candidates, the course over ground alone (with its large uncertainty).
+1. ``initial_pose`` (pose and covariance known at start, e.g. the last estimate before parking);
+2. ``initial_yaw`` given to the constructor or to ``reset``, with the GNSS position;
+3. the course over ground (GNSS displacement over ``init_course_distance_m`` aligned with the
+   dead-reckoned odometry path);
+4. the HD map: the driving directions of the centre lines within 3 sigma of the GNSS fix. One
+   direction (a one-way road) is the heading, with the directions' spread as its uncertainty.
+   Two (a two-way road): the camera decides, by the global pose search (:mod:`.search`) over both
+   directions and the GNSS region. One clear solution starts the track; otherwise its candidate
+   basins are tracked as hypotheses (prediction, local match, accumulated score, distinct
+   landmarks counted) until one is well constrained and beats the others by a margin.
 
-Until a heading is known the result is the GNSS fix with a yaw variance of pi^2 / 3 (uniform),
-``initialized`` False, mode "fallback".
+Until then the result is the GNSS fix with a yaw variance of pi^2 / 3 (uniform), ``initialized``
+False, mode "fallback". Whenever the prediction is too wide for one local solve (horizontal
+1-sigma above ``search_sigma_m``, yaw above ``search_sigma_yaw_rad``: start-up, long fallback,
+repeated jumps) the same search and hypotheses decide the basin; until they do, mode "fallback".
+A match is never taken from a wide prediction on three constraints alone: that is how a wrong
+lane, a wrong lamp post or the opposite heading used to be accepted with a confident covariance.
 
 What to send on: ``pose``/``cov`` are the tracker's posterior by default (``report="filtered"``),
 the best estimate of the vehicle's pose now. They are correlated from frame to frame; a consumer
