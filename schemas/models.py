@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .arrays import F16, F32, I16, U8, U32, cov_from_upper, cov_to_upper
+from .arrays import F32, I16, U8, U32, Cov, cov_from_upper, cov_to_upper
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -40,7 +40,7 @@ __all__ = [
     "VehiclePrior",
 ]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 # Limits that keep a hostile payload from allocating without bound.
 MAX_OBJECTS = 1024
@@ -129,9 +129,10 @@ class ObjectObservations(_Model):
         default_factory=lambda: np.zeros((0, 3), np.int16),
         description="position in the body frame, centimetres (int16: +-327 m at 1 cm, as in the ETSI CPM)",
     )
-    cov: F16(None, 6) = Field(
-        default_factory=lambda: np.zeros((0, 6), np.float16),
-        description="3x3 position covariance per object, upper triangle (m^2), float16",
+    cov: Cov(3, many=True) = Field(
+        default_factory=lambda: np.zeros((0, 6), np.float32),
+        description="3x3 position covariance per object, upper triangle (m^2); on the wire standard "
+        "deviations (float16) and correlations (int8), 9 bytes per object",
     )
     cls: U8(None) = Field(default_factory=lambda: np.zeros(0, np.uint8), description="ObjectClass code per object")
 
@@ -226,7 +227,10 @@ class VehiclePrior(Envelope):
     """Vehicle -> host in distributed mode: self-localization and this frame's detections."""
 
     pose: F32(6) = Field(description="[x, y, z, roll, pitch, yaw] of the body in the map frame")
-    pose_cov: F32(21) = Field(description="6x6 pose covariance, upper triangle")
+    pose_cov: Cov(6, corr="int16") = Field(
+        description="6x6 pose covariance, upper triangle; on the wire standard deviations (float16) and "
+        "correlations (int16), 42 bytes"
+    )
     v_map: F32(3) = Field(description="body velocity in the map frame (m/s)")
     quality: LocalizationQuality
     objects: ObjectObservations = Field(default_factory=ObjectObservations)

@@ -33,7 +33,7 @@ from schemas import (
     decode,
     encode,
 )
-from schemas.arrays import cov_from_upper, cov_to_upper
+from schemas.arrays import CovSpec, cov_from_upper, cov_to_upper
 from schemas.codec import MAX_MESSAGE_BYTES
 from schemas.models import MAX_LANDMARKS, MAX_MASK_BYTES
 
@@ -55,7 +55,12 @@ def envelope(sender: str = "veh-1", seq: int = 7) -> dict[str, Any]:
 
 def camera() -> CameraInfo:
     return CameraInfo(
-        fx=1000.0, fy=1001.5, cx=639.5, cy=359.5, width=1280, height=720,
+        fx=1000.0,
+        fy=1001.5,
+        cx=639.5,
+        cy=359.5,
+        width=1280,
+        height=720,
         T_body_cam=camera_extrinsic(1.2, 0.0, 1.5, pitch=0.05),
     )
 
@@ -145,10 +150,19 @@ def health(full: bool) -> HealthStatus:
     if not full:
         return HealthStatus(**envelope("host-0"), role="host", state="ok", uptime_s=3.0)
     return HealthStatus(
-        **envelope("host-0"), role="host", state="degraded", uptime_s=120.5,
-        msgs_in_per_s=40.0, msgs_out_per_s=10.0, bytes_in_per_s=2.1e4, bytes_out_per_s=5e3,
-        latency_ms_p50=4.5, latency_ms_p99=31.0, rejects={"non_finite": 2, "malformed": 1},
-        last_error="veh-3: schema_version 2", figures={"fused_objects": 14.0, "window_s": 1.0},
+        **envelope("host-0"),
+        role="host",
+        state="degraded",
+        uptime_s=120.5,
+        msgs_in_per_s=40.0,
+        msgs_out_per_s=10.0,
+        bytes_in_per_s=2.1e4,
+        bytes_out_per_s=5e3,
+        latency_ms_p50=4.5,
+        latency_ms_p99=31.0,
+        rejects={"non_finite": 2, "malformed": 1},
+        last_error="veh-3: schema_version 2",
+        figures={"fused_objects": 14.0, "window_s": 1.0},
     )
 
 
@@ -169,11 +183,15 @@ CASES = {
 
 
 def assert_same(a: Any, b: Any, where: str = "msg") -> None:
-    """Field-by-field equality; arrays must agree in dtype, shape and every value."""
+    """Field-by-field equality; arrays must agree in dtype, shape and every value -- but compact
+    covariances (CovSpec) only to their quantisation: float16 sigmas, int8/int16 correlations."""
     assert type(a) is type(b), f"{where}: {type(a).__name__} != {type(b).__name__}"
     if isinstance(a, BaseModel):
-        for name in type(a).model_fields:
-            assert_same(getattr(a, name), getattr(b, name), f"{where}.{name}")
+        for name, info in type(a).model_fields.items():
+            if any(isinstance(m, CovSpec) for m in info.metadata):
+                assert_cov_close(getattr(a, name), getattr(b, name), f"{where}.{name}")
+            else:
+                assert_same(getattr(a, name), getattr(b, name), f"{where}.{name}")
     elif isinstance(a, np.ndarray):
         assert a.dtype == b.dtype and a.shape == b.shape, f"{where}: {a.dtype}{a.shape} != {b.dtype}{b.shape}"
         assert np.array_equal(a, b), f"{where}: values differ"
@@ -187,6 +205,14 @@ def assert_same(a: Any, b: Any, where: str = "msg") -> None:
             assert_same(x, y, f"{where}[{i}]")
     else:
         assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def assert_cov_close(a: np.ndarray, b: np.ndarray, where: str) -> None:
+    """Covariances equal up to the wire's quantisation: per element within 1 % of sigma_i sigma_j."""
+    assert a.dtype == b.dtype and a.shape == b.shape, f"{where}: {a.dtype}{a.shape} != {b.dtype}{b.shape}"
+    A, B = cov_from_upper(a.reshape(-1, a.shape[-1])), cov_from_upper(b.reshape(-1, b.shape[-1]))
+    s = np.sqrt(np.diagonal(A, axis1=1, axis2=2))
+    assert np.all(np.abs(A - B) <= 0.01 * s[:, :, None] * s[:, None, :] + 1e-12), f"{where}: values differ"
 
 
 def as_map(msg: BaseModel) -> dict[str, Any]:
@@ -218,6 +244,10 @@ def test_arrays_are_little_endian_row_major_bin(case: str) -> None:
         value = getattr(msg, name)
         if isinstance(value, np.ndarray):
             assert isinstance(raw[name], bytes), name
+            spec = next((m for m in type(msg).model_fields[name].metadata if isinstance(m, CovSpec)), None)
+            if spec is not None:  # compact covariances have their own layout (test_compact_covariance_layout)
+                assert len(raw[name]) == spec.row_bytes * max(1, len(value) if value.ndim == 2 else 1), name
+                continue
             want = np.ascontiguousarray(value, dtype=value.dtype.newbyteorder("<")).tobytes(order="C")
             assert raw[name] == want, name
     assert "gnss" not in raw or isinstance(raw["gnss"], dict)
@@ -230,13 +260,40 @@ def test_none_fields_are_left_out() -> None:
     assert "latency_ms_p50" not in raw and "last_error" not in raw
 
 
-def test_objects_are_centimetres_int16_and_float16_cov() -> None:
-    cov = np.eye(3)[None] * 0.04
-    obs = ObjectObservations.from_metres([[1.234, -5.0, 0.5]], cov, [ObjectClass.PEDESTRIAN])
+def compact(sigma, rho_codes, corr: str = "i1") -> bytes:
+    """One compact covariance on the wire: float16 sigmas, then integer correlation codes."""
+    return np.asarray(sigma, "<f2").tobytes() + np.asarray(rho_codes, np.dtype(corr).newbyteorder("<")).tobytes()
+
+
+def test_objects_are_centimetres_int16_and_compact_cov() -> None:
+    cov = np.array([[0.04, 0.01, 0.0], [0.01, 0.09, 0.0], [0.0, 0.0, 0.0025]])
+    obs = ObjectObservations.from_metres([[1.234, -5.0, 0.5]], cov[None], [ObjectClass.PEDESTRIAN])
     assert obs.p_body_cm.dtype == np.int16 and obs.p_body_cm.tolist() == [[123, -500, 50]]
-    assert obs.cov.dtype == np.float16
-    np.testing.assert_allclose(cov_from_upper(obs.cov)[0], np.eye(3) * 0.04, rtol=1e-3)
     np.testing.assert_allclose(obs.p_body, [[1.23, -5.0, 0.5]])
+    raw = as_map(VehiclePrior(**{**vehicle_prior(True).model_dump(), "objects": obs}))["objects"]["cov"]
+    # sigma_x sigma_y sigma_z, then rho_xy rho_xz rho_yz in 1/127: 0.01 / (0.2 * 0.3) = 0.1667 -> 21
+    assert raw == compact([0.2, 0.3, 0.05], [21, 0, 0])
+
+
+def test_compact_covariance_layout() -> None:
+    msg = vehicle_prior(True)
+    raw = as_map(msg)["pose_cov"]
+    C = cov_from_upper(msg.pose_cov)
+    sigma = np.sqrt(np.diag(C))
+    iu = np.triu_indices(6, 1)
+    rho = (C / np.outer(sigma, sigma))[iu]
+    assert len(raw) == 42
+    assert raw == compact(sigma, np.rint(rho * 32767), "<i2")
+
+
+def test_compact_covariance_stays_positive_definite_after_rounding() -> None:
+    """A nearly singular pose covariance (x, y correlated 0.99999) must not round into an indefinite one."""
+    C = np.eye(6) * 1e-4
+    C[:2, :2] = [[1.0, 0.99999], [0.99999, 1.0]]
+    msg = VehiclePrior(**{**vehicle_prior(True).model_dump(), "pose_cov": cov_to_upper(C)})
+    back = decode(encode(msg), VehiclePrior)
+    assert not isinstance(back, Rejection), back
+    assert np.all(np.linalg.eigvalsh(cov_from_upper(back.pose_cov)) > 0)
 
 
 def test_covariance_upper_triangle_order() -> None:
@@ -302,7 +359,7 @@ def test_map_with_non_string_keys_is_malformed() -> None:
     assert_rejected(pack({1: 2, "schema_version": 1}), FusedState, "malformed")
 
 
-@pytest.mark.parametrize("version", [0, 2, SCHEMA_VERSION + 1, -1, "1", 1.0, True, None, [1], ...])
+@pytest.mark.parametrize("version", [0, 1, SCHEMA_VERSION + 1, -1, "2", 2.0, True, None, [2], ...])
 def test_wrong_or_missing_schema_version(version: Any) -> None:
     assert_rejected(with_changes(fused_state(True), (("schema_version",), version)), FusedState, "schema_version")
 
@@ -323,26 +380,27 @@ def test_non_finite_array(bad: float) -> None:
     p = msg.object_p_map.copy()
     p[2, 1] = bad
     assert_rejected(with_changes(msg, (("object_p_map",), p.astype("<f4").tobytes())), FusedState, "non_finite")
-    cov = observations(SensorFrame, True).objects.cov.copy()
-    cov[0, 0] = bad
     assert_rejected(
-        with_changes(observations(SensorFrame, True), (("objects", "cov"), cov.astype("<f2").tobytes())),
+        with_changes(observations(SensorFrame, True), (("objects", "cov"), compact([0.1, bad, 0.1], [0, 0, 0]))),
         SensorFrame,
         "non_finite",
     )
 
 
 def test_non_positive_definite_covariances() -> None:
-    bad6 = cov_to_upper(np.diag([1.0, 1.0, 1.0, 1.0, 1.0, -0.1])).astype("<f4").tobytes()
     npd = "not_positive_definite"
+    bad6 = compact([1.0, 1.0, 1.0, 1.0, 1.0, -0.1], np.zeros(15), "<i2")  # a negative standard deviation
     assert_rejected(with_changes(vehicle_prior(True), (("pose_cov",), bad6)), VehiclePrior, npd)
-    singular = cov_to_upper(np.ones((6, 6))).astype("<f4").tobytes()
+    singular = compact(np.ones(6), np.full(15, 32767), "<i2")  # every correlation 1
     assert_rejected(with_changes(vehicle_prior(True), (("pose_cov",), singular)), VehiclePrior, npd)
 
     msg = vehicle_prior(True)
-    cov = msg.objects.cov.copy()
-    cov[1] = cov_to_upper(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))  # eigenvalue -1
-    assert_rejected(with_changes(msg, (("objects", "cov"), cov.astype("<f2").tobytes())), VehiclePrior, npd)
+    n = len(msg.objects)
+    covs = [compact([1.0, 1.0, 1.0], [0, 0, 0])] * n
+    covs[1] = compact([1.0, 1.0, 1.0], [-120, -120, -120])  # rho = -0.94 all round: eigenvalue < 0
+    assert_rejected(with_changes(msg, (("objects", "cov"), b"".join(covs))), VehiclePrior, npd)
+    covs[1] = compact([1.0, 1.0, 1.0], [-128, 0, 0])  # the unused code
+    assert_rejected(with_changes(msg, (("objects", "cov"), b"".join(covs))), VehiclePrior, "invalid")
 
     msg = fused_state(True)
     cov = msg.object_cov.copy()
@@ -437,14 +495,14 @@ def test_reader_fills_defaults_of_optional_fields_an_older_writer_omits() -> Non
 
 # Copied verbatim from schemas/README.md ("Decoding without our code"); the test below checks
 # that the README still contains exactly this code and that it decodes our encoder's bytes.
-RECIPE = '''
+RECIPE = """
 import msgpack
 import numpy as np
 
 
 def decode_fused_state(data: bytes) -> dict:
     msg = msgpack.unpackb(data, raw=False)
-    if msg.get("schema_version") != 1:
+    if msg.get("schema_version") != 2:
         raise ValueError(f"unsupported schema_version {msg.get('schema_version')!r}")
 
     def arr(name, dtype, cols=None):  # msgpack bin -> little-endian, row-major array
@@ -469,7 +527,7 @@ def decode_fused_state(data: bytes) -> dict:
         "object_v_map": arr("object_v_map", "f4", 3),  # m/s, map frame
         "object_cov": full_cov(arr("object_cov", "f4", 6), 3),  # m^2
     }
-'''
+"""
 
 
 def test_readme_recipe_is_in_the_readme() -> None:
@@ -492,3 +550,16 @@ def test_readme_recipe_decodes_our_fused_state(full: bool) -> None:
     assert np.array_equal(out["object_cov"], cov_from_upper(msg.object_cov))
     if full:
         assert np.all(np.linalg.eigvalsh(out["object_cov"]) > 0)
+
+
+def test_readme_compact_cov_recipe_decodes_our_prior() -> None:
+    text = README.read_text(encoding="utf-8")
+    code = next(b.split("```")[0] for b in text.split("```python")[1:] if "def compact_cov" in b)
+    namespace: dict = {"np": np}
+    exec(code, namespace)  # noqa: S102 - the README's own code, run as a reader would
+    msg = vehicle_prior(True)
+    raw, back = as_map(msg), decode(encode(msg), VehiclePrior)
+    pose = namespace["compact_cov"](raw["pose_cov"], 6, "<i2")
+    objects = namespace["compact_cov"](raw["objects"]["cov"], 3, "i1")
+    np.testing.assert_allclose(pose[0], cov_from_upper(back.pose_cov), rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(objects, cov_from_upper(back.objects.cov), rtol=1e-6, atol=1e-12)

@@ -67,7 +67,9 @@ def test_array_fields_document_dtype_and_shape() -> None:
     assert "little-endian" in cov["description"]
     objects = json.loads(render()["vehicle_prior.json"])["$defs"]["ObjectObservations"]["properties"]
     assert objects["p_body_cm"]["x-dtype"] == "int16"
-    assert objects["cov"]["x-dtype"] == "float16"
+    assert objects["cov"]["x-covariance"] == 3 and objects["cov"]["x-correlation-dtype"] == "int8"
+    pose_cov = json.loads(render()["vehicle_prior.json"])["properties"]["pose_cov"]
+    assert pose_cov["x-bytes-per-matrix"] == 42 and pose_cov["x-correlation-dtype"] == "int16"
 
 
 def test_topics_json_lists_the_registry() -> None:
