@@ -17,8 +17,13 @@ connected vehicle becomes a cross-localization constraint on that vehicle's pose
 confirmed track becomes an observation of it; one matched to a tentative track is held by it; the
 rest start tentative tracks. A tentative track is confirmed (and gets the next stable global id)
 once it has detections at ``birth_hits`` distinct instants; its held detections then enter the
-graph. Tentative tracks die after ``tentative_timeout_s`` without a detection, confirmed ones after
-``death_s``.
+graph. Tentative tracks die after ``tentative_timeout_s`` without a detection, counted in measurement
+time: from the track's last detection to the newest ``t_meas`` the tracker has been shown
+(:meth:`Tracker.observe`), so that V2X latency does not matter (measured against the fuse time, a
+latency above the timeout dropped every tentative track before its second detection arrived).
+Confirmed tracks die after ``death_s`` without a detection, counted in fuse time (their graph states
+leave the window by fuse time); every track also dies that way, so tracks do not outlive senders
+that fell silent.
 
 The Kalman filter only gates and initialises; the estimates come from the factor graph, which
 overwrites the filter state after each solve (:meth:`Tracker.sync`).
@@ -82,8 +87,22 @@ def mahalanobis_matrix(m, S_m, c, S_c) -> np.ndarray:
         return np.zeros((len(m), len(c)))
     diff = m[:, None, :] - c[None, :, :]
     S = np.asarray(S_m, dtype=float)[:, None] + np.asarray(S_c, dtype=float)[None, :]
-    sol = np.linalg.solve(S, diff[..., None])[..., 0]
-    return np.einsum("nki,nki->nk", diff, sol)
+    return _quad_inv3(S, diff)
+
+
+def _quad_inv3(S: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """d^T S^-1 d for stacks of symmetric positive definite 3x3 S (..., 3, 3) and vectors d (..., 3), by
+    the adjugate (closed form; a batched LAPACK solve costs ~1 us of overhead per matrix)."""
+    a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
+    e, f, i = S[..., 1, 1], S[..., 1, 2], S[..., 2, 2]
+    A00, A01, A02 = e * i - f * f, c * f - b * i, b * f - c * e
+    A11, A12, A22 = a * i - c * c, b * c - a * f, a * e - b * b
+    det = a * A00 + b * A01 + c * A02
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    q = A00 * x * x + A11 * y * y + A22 * z * z + 2.0 * (A01 * x * y + A02 * x * z + A12 * y * z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = q / det
+    return np.where(det > 0, out, np.inf)
 
 
 def classes_compatible(a: int, b: int) -> bool:
@@ -181,8 +200,13 @@ class Track:
     cls: int = int(ObjectClass.UNKNOWN)  # majority of cls_votes (see vote)
 
     def vote(self, cls: int) -> None:
-        self.cls_votes[cls] += 1
-        self.cls = int(self.cls_votes.most_common(1)[0][0])
+        """Count a class vote; ``cls`` is the majority (ties: the class voted for first, as Counter.most_common)."""
+        n = self.cls_votes[cls] = self.cls_votes[cls] + 1
+        if cls == self.cls:
+            return
+        cur = self.cls_votes.get(self.cls, 0)
+        if n > cur or (n == cur and list(self.cls_votes).index(cls) < list(self.cls_votes).index(self.cls)):
+            self.cls = int(cls)
 
 
 class Tracker:
@@ -200,6 +224,11 @@ class Tracker:
         self._next_uid = 1
         self._next_id = 1
         self.counts: Counter[str] = Counter()
+        self.t_data = float("-inf")  # newest t_meas shown to the tracker (observe / associate)
+
+    def observe(self, t_meas: float) -> None:
+        """A message measured at ``t_meas`` was fused (with or without detections): the tracker's data clock."""
+        self.t_data = max(self.t_data, float(t_meas))
 
     # ---------------------------------------------------------------- queries
     def confirmed(self) -> dict[int, Track]:
@@ -246,6 +275,7 @@ class Tracker:
         if not dets:
             return [], []
         t = dets[0].t
+        self.observe(t)
         m = np.array([d.p_map for d in dets])
         live = list(self.tracks.values())
         if live:  # only tracks that could be near a detection (a cheap Euclidean pre-gate)
@@ -411,15 +441,21 @@ class Tracker:
         return gone
 
     def expire(self, t: float) -> list[int]:
-        """Drop tracks not detected for too long; returns the global ids of deleted confirmed tracks."""
+        """Drop tracks not detected for too long; returns the global ids of deleted confirmed tracks.
+
+        Tentative tracks: ``tentative_timeout_s`` from their last detection to the newest measurement
+        time observed (latency-independent); every track: ``death_s`` from its last detection to the
+        fuse time ``t``.
+        """
         dead = []
         horizon = t - self.params.window_s
         for tr in self.tracks.values():
             if len(tr.frames) > 64:
                 tr.frames = {k: v for k, v in tr.frames.items() if v >= horizon}
+        t_data = min(t, self.t_data)
+        death, timeout = self.params.track_death_s, self.params.tentative_timeout_s
         for uid, tr in list(self.tracks.items()):
-            limit = self.params.track_death_s if tr.confirmed else self.params.tentative_timeout_s
-            if t - tr.t_last > limit:
+            if t - tr.t_last > death or (not tr.confirmed and t_data - tr.t_last > timeout):
                 del self.tracks[uid]
                 if tr.confirmed:
                     dead.append(tr.id)

@@ -134,6 +134,7 @@ class Container:
             keys.append(key)
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
+                self.tracker.observe(m.t_meas)
                 self._associate(m)
         self._cross_detections(t_min)
         for tid in self.tracker.expire(t):
@@ -188,9 +189,13 @@ class Container:
         assignments, _ = self.tracker.associate(dets, vehicles)
         batch = []
         rotations: dict[int, np.ndarray] = {}
+        observers: dict[tuple[str, float], object] = {}
         for a in assignments:
             det = a.det
-            obs = self.graph.vehicle_state(det.sender, det.t, 0.0)
+            ok = (det.sender, det.t)
+            obs = observers.get(ok, False)
+            if obs is False:
+                obs = observers[ok] = self.graph.vehicle_state(det.sender, det.t, 0.0)
             if obs is None:  # the observer's frame has left the window
                 self._counts["observer_gone"] += 1
                 continue
@@ -247,16 +252,27 @@ class Container:
         self._cross = waiting
 
     def _output(self, t: float) -> FusedState:
+        """The fused state at t: every vehicle's newest pose and every confirmed track's newest state,
+        predicted to t with constant velocity (vehicles: the reported v_map and the motion factor's
+        noise; tracks: the WNOA model), so that V2X latency does not leave them behind."""
         g = self.graph
         vids = sorted(g.vehicles)
         poses, pose_covs = [], []
+        pp = self.params
         for vid in vids:
-            _, T, cov_xi = g.vehicle_estimate(vid)
+            ts, T, cov_xi = g.vehicle_estimate(vid)
             pose = vector_from_pose3(T)
             if cov_xi is None:
                 cov = g.vehicles[vid].latest().cov
             else:
                 cov = pose_cov_from_tangent(pose, cov_xi)
+            dt = t - ts
+            if dt > 0:  # its newest frame is older than t (latency): constant velocity to t, as the motion factor
+                pose = pose.copy()
+                pose[:3] += g.vehicles[vid].latest().v_map * dt
+                s_t2 = (pp.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * pp.vehicle_accel_sigma_mps2 * dt**2) ** 2
+                s_r2 = (pp.vehicle_rate_sigma_radps * dt) ** 2
+                cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
             poses.append(pose)
             pose_covs.append(cov)
         ids, cls, ps, vs, covs = [], [], [], [], []

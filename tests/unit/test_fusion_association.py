@@ -132,6 +132,8 @@ def test_death_after_silence():
     tr = Tracker(FusionParams(birth_hits=2, tentative_timeout_s=0.3, death_s=0.8))
     _feed(tr, [(0.0, [[0, 0, 0], [50, 0, 0]]), (0.1, [[0.5, 0, 0]])])
     assert list(tr.confirmed()) == [1] and len(tr.tracks) == 2
+    assert tr.expire(0.35) == [] and len(tr.tracks) == 2  # timeout in measurement time: no newer data yet
+    tr.observe(0.35)
     assert tr.expire(0.35) == [] and len(tr.tracks) == 1  # the tentative one went
     assert tr.expire(0.85) == []
     assert tr.expire(0.95) == [1] and not tr.tracks
@@ -155,3 +157,18 @@ def test_objects_seen_together_by_one_vehicle_are_never_merged():
     for t in tr.tracks.values():
         t.P = np.eye(6)  # very uncertain: statistically indistinguishable
     assert tr.merge_duplicates(0.0) == [] and len(tr.confirmed()) == 2
+
+
+def test_tentative_timeout_counts_measurement_time_not_latency():
+    """A fuse time far ahead of the data (V2X latency) does not drop tentative tracks; silence in
+    measurement time does; and the death limit in fuse time still ends tracks of silent senders."""
+    tr = Tracker(FusionParams(birth_hits=3, tentative_timeout_s=0.35, death_s=1.0))
+    _feed(tr, [(0.0, [[0, 0, 0]])])
+    assert tr.expire(0.6) == [] and len(tr.tracks) == 1  # 600 ms latency: kept
+    _feed(tr, [(0.1, [[0.05, 0, 0]])])
+    assert tr.expire(0.7) == [] and len(tr.tracks) == 1
+    tr.observe(0.5)  # the senders reported up to 0.5 without it: 0.4 s of silence
+    assert tr.expire(0.9) == [] and not tr.tracks and tr.counts["tentative_dropped"] == 1
+    _feed(tr, [(2.0, [[9, 0, 0]])])
+    assert tr.expire(2.9) == [] and len(tr.tracks) == 1
+    assert tr.expire(3.05) == [] and not tr.tracks  # nothing measured after it for 1 s of fuse time

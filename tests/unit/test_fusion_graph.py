@@ -72,8 +72,10 @@ def _scene(mode: str, n_frames: int = 8, seed: int = 0, **kw):
 
 
 def test_linearized_detection_equals_reference_frame_helper():
-    """The analytically eliminated helper gives the helper formulation's estimate and covariance."""
-    a, b = _scene("linearized"), _scene("reference_frame")
+    """The analytically eliminated helper gives the helper formulation's estimate and covariance (the
+    scene's pose errors are independent per frame, so is the prior model here)."""
+    a = _scene("linearized", pose_error_persistent_fraction=0.0)
+    b = _scene("reference_frame", pose_error_persistent_fraction=0.0)
     ta, pa, va, Ca = a.track_estimate(1)
     tb, pb, vb, Cb = b.track_estimate(1)
     assert ta == tb
@@ -118,7 +120,8 @@ def test_linearized_detection_error_is_the_cartesian_model():
 
 def test_root_covariances_match_gtsam_marginals():
     g = _scene("linearized")
-    g.solve()  # converged: the last elimination was at the solution
+    for _ in range(3):
+        g.solve()  # converged: the last elimination was at the solution
     graph = g._factor_graph()
     m = gtsam.Marginals(graph, g.values)
     for tid, chain in g.tracks.items():
@@ -135,7 +138,7 @@ def test_window_summary_preserves_the_estimate():
     tiny = POSE_COV * 1e-6
 
     def run(window_s):
-        g = FusionGraph(FusionParams(window_s=window_s, huber_k=None))
+        g = FusionGraph(FusionParams(window_s=window_s, huber_k=None, pose_error_persistent_fraction=0.0))
         rng = np.random.default_rng(5)
         for k in range(30):
             t = 0.1 * k
@@ -162,10 +165,62 @@ def test_late_frame_is_inserted_between_neighbours():
     assert len(chain.motion) == 1
     g.add_vehicle_prior("cv0", 0.1, [0.5, 0, 0, 0, 0, 0], POSE_COV, [5.0, 0, 0])
     assert [round(s.t, 3) for s in (chain.states[k] for k in chain.tkeys)] == [0.0, 0.1, 0.2]
-    assert len(chain.motion) == 2 and g.num_factors == 3 + 2
+    assert len(chain.motion) == 2 and g.num_factors == 3 + 2 + 1  # priors, motion, the bias's prior
     assert g.add_vehicle_prior("cv0", 0.1, [0.5, 0, 0, 0, 0, 0], POSE_COV, [5.0, 0, 0]) is None
     g.solve()
     _, T, _ = g.vehicle_estimate("cv0")
     assert abs(T.translation()[0] - 1.0) < 0.3
     g.prune(0.15)
-    assert len(chain.tkeys) == 1 and g.num_factors == 1 and g.num_variables == 1
+    assert len(chain.tkeys) == 1 and g.num_factors == 1 + 1 and g.num_variables == 1 + 1
+
+
+def _pose_nees(a_model: float, a_true: float = 0.0, tau_true: float = 0.0, trials: int = 60) -> float:
+    """Mean NEES of the latest position (3 dof) of a vehicle whose whitened self-localization errors are
+    sqrt(a_true) b + sqrt(1 - a_true) n_k (b shared, n_k per frame; n_k first-order Gauss-Markov with
+    time constant tau_true, or white), fused with pose_error_persistent_fraction = a_model."""
+    rng = np.random.default_rng(1)
+    L = np.linalg.cholesky(POSE_COV)
+    out = []
+    for _ in range(trials):
+        g = FusionGraph(FusionParams(pose_error_persistent_fraction=a_model))
+        b, n = rng.normal(size=6), rng.normal(size=6)
+        for k in range(10):
+            t = 0.1 * k
+            if k:
+                rho = np.exp(-0.1 / tau_true) if tau_true > 0 else 0.0
+                n = rho * n + np.sqrt(1 - rho**2) * rng.normal(size=6)
+            u = np.sqrt(a_true) * b + np.sqrt(1 - a_true) * n
+            truth = np.array([5.0 * t, 0.0, 0.0, 0.0, 0.0, 0.0])
+            g.add_vehicle_prior("cv0", t, truth + L @ u, POSE_COV, [5.0, 0.0, 0.0])
+        g.solve()
+        _, T, C = g.vehicle_estimate("cv0")
+        e = gtsam.Pose3(geo.pose_to_matrix(truth)).localCoordinates(T)[3:]
+        out.append(float(e @ np.linalg.solve(C[3:, 3:], e)))
+    return float(np.mean(out))
+
+
+def test_persistent_pose_errors_are_not_counted_as_independent():
+    """Self-localization errors that persist: the independent model is overconfident, the shared-bias
+    model is not (position NEES about 3 or below); independent errors stay consistent either way."""
+    assert _pose_nees(a_model=0.0, a_true=0.5) > 4.0
+    assert _pose_nees(a_model=0.0, tau_true=1.0) > 4.0
+    assert 1.5 < _pose_nees(a_model=0.5, a_true=0.5) < 4.0
+    assert 1.5 < _pose_nees(a_model=0.5, tau_true=1.0) < 4.0
+    assert 1.5 < _pose_nees(a_model=0.0) < 4.0
+    assert 1.0 < _pose_nees(a_model=0.5) < 4.0
+
+
+def test_pruning_keeps_one_prior_per_frame_and_the_bias():
+    g = FusionGraph(FusionParams(pose_error_persistent_fraction=0.5, window_s=0.5))
+    for k in range(12):
+        g.add_vehicle_prior("cv0", 0.1 * k, [0.5 * k, 0, 0, 0, 0, 0], POSE_COV, [5.0, 0.0, 0.0])
+        g.prune(0.1 * k - 0.5)
+        g.solve()
+    chain = g.vehicles["cv0"]
+    assert len(chain.tkeys) == 6 and set(chain.pose_prior_fids) == set(chain.tkeys)
+    assert g.values.exists(chain.bias_key) and g.num_variables == 7
+    _, T, C = g.vehicle_estimate("cv0")
+    np.testing.assert_allclose(T.translation(), [5.5, 0, 0], atol=1e-6)
+    assert np.all(np.diag(C) < np.diag(POSE_COV)[[3, 4, 5, 0, 1, 2]] * 1.0001)
+    g.prune(5.0)
+    assert not g.vehicles and g.num_variables == 0 and g.num_factors == 0
