@@ -168,24 +168,29 @@ class CovSpec(ArraySpec):
         with np.errstate(divide="ignore", invalid="ignore"):
             rho = C / (sigma[:, :, None] * sigma[:, None, :])
         rho = np.nan_to_num(rho[:, self._iu[0], self._iu[1]])
-        rows = []
-        for s, r in zip(sigma_q, rho, strict=True):
-            for _ in range(200):
-                q = np.clip(np.rint(r * self.q), -self.q, self.q).astype(self.corr)
-                if self._pd(s.astype(np.float64), q):
-                    break
-                r = r * self._SHRINK
-            rows.append(s.tobytes() + q.tobytes())
-        return b"".join(rows)
+        q = self._quantize(rho)
+        bad = ~self._pd(sigma_q.astype(np.float64), q) & np.all(sigma_q > 0, axis=1)
+        for _ in range(200):  # rare: shrink the correlations of the matrices that rounding broke
+            if not bad.any():
+                break
+            rho[bad] *= self._SHRINK
+            q[bad] = self._quantize(rho[bad])
+            bad[bad] = ~self._pd(sigma_q[bad].astype(np.float64), q[bad])
+        return np.concatenate([sigma_q.view(np.uint8), q.view(np.uint8)], axis=1).tobytes()
 
-    def _pd(self, sigma: np.ndarray, q: np.ndarray) -> bool:
-        rho = np.eye(self.n)
-        rho[self._iu[0], self._iu[1]] = rho[self._iu[1], self._iu[0]] = q / self.q
+    def _quantize(self, rho: np.ndarray) -> np.ndarray:
+        return np.clip(np.rint(rho * self.q), -self.q, self.q).astype(self.corr)
+
+    def _pd(self, sigma: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Per matrix: positive definite after decoding (sigmas > 0, correlation matrix Cholesky-able)."""
+        rho = np.broadcast_to(np.eye(self.n), (len(q), self.n, self.n)).copy()
+        rho[:, self._iu[0], self._iu[1]] = rho[:, self._iu[1], self._iu[0]] = q / self.q
+        ok = np.all(sigma > 0, axis=1)
         try:
             np.linalg.cholesky(rho)
-        except np.linalg.LinAlgError:
-            return False
-        return bool(np.all(sigma > 0))
+            return ok
+        except np.linalg.LinAlgError:  # find which
+            return ok & (np.linalg.eigvalsh(rho)[:, 0] > 1e-12)
 
     def __get_pydantic_json_schema__(self, schema: Any, handler: GetJsonSchemaHandler) -> dict:
         many = "N matrices, each " if self.shape[0] is None else ""
