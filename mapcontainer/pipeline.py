@@ -9,12 +9,21 @@ Time: at every camera frame t_k the vehicles handle their sensor frames and send
 vehicle's own message reaches its container directly (as in the paper, the container runs on the
 ego vehicle), the others go through the channel model; every delivery with arrival time <= t_k is
 ingested, then each view fuses at t_k.
+
+Start (``start``): "cold" — every vehicle initialises its localizer from GNSS, the map's driving
+directions and the camera (a vehicle switched on at t = 0; it may take frames, or fail, to lock
+on). "warm" — every vehicle starts from a known pose, modelling a vehicle that was already
+localized before the run (its last estimate): the true pose at t = 0 plus Gaussian noise with the
+standard deviations of :data:`WARM_START_SIGMA` (drawn from a stream seeded by ``seed`` alone,
+separate from the world's and the channel's, so the sensor noise of a seed is the same in both
+starts), and that noise's covariance passed as ``initial_pose``.
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -30,9 +39,46 @@ from .sim import World, load_scenario
 from .sim.config import ScenarioConfig
 from .vehicle import Mode, VehicleAgent
 
-__all__ = ["PipelineResult", "TickRecord", "View", "relative_errors", "run_pipeline"]
+__all__ = [
+    "WARM_START_SIGMA",
+    "PipelineResult",
+    "Start",
+    "TickRecord",
+    "View",
+    "relative_errors",
+    "run_pipeline",
+    "warm_start_poses",
+]
 
 HOST_ID = "host"
+
+Start = Literal["cold", "warm"]
+# Warm start: 1-sigma error of the pose a vehicle starts from, over [x, y, z, roll, pitch, yaw]
+# (m, m, m, rad, rad, rad): 0.3 m horizontal per axis, 0.1 m height, 0.5 deg roll and pitch, 1 deg yaw.
+WARM_START_SIGMA = np.array([0.3, 0.3, 0.1, np.deg2rad(0.5), np.deg2rad(0.5), np.deg2rad(1.0)])
+_WARM_START_STREAM = 0x5741524D  # "WARM": spawn key of the warm-start noise stream
+
+
+def warm_start_poses(
+    truth: dict[str, np.ndarray], seed: int, sigma: np.ndarray = WARM_START_SIGMA
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Initial (pose, covariance) per vehicle: the true pose plus N(0, diag(sigma^2)) noise.
+
+    ``truth``: vehicle id -> true pose (6,) at t = 0. Deterministic for (seed, vehicle order); each
+    vehicle draws from its own child stream of SeedSequence((seed, "WARM")), so adding a vehicle does
+    not change the others' draws. The yaw is wrapped to (-pi, pi].
+    """
+    sigma = np.asarray(sigma, dtype=float)
+    if sigma.shape != (6,) or np.any(sigma <= 0) or not np.all(np.isfinite(sigma)):
+        raise ValueError(f"sigma must be 6 positive finite numbers, got {sigma}")
+    cov = np.diag(sigma**2)
+    streams = np.random.SeedSequence([int(seed), _WARM_START_STREAM]).spawn(len(truth))
+    out = {}
+    for (vid, pose), ss in zip(truth.items(), streams, strict=True):
+        p = np.asarray(pose, dtype=float) + np.random.default_rng(ss).normal(0.0, sigma)
+        p[5] = float(geo.wrap_angle(p[5]))
+        out[vid] = (p, cov.copy())
+    return out
 
 
 @dataclass(frozen=True)
@@ -53,6 +99,7 @@ class TickRecord:
     priors: dict[str, np.ndarray]  # vid -> self-localized pose (distributed mode)
     prior_covs: dict[str, np.ndarray]  # vid -> 6x6
     fused: dict[str, FusedState]  # view name -> fused state at t
+    loc_mode: dict[str, str] = field(default_factory=dict)  # vid -> "map_matching" | "fallback" (distributed)
 
 
 @dataclass
@@ -68,6 +115,7 @@ class PipelineResult:
     channel_stats: dict = field(default_factory=dict)
     host_stats: dict[str, dict] = field(default_factory=dict)
     duration_s: float = 0.0
+    start: str = "cold"
     deliveries: list[tuple[str, float, float]] = field(default_factory=list)  # (src, t_sent, t_arrive) received
 
 
@@ -80,13 +128,28 @@ def run_pipeline(
     views: tuple[View, ...] = (View("cooperative"),),
     fusion: FusionParams | None = None,
     fleet: str = "sim",
+    start: Start = "cold",
 ) -> PipelineResult:
-    """Run one episode and return per-frame records for evaluation."""
+    """Run one episode and return per-frame records for evaluation.
+
+    ``start``: how the vehicles' localizers start (module docstring): "cold" from GNSS (default),
+    "warm" from the true pose at t = 0 plus seeded noise of :data:`WARM_START_SIGMA`. Warm start
+    acts on the vehicles' own localizers, so it needs ``mode="distributed"`` (in centralized mode
+    the host localizes every vehicle from its raw observations).
+    """
+    if start not in ("cold", "warm"):
+        raise ValueError(f"start must be 'cold' or 'warm', got {start!r}")
+    if start == "warm" and mode != "distributed":
+        raise ValueError("start='warm' sets the vehicles' own localizers: it needs mode='distributed'")
     sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
     profile = load_profile(network) if isinstance(network, str) else network
     world = World(sc, seed=seed, fleet=fleet)
     ego = world.vehicle_ids[0]
-    agents = {v: VehicleAgent(world.hdmap, v, fleet, mode) for v in world.vehicle_ids}
+    initial: dict[str, tuple[np.ndarray, np.ndarray] | None] = dict.fromkeys(world.vehicle_ids)
+    if start == "warm":
+        states0 = world.states(0.0)  # a pure function of time: does not advance the sensors
+        initial.update(warm_start_poses({v: np.asarray(states0[v].pose, float) for v in world.vehicle_ids}, seed))
+    agents = {v: VehicleAgent(world.hdmap, v, fleet, mode, initial_pose=initial[v]) for v in world.vehicle_ids}
     channel = Channel(profile, seed=seed)
     hosts = {
         view.name: make_host(
@@ -101,7 +164,7 @@ def run_pipeline(
     }
     listeners = {view.name: set(view.senders or world.vehicle_ids) for view in views}
     duration = sc.duration_s if duration_s is None else duration_s
-    result = PipelineResult(sc.name, seed, mode, profile.name, ego, duration_s=duration)
+    result = PipelineResult(sc.name, seed, mode, profile.name, ego, duration_s=duration, start=start)
 
     for tick in world.run(duration):
         t = tick.t
@@ -113,6 +176,7 @@ def run_pipeline(
             if mode == "distributed":
                 rec.priors[vid] = np.asarray(msg.pose, dtype=float)
                 rec.prior_covs[vid] = cov_from_upper(msg.pose_cov)
+                rec.loc_mode[vid] = msg.quality.mode
             if vid == ego:
                 for name, host in hosts.items():
                     if vid in listeners[name]:

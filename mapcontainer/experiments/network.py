@@ -348,6 +348,49 @@ def _summary(rows: list[dict]) -> list[str]:
     return out
 
 
+def _preset_text(name: str) -> str | None:
+    """One preset's link as its YAML defines it (None if ``name`` is not a preset)."""
+    from ..channel import list_profiles, load_profile
+
+    if name not in list_profiles():
+        return None
+    p = load_profile(name)
+    lat = f"{p.latency_ms:g} ms" + (f" + U[0, {2 * p.jitter_ms:g}] ms jitter" if p.jitter_ms > 0 else ", no jitter")
+    if p.burst is not None:
+        loss = f"Gilbert-Elliott burst loss (mean {100 * p.mean_loss:.3g} %)"
+    else:
+        loss = f"Bernoulli loss {100 * p.loss:g} %" if p.loss > 0 else "no loss"
+    if p.bandwidth_bps is None:
+        cap = "unlimited capacity"
+    else:
+        medium = "one shared medium" if p.shared_medium else "per link"
+        cap = f"{_bw_label(p.bandwidth_bps)} {medium}, queue {p.queue_bytes} bytes"
+    dup = f", {100 * p.duplicate:g} % duplicates" if p.duplicate > 0 else ""
+    return f"{name}: {lat}, {loss}, {cap}{dup}"
+
+
+def _links_text(rows: list[dict], m: dict) -> str:
+    """What the links of these rows are and what is scored (sweep points or network presets, in process or live)."""
+    profiles = list(dict.fromkeys(str(r.get("profile")) for r in rows))
+    presets = [t for t in (_preset_text(p) for p in profiles) if t is not None]
+    live = m.get("source") == "live" or any(r.get("source") == "live" for r in rows)
+    if live:
+        scored = (
+            f"{m.get('duration_s', '?')} s per point on the live fleet; RMSEs are the evaluator's whole-run "
+            "figures (warm-up included)."
+        )
+    else:
+        scored = f"{m.get('duration_s', '?')} s per point of which the first {m.get('warmup_s', '?')} s are not scored."
+    if presets and len(presets) == len(profiles):
+        return f"{scored} Links: the presets of `configs/network/` as defined there — " + "; ".join(presets) + "."
+    jitter = sorted({_num(r.get("jitter_ms")) for r in rows if math.isfinite(_num(r.get("jitter_ms")))})
+    jit = "no jitter" if not jitter or jitter == [0.0] else "jitter per row (column jitter_ms: U[0, 2 jitter_ms])"
+    return (
+        f"{scored} Per-link capacity with a queue of {m.get('queue_s', QUEUE_S)} s of traffic (at least "
+        f"{MIN_QUEUE_BYTES} bytes); Bernoulli loss; {jit}."
+    )
+
+
 def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict | None = None) -> dict[str, Path]:
     """Write network.csv, network.md, results.json and PNG plots for sweep rows into ``out_dir``.
 
@@ -388,9 +431,8 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         "# Network degradation sweep",
         "",
         f"Scenario {m.get('scenario', rows[0].get('scenario') if rows else '?')}, seed {m.get('seed', '?')}, "
-        f"{m.get('duration_s', '?')} s per point of which the first {m.get('warmup_s', '?')} s are not scored; "
-        f"per-link capacity with a queue of {m.get('queue_s', QUEUE_S)} s of traffic (at least {MIN_QUEUE_BYTES} "
-        "bytes); Bernoulli loss; no jitter. Column definitions: module docstring of "
+        + _links_text(rows, m)
+        + " Column definitions: module docstring of "
         "`mapcontainer/experiments/network.py` (delivered = delivered / messages whose fate was decided; age = "
         "fuse time minus the newest t_meas received from each remote vehicle, averaged). Vehicle RMSE is over the "
         "vehicles present in the fused state (coverage beside it); the fused state carries each vehicle's newest "

@@ -49,6 +49,11 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
     assert len(an["band"]) == 2 and an["band"][0] < an["dof"] < an["band"][1]
     assert all(_finite(res["bytes_per_message"][k]) for k in ("distributed", "centralized"))
     assert res["runs"] == 2 and res["seed"] == 2
+    assert res["settings"]["start"] == "warm" and res["settings"]["warm_start_sigma"]["yaw_deg"] == 1.0
+    for key in ("urban", "suburban"):
+        cs = res["cold_start"][key]
+        assert cs["runs"] == 2 and cs["vehicles"] == 8 and set(cs["at"]) == {"1", "2"}
+        assert all(0.0 <= cs["at"]["2"][k] <= 1.0 for k in ("map_matching", "locked", "gross", "ever_map_matching"))
 
     # accuracy sanity on 2 runs x 6 scored frames (loose bounds that catch a broken pipeline)
     urban = res["simulation"]["urban"]
@@ -61,6 +66,7 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
 
     report = (out / "report.md").read_text()
     assert "Table res1" in report and "0.23" in report and "| ours" in report
+    assert "**Start**: warm" in report and "## Cold start" in report
     assert "PASS" in report or "FAIL" in report
     for png in ("exp_sim.png", "exp_sim_runs.png", "real_vehicle.png", "anees.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png

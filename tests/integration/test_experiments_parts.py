@@ -125,6 +125,23 @@ def test_write_network_outputs_accepts_live_rows(tmp_path):
     assert all(p.exists() for p in paths.values())
 
 
+def test_network_md_header_describes_live_presets_truthfully(tmp_path):
+    rows = [
+        {"source": "live", "mode": "distributed", "profile": p, "latency_ms": lat, "jitter_ms": jit, "loss": 0.0,
+         "bandwidth_bps": float("inf"), "object_rmse_m": 0.3, "delivered_fraction": 1.0}
+        for p, lat, jit in (("ideal", 0.0, 0.0), ("dsrc", 18.0, 2.0), ("lossy", 20.0, 5.0))
+    ]  # fmt: skip
+    write_network_outputs(rows, tmp_path, {"source": "live", "seed": 0, "duration_s": 20.0, "warmup_s": 1.0})
+    head = (tmp_path / "network.md").read_text().split("## Key comparison")[0]
+    assert "dsrc: 18 ms + U[0, 4] ms jitter" in head and "lossy: 20 ms + U[0, 10] ms jitter" in head
+    assert "Gilbert-Elliott" in head and "one shared medium" in head and "warm-up included" in head
+    assert "ideal: 0 ms, no jitter" in head and "; no jitter" not in head
+    sweep = [{"source": "pipeline", "mode": "distributed", "profile": "lat0ms-loss0pct-bwinf", "jitter_ms": 0.0}]
+    write_network_outputs(sweep, tmp_path / "s", {"seed": 0, "duration_s": 4.0, "warmup_s": 1.0})
+    head = (tmp_path / "s" / "network.md").read_text().split("## Key comparison")[0]
+    assert "Bernoulli loss; no jitter" in head and "first 1.0 s are not scored" in head
+
+
 def test_progress_bar_writes_deciles_to_a_file():
     buf = io.StringIO()
     bar = Progress(20, "work", stream=buf)
