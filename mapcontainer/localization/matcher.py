@@ -32,8 +32,10 @@ Two estimates come out of one solve. The LM runs with the prediction prior at fu
 per frame plus motion factors, so a filtered prior would be counted many times -- is the same
 problem with the prediction's information divided by ``prior_inflation`` k (a weak prior that
 only keeps unobservable directions finite): ``pose``, ``cov``. It follows from the solution by one
-Newton step, ``x_w = x_f + H_w^-1 (1 - 1/k) I_p (x_f - x_pred)``, ``H_w = H_meas + I_p / k``,
-``cov = H_w^-1``. Neither is to be fused with the prediction again.
+Newton step, ``x_w = x_f - H_w^-1 (g_meas + I_p (x_f - x_pred) / k)``, ``H_w = H_meas + I_p / k``,
+``cov = H_w^-1`` (g_meas, H_meas: gradient and information of the camera residuals; at the
+solution g_meas = -I_p (x_f - x_pred) when they use the full Jacobian). Neither is to be fused with
+the prediction again.
 """
 
 from __future__ import annotations
@@ -969,7 +971,12 @@ class MapMatcher:
         P_w = _safe_inv(H_meas + fd.I_prior / k)
         dx = x - fd.x_prior
         dx[5] = wrap_angle(dx[5])
-        x_w = x + P_w @ ((1.0 - 1.0 / k) * (fd.I_prior @ dx))
+        # One Newton step of the weak-prior problem from x, with the gradient of the same information
+        # model as H_meas (J_info): where the lanes' along-track part is left out, the weak prior keeps
+        # the along-track position instead of extrapolating the solve's pull k times.
+        m = len(ev.e) - 6
+        g_meas = (ev.J_info[:m] * ev.w[:m, None]).T @ ev.e[:m]
+        x_w = x - P_w @ (g_meas + (fd.I_prior / k) @ dx)
         x_w[5] = wrap_angle(x_w[5])
         n_pts = int(np.count_nonzero(ev.pt_chi2 <= p.inlier_chi2))
         n_poles = int(np.count_nonzero(ev.pole_chi2 <= p.inlier_chi2))
