@@ -79,6 +79,12 @@ class MatcherParams(BaseModel):
         description="1-sigma of one lane EDT residual (px), before the marking's width: the residual is 0 "
         "anywhere on the painted width w, so each sample also gets (w/2)^2/3 (uniform) added to its variance",
     )
+    lane_dt_max_width_px: int = Field(
+        640,
+        ge=16,
+        description="the distance transform is computed at most this wide: a wider mask is max-pooled by an "
+        "integer factor (1280x720: 4.7 -> ~1.2 ms, within the lane residual's noise)",
+    )
     lane_cap_px: float = Field(10.0, gt=0, description="cap of the lane distance; a larger one pulls into wrong lanes")
     lane_effective_samples: float = Field(
         30.0,
@@ -432,6 +438,14 @@ class MapMatcher:
             scale = mask.shape[1] / intr.width
             if abs(mask.shape[0] - intr.height * scale) > 1.0:
                 raise ValueError(f"lane_mask shape {mask.shape} does not match the image {intr.width}x{intr.height}")
+            k = -(-mask.shape[1] // p.lane_dt_max_width_px)
+            if k > 1:  # pool by k: a block with any marking pixel (mean > 0) is marking
+                h, w = mask.shape[0] // k * k, mask.shape[1] // k * k
+                small = cv2.resize(
+                    np.ascontiguousarray(mask[:h, :w], dtype=np.uint8), (w // k, h // k), interpolation=cv2.INTER_AREA
+                )
+                mask = cv2.threshold(small, 0, 255, cv2.THRESH_BINARY)[1]
+                scale = mask.shape[1] / intr.width
             top = self._road_top_row(x0, P0, T_bc, intr, scale, mask.shape[0])
             if top is not None:
                 row0 = top
