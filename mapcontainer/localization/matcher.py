@@ -82,8 +82,8 @@ class MatcherParams(BaseModel):
     lane_dt_max_width_px: int = Field(
         640,
         ge=16,
-        description="the distance transform is computed at most this wide: a wider mask is max-pooled by an "
-        "integer factor (1280x720: 4.7 -> ~1.2 ms, within the lane residual's noise)",
+        description="the distance transform is computed at most this wide: a wider mask is pooled by an integer "
+        "factor, a block with any marking pixel being marking (1280x720: 4.7 -> 1.4 ms here; accuracy unchanged)",
     )
     lane_cap_px: float = Field(10.0, gt=0, description="cap of the lane distance; a larger one pulls into wrong lanes")
     lane_effective_samples: float = Field(
