@@ -89,6 +89,7 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
             warmup_s=args.warmup,
             rv_runs=args.rv_runs,
             rv_duration_s=args.rv_duration,
+            start=args.start,
         )
     except ValueError as exc:
         print(f"mapc: {exc}", file=sys.stderr)
@@ -174,6 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--rv-runs", type=_positive_int, default=None, help="runs per real-vehicle scenario (default min(runs, 10))"
     )
     ep.add_argument("--rv-duration", type=float, default=6.0, help="seconds per real-vehicle run, warm-up included")
+    ep.add_argument(
+        "--start",
+        choices=("warm", "cold"),
+        default="warm",
+        help="vehicles start localized (warm: truth + stated noise, as if already driving) or from GNSS alone",
+    )
     ep.add_argument("--quiet", action="store_true", help="no progress bar")
     ep.set_defaults(func=_cmd_experiment_paper)
 
