@@ -30,6 +30,7 @@ __all__ = [
     "pose_to_matrix",
     "project_line",
     "project_points",
+    "project_points_grid",
     "project_points_jac",
     "rot_x",
     "rot_y",
@@ -250,6 +251,31 @@ def project_points_jac(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_m
     J_pose = J_proj @ J_cam
     J_point = J_proj @ (R_cb @ R.T)
     return uv, Z, J_pose, J_point
+
+
+def project_points_grid(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, offsets, yaws, p_map):
+    """Projection of map points from a grid of poses: the body at ``pose`` shifted horizontally by each
+    of ``offsets`` (P, 2) and turned to each absolute heading of ``yaws`` (Y,), roll, pitch and height
+    kept. Returns ``u``, ``v`` (px) and the depth ``z_cam``, each (P, Y, K) for K points; no Jacobians.
+    """
+    pose = np.asarray(pose, dtype=float)
+    p_map = np.asarray(p_map, dtype=float).reshape(-1, 3)
+    offsets = np.asarray(offsets, dtype=float).reshape(-1, 2)
+    R_rp = rpy_to_matrix_jac(pose[3], pose[4], 0.0)[0]  # R = Rz(yaw) R_rp
+    M = T_body_cam[:3, :3].T @ R_rp.T
+    o = T_body_cam[:3, :3].T @ T_body_cam[:3, 3]
+    d = p_map[None, :, :] - pose[:3]
+    d = np.broadcast_to(d, (len(offsets), *d.shape[1:])).copy()
+    d[..., :2] -= offsets[:, None, :]
+    c, s = np.cos(yaws)[None, :, None], np.sin(yaws)[None, :, None]
+    rx = c * d[:, None, :, 0] + s * d[:, None, :, 1]
+    ry = -s * d[:, None, :, 0] + c * d[:, None, :, 1]
+    rz = d[:, None, :, 2]
+    X = M[0, 0] * rx + M[0, 1] * ry + M[0, 2] * rz - o[0]
+    Y = M[1, 0] * rx + M[1, 1] * ry + M[1, 2] * rz - o[1]
+    Z = M[2, 0] * rx + M[2, 1] * ry + M[2, 2] * rz - o[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return intr.fx * X / Z + intr.cx, intr.fy * Y / Z + intr.cy, Z
 
 
 def project_line(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, P1, P2):

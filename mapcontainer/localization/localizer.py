@@ -553,8 +553,7 @@ class Localizer:
     def _wide(self, Pxx) -> bool:
         """The prediction is too uncertain for one local solve."""
         p = self.params
-        sig_h = float(np.sqrt(max(np.linalg.eigvalsh(Pxx[:2, :2])[-1], 0.0)))
-        return sig_h > p.search_sigma_m or float(np.sqrt(max(Pxx[5, 5], 0.0))) > p.search_sigma_yaw_rad
+        return _sigma_h(Pxx) > p.search_sigma_m or float(np.sqrt(max(Pxx[5, 5], 0.0))) > p.search_sigma_yaw_rad
 
     def _search(self, frame: CameraFrame, x_pred, Pxx):
         """The global pose search around the prediction: 3-sigma in position and heading.
@@ -562,7 +561,7 @@ class Localizer:
         Beyond +-30 degrees of heading the candidates are the map's driving directions nearby.
         """
         step = self.params.search.yaw_step_rad
-        radius = 3.0 * float(np.sqrt(max(np.linalg.eigvalsh(Pxx[:2, :2])[-1], 0.0)))
+        radius = 3.0 * _sigma_h(Pxx)
         half = 3.0 * float(np.sqrt(max(Pxx[5, 5], 0.0)))
         yaws = None
         if half > np.radians(30.0):
@@ -832,7 +831,7 @@ class Localizer:
         for h in self._hyps:
             if h.misses >= 3 or h.score > self._hyps[0].score + 5.0 * sp.margin:
                 continue
-            if all(self.search._distinct(h.y, k.y) for k in kept):
+            if all(self.search.distinct(h.y, k.y) for k in kept):
                 kept.append(h)
         self._hyps = kept
         if not kept:
@@ -908,6 +907,11 @@ class Localizer:
             cov_frame=frame_cov,
             **q,
         )
+
+
+def _sigma_h(P) -> float:
+    """The largest horizontal 1-sigma of a pose covariance (m)."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0)))
 
 
 def _kf_update(y, P, H, r, R):

@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 
 from schemas.models import LandmarkClass
 
-from ..geometry import CameraIntrinsics, project_points_jac, rpy_to_matrix_jac, wrap_angle
+from ..geometry import CameraIntrinsics, project_points_grid, project_points_jac, rpy_to_matrix_jac, wrap_angle
 from ..hdmap.model import HDMap
 
 __all__ = ["CameraFrame", "MapMatcher", "MatchResult", "MatcherParams", "lane_distance_transform"]
@@ -585,23 +585,11 @@ class MapMatcher:
     def _lane_scores(self, x, pts, fd: FrameData, deltas, yaws, cap, sig_lat, sig_yaw) -> np.ndarray:
         """Chamfer score of the lane samples per (lateral, yaw) shift: shape (len(deltas), len(yaws))."""
         p = self.params
-        R = rpy_to_matrix_jac(*x[3:])[0]
-        lat = np.array([*R[:2, 1], 0.0])
-        c, s = np.cos(yaws), np.sin(yaws)
-        # Body at (t + delta lat, Rz(psi) R): p_cam = R_cb R^T Rz(psi)^T (p - t - delta lat) - R_cb t_bc.
-        d = pts[None, :, :] - x[:3] - deltas[:, None, None] * lat  # (D, S, 3)
-        rx = c[None, :, None] * d[:, None, :, 0] + s[None, :, None] * d[:, None, :, 1]
-        ry = -s[None, :, None] * d[:, None, :, 0] + c[None, :, None] * d[:, None, :, 1]
-        rz = np.broadcast_to(d[:, None, :, 2], rx.shape)
-        M = fd.T_bc[:3, :3].T @ R.T
-        off = fd.T_bc[:3, :3].T @ fd.T_bc[:3, 3]
-        X = M[0, 0] * rx + M[0, 1] * ry + M[0, 2] * rz - off[0]
-        Y = M[1, 0] * rx + M[1, 1] * ry + M[1, 2] * rz - off[1]
-        Z = M[2, 0] * rx + M[2, 1] * ry + M[2, 2] * rz - off[2]
-        intr, k = fd.intr, fd.lane_scale
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = (intr.fx * X / Z + intr.cx + 0.5) * k - 0.5
-            v = (intr.fy * Y / Z + intr.cy + 0.5) * k - 0.5 - fd.dt_row0
+        lat = rpy_to_matrix_jac(*x[3:])[0][:2, 1]
+        u, v, Z = project_points_grid(fd.intr, x, fd.T_bc, deltas[:, None] * lat, x[5] + yaws, pts)
+        k = fd.lane_scale
+        u = (u + 0.5) * k - 0.5  # image px -> mask px (rows from dt_row0)
+        v = (v + 0.5) * k - 0.5 - fd.dt_row0
         h, w = fd.dt.shape
         ok = (Z > p.min_depth_m) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
         ui = np.rint(np.where(ok, u, 0)).astype(np.intp)

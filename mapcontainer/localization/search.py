@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..geometry import rpy_to_matrix_jac, wrap_angle
+from ..geometry import project_points_grid, wrap_angle
 from .matcher import CameraFrame, FrameData, MapMatcher, MatchResult
 
 __all__ = ["PoseSearch", "PoseSearchParams", "SearchOutcome"]
@@ -116,10 +116,10 @@ class PoseSearch:
         sols: list[MatchResult] = []
         for h in starts:
             res = self.matcher.solve_from(fd, h, P_start)
-            if all(self._distinct(res.pose_filtered, o.pose_filtered) for o in sols):
+            if all(self.distinct(res.pose_filtered, o.pose_filtered) for o in sols):
                 sols.append(res)
             else:  # two starts fell into one basin: keep its better solution
-                i = next(i for i, o in enumerate(sols) if not self._distinct(res.pose_filtered, o.pose_filtered))
+                i = next(i for i, o in enumerate(sols) if not self.distinct(res.pose_filtered, o.pose_filtered))
                 sols[i] = min(sols[i], res, key=lambda r: r.score)
         sols.sort(key=lambda r: r.score)
         best, best_score = sols[0], sols[0].score
@@ -136,7 +136,8 @@ class PoseSearch:
 
     # ------------------------------------------------------------------ internals
 
-    def _distinct(self, a, b) -> bool:
+    def distinct(self, a, b) -> bool:
+        """Poses a, b lie in different basins (farther apart than distinct_m or distinct_rad)."""
         return bool(
             np.hypot(a[0] - b[0], a[1] - b[1]) > self.params.distinct_m
             or abs(wrap_angle(a[5] - b[5])) > self.params.distinct_rad
@@ -154,7 +155,7 @@ class PoseSearch:
             h = x0.copy()
             h[:2] += off[i]
             h[5] = yaws[j]
-            if all(self._distinct(h, o) for o in out):
+            if all(self.distinct(h, o) for o in out):
                 out.append(h)
                 if len(out) == self.params.n_starts:
                     break
@@ -202,17 +203,4 @@ class PoseSearch:
 
     def _project(self, fd: FrameData, x0, off: np.ndarray, yaws: np.ndarray, pts: np.ndarray):
         """u, v (px), depth of map points pts (K, 3) from every hypothesis: each (len(off), len(yaws), K)."""
-        R_rp = rpy_to_matrix_jac(x0[3], x0[4], 0.0)[0]
-        M = fd.T_bc[:3, :3].T @ R_rp.T
-        o = fd.T_bc[:3, :3].T @ fd.T_bc[:3, 3]
-        d = pts[None, :, :] - x0[:3] - np.concatenate([off, np.zeros((len(off), 1))], axis=1)[:, None, :]
-        c, s = np.cos(yaws)[None, :, None], np.sin(yaws)[None, :, None]
-        rx = c * d[:, None, :, 0] + s * d[:, None, :, 1]
-        ry = -s * d[:, None, :, 0] + c * d[:, None, :, 1]
-        rz = d[:, None, :, 2]
-        X = M[0, 0] * rx + M[0, 1] * ry + M[0, 2] * rz - o[0]
-        Y = M[1, 0] * rx + M[1, 1] * ry + M[1, 2] * rz - o[1]
-        Z = M[2, 0] * rx + M[2, 1] * ry + M[2, 2] * rz - o[2]
-        intr = fd.intr
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return intr.fx * X / Z + intr.cx, intr.fy * Y / Z + intr.cy, Z
+        return project_points_grid(fd.intr, x0, fd.T_bc, off, yaws, pts)

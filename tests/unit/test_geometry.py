@@ -102,3 +102,21 @@ def test_line_projection_and_distance_jacobians():
 def test_pose_shape_is_checked():
     with pytest.raises(ValueError, match="shape"):
         geo.pose_to_matrix([1, 2, 3])
+
+
+def test_grid_projection_matches_the_single_pose_projection():
+    intr = geo.CameraIntrinsics(1000.0, 1000.0, 639.5, 359.5, 1280, 720)
+    T_bc = geo.camera_extrinsic(1.5, 0.2, 1.4, pitch=0.03)
+    pose = np.array([10.0, -3.0, 0.4, 0.01, -0.02, 0.7])
+    pts = np.array([[30.0, 5.0, 3.0], [25.0, -8.0, 0.0], [40.0, 12.0, 6.0]])
+    offsets, yaws = np.array([[0.0, 0.0], [1.5, -0.5]]), np.array([0.7, 0.65, 0.9])
+    u, v, z = geo.project_points_grid(intr, pose, T_bc, offsets, yaws, pts)
+    assert u.shape == (2, 3, 3)
+    for i, off in enumerate(offsets):
+        for j, yaw in enumerate(yaws):
+            p = pose.copy()
+            p[:2] += off
+            p[5] = yaw
+            uv, zc, _, _ = geo.project_points_jac(intr, p, T_bc, pts)
+            np.testing.assert_allclose(np.stack([u[i, j], v[i, j]], axis=1), uv, atol=1e-9)
+            np.testing.assert_allclose(z[i, j], zc, atol=1e-12)
