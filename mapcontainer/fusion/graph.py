@@ -3,12 +3,13 @@
 States (GTSAM keys):
 
 * ``x``: Pose3 T_map_body of a connected vehicle at the t_meas of each of its messages;
-* ``p``, ``v``: Point3 position and velocity of an obstacle track at each instant it was detected.
-  Instants closer than ``time_merge_s`` share one state. All senders of a fleet sample on the same
-  10 Hz clock, so in practice these are the 10 Hz grid; with unsynchronised senders there is one state
+* ``s``: Vector6 state [p, v] (map-frame position and velocity) of an obstacle track at each instant
+  it was detected (one 6-D variable rather than two Point3s: half the variables, and GTSAM's
+  elimination costs about 15 us per clique here, so cycles are ~25 % shorter). Instants closer than
+  ``time_merge_s`` share one state. All senders of a fleet sample on the same 10 Hz clock, so in practice these are the 10 Hz grid; with unsynchronised senders there is one state
   per distinct detection time, and a detection up to ``time_merge_s`` off is shifted by the track's
   velocity. (A fixed grid would need interpolated detections; distinct times need none.)
-* ``h``: helper Point3s (only with ``detection_factor="reference_frame"``).
+* ``b``: Vector6, per vehicle, the persistent part of its self-localization error (below).
 
 Factors (the negative log-likelihood is their sum: the paper's X^D = argmin sum e^T R^-1 e):
 
@@ -26,9 +27,9 @@ Factors (the negative log-likelihood is their sum: the paper's X^D = argmin sum 
   R_a^T (v_a + v_b) / 2 dt from the reported velocities, identity rotation, sigmas
   sqrt((s_v dt)^2 + (s_a dt^2 / 2)^2) and s_w dt. It only carries the (independent) velocity
   information, so nothing is counted twice;
-* ``WnoaMotionFactorPoint3`` — constant velocity between consecutive states of a track
-  (white noise on acceleration: e = [p_b - p_a - dt v_a, v_b - v_a],
-  Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis);
+* constant velocity between consecutive states of a track (white noise on acceleration):
+  e = s_b - F s_a, F = [[I, dt I], [0, I]], Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis — the model
+  of GTSAM's ``WnoaMotionFactorPoint3``, which is linear, so it is a ``JacobianFactor`` (exact);
 * a Gaussian prior on [p, v] of one state per track (``JacobianFactor`` in a ``LinearContainerFactor``):
   at birth a zero-mean velocity prior (speed_prior_*) and a 1 km position regulariser; when the window
   drops a track's oldest state, what that state knew — its prior and its detections, moved to the map
@@ -36,29 +37,21 @@ Factors (the negative log-likelihood is their sum: the paper's X^D = argmin sum 
   through the constant-velocity model onto the next state and added to its prior (a per-track Kalman
   step; it neglects correlations between tracks seen by one vehicle). Without it the window forgets:
   a track detected only a few times in the last second loses its velocity;
-* a detection z of track state p by the vehicle at pose x, exact Cartesian model in the observer's body
-  frame, e = R^T (p - t) - z, e ~ N(0, S_z), Huber-robust (``huber_k``). Two implementations
-  (``detection_factor``):
-
-  - ``"reference_frame"`` (the design's): a helper point h with a robust ``PriorFactorPoint3(h, z)``
-    tied by ``ReferenceFrameFactorPoint3Pose3(h, x, p)``, whose error is x.transformFrom(h) - p
-    (sigma ``reference_frame_sigma_m``, taken out of the helper's prior so the chain totals S_z;
-    semantics checked in tests/unit/test_fusion_graph.py);
-  - ``"linearized"`` (default): the same model with h eliminated analytically — one
-    ``LinearContainerFactor`` on (x, p) with Jacobians [[q0]x, -I] (Pose3 tangent [rotation,
-    translation]) and R0^T, q0 = R0^T (p0 - t0), linearised at the estimates x0, p0 when it is created.
-    The model is linear in p; what is neglected is second order: 0.5 |dtheta|^2 |z| and the cross term
-    |dtheta| |dp|, about 1 mm for the 5 mrad pose uncertainty here against detection sigmas of
-    5-50 cm (a factor is re-linearised when its pose estimate moves by more than ``relinearize_rad`` /
-    ``relinearize_m``). The Huber weight w = min(1, k / |S_z^-1/2 e|) is
-    iterated across cycles (IRLS): recomputed from the current estimate before each solve for
-    detections younger than ``reweight_s`` (the first weight comes from the association innovation).
-    GTSAM's elimination costs ~5 us per factor and variable here; this form has one factor and no
-    variable per detection instead of two and one: same estimates (tests/unit/test_fusion_graph.py),
-    cycles 10 % (4 vehicles, 14 objects) to 30 % (16, 100) shorter;
+* a detection z of track position p by the vehicle at pose x, exact Cartesian model in the observer's
+  body frame, e = R^T (p - t) - z, e ~ N(0, S_z), Huber-robust (``huber_k``), as one
+  ``LinearContainerFactor`` on (x, s) with Jacobians [[q0]x, -I] (Pose3 tangent [rotation,
+  translation]) and [R0^T, 0], q0 = R0^T (p0 - t0), linearised at the estimates x0, s0 when it is
+  created. The model is linear in p; what is neglected is second order: 0.5 |dtheta|^2 |z| and the
+  cross term |dtheta| |dp|, about 1 mm for the 5 mrad pose uncertainty here against detection sigmas
+  of 5-50 cm (a factor is re-linearised when its pose estimate moves by more than ``relinearize_rad``
+  / ``relinearize_m``). The Huber weight w = min(1, k / |S_z^-1/2 e|) is iterated across cycles
+  (IRLS): recomputed from the current estimate before each solve for detections younger than
+  ``reweight_s`` (the first weight comes from the association innovation). The design's first form,
+  a helper point h with a robust ``PriorFactorPoint3(h, z)`` tied by
+  ``ReferenceFrameFactorPoint3Pose3(h, x, p)``, gives the same estimates (the test oracle in
+  tests/unit/test_fusion_graph.py) with two factors and a variable per detection instead of one factor;
 * a detection of another connected vehicle (cross-localization): the same model against the observed
-  vehicle's body origin, e = R_obs^T (t_target - t_obs) - z (``LinearContainerFactor``; or with
-  ``reference_frame``: the tie to a map point q, and q = x_target.transformFrom(g), g held at 0).
+  vehicle's body origin, e = R_obs^T (t_target - t_obs) - z (``LinearContainerFactor`` on both poses).
 
 Why not ``BearingRangeFactor3D`` (one factor, nonlinear): in this GTSAM build its bearing error is in the
 tangent basis of the *predicted* Unit3, which Unit3 picks by the smallest component of the direction.
@@ -83,7 +76,7 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, H, P, V, X
+from gtsam.symbol_shorthand import B, S, X
 from scipy.linalg import lapack
 
 from schemas import ObjectClass
@@ -98,8 +91,19 @@ _UNIT3 = gtsam.noiseModel.Unit.Create(3)
 _UNIT6 = gtsam.noiseModel.Unit.Create(6)
 
 
-def _dim(key: int) -> int:
-    return 6 if gtsam.Symbol(key).chr() in (ord("x"), ord("b")) else 3
+def _cv_model(dt, q) -> tuple[np.ndarray, np.ndarray]:
+    """Constant velocity over dt with white acceleration noise of spectral density q (3 axes):
+    s_b = F s_a + w, w ~ N(0, Q), s = [p, v], F = [[I, dt I], [0, I]],
+    Q = [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) diag(q). Vectorised: dt (n,), q (n, 3) give (n, 6, 6)."""
+    dt, q = np.asarray(dt, dtype=float), np.asarray(q, dtype=float)
+    F = np.broadcast_to(np.eye(6), (*dt.shape, 6, 6)).copy()
+    i = np.arange(3)
+    F[..., i, i + 3] = dt[..., None]
+    Q = np.zeros((*dt.shape, 6, 6))
+    Q[..., i, i] = q * dt[..., None] ** 3 / 3
+    Q[..., i, i + 3] = Q[..., i + 3, i] = q * dt[..., None] ** 2 / 2
+    Q[..., i + 3, i + 3] = q * dt[..., None]
+    return F, Q
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -132,8 +136,7 @@ class _PoseState:
 @dataclass
 class _TrackState:
     t: float
-    pkey: int
-    vkey: int
+    key: int  # Vector6 [p, v]
     dets: list = field(default_factory=list)  # _Detection records of this state
 
 
@@ -142,7 +145,7 @@ class _Detection:
     """One detection factor: who saw what, and how it is in the graph."""
 
     pose_key: int
-    target_key: int  # track position key, or the observed vehicle's pose key (cross)
+    target_key: int  # track state key, or the observed vehicle's pose key (cross)
     z: np.ndarray
     cov: np.ndarray
     t: float
@@ -210,14 +213,11 @@ class FusionGraph:
         self._fid_det: dict[int, _Detection] = {}
         self._next_fid = 0
         self._pose_states: dict[int, _PoseState] = {}
-        self._n = {"x": 0, "p": 0, "h": 0, "b": 0}
+        self._n = {"x": 0, "s": 0, "b": 0}
         self._graph = gtsam.NonlinearFactorGraph()  # every factor, in slots (see _factor_graph)
         self._slot: dict[int, int] = {}  # factor id -> index in _graph
-        self._robust_fids: set[int] = set()  # factors with a GTSAM robust noise model
         self.covariances: dict[int, np.ndarray] = {}  # latest keys -> marginal covariance (after solve)
-        self.track_joint: dict[int, np.ndarray] = {}  # track id -> 6x6 covariance of latest [p, v]
         self.root_dims = 0  # size of the largest root clique in the last solve
-        self._huber = None if params.huber_k is None else gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k)
 
     # ------------------------------------------------------------------ bookkeeping
     @property
@@ -228,7 +228,7 @@ class FusionGraph:
     def num_variables(self) -> int:
         return int(self.values.size())
 
-    def _add_factor(self, f: gtsam.NonlinearFactor, robust: bool = False) -> int:
+    def _add_factor(self, f: gtsam.NonlinearFactor) -> int:
         fid = self._next_fid
         self._next_fid += 1
         keys = tuple(int(k) for k in f.keys())
@@ -238,8 +238,6 @@ class FusionGraph:
             self._key_factors.setdefault(k, set()).add(fid)
         self._slot[fid] = self._graph.size()
         self._graph.push_back(f)
-        if robust:
-            self._robust_fids.add(fid)
         return fid
 
     def _remove_factor(self, fid: int) -> None:
@@ -247,19 +245,11 @@ class FusionGraph:
             return
         del self._factors[fid]
         self._graph.remove(self._slot.pop(fid))
-        self._robust_fids.discard(fid)
         self._fid_det.pop(fid, None)
         for k in self._factor_keys.pop(fid):
             fs = self._key_factors.get(k)
-            if fs is None:
-                continue
-            fs.discard(fid)
-            if gtsam.Symbol(k).chr() == ord("h"):  # a helper goes with all its factors
-                for other in list(fs):
-                    self._remove_factor(other)
-                if not fs and k in self._key_factors:
-                    del self._key_factors[k]
-                    self.values.erase(k)
+            if fs is not None:
+                fs.discard(fid)
 
     def _factor_graph(self) -> gtsam.NonlinearFactorGraph:
         """The graph of all factors; removed factors leave empty slots, squeezed out when they dominate."""
@@ -278,10 +268,6 @@ class FusionGraph:
         if self.values.exists(key):
             self.values.erase(key)
         self.covariances.pop(key, None)
-
-    def _robust(self, cov: np.ndarray):
-        base = gtsam.noiseModel.Gaussian.Covariance(cov)
-        return base if self._huber is None else gtsam.noiseModel.Robust.Create(self._huber, base)
 
     # ------------------------------------------------------------------ vehicles
     def add_vehicle_prior(self, vid: str, t: float, pose, pose_cov, v_map) -> int | None:
@@ -407,17 +393,16 @@ class FusionGraph:
         if s is not None:
             return s
         tk = time_key(t)
-        pkey, vkey = P(self._n["p"]), V(self._n["p"])
-        self._n["p"] += 1
+        key = S(self._n["s"])
+        self._n["s"] += 1
         i = bisect.bisect_left(chain.tkeys, tk)
         if chain.tkeys:  # warm start from the neighbour: constant velocity, as the motion factor predicts
-            nb = chain.states[chain.tkeys[i - 1 if i > 0 else 0]]
-            v_nb = self.values.atPoint3(nb.vkey)
-            init_p = self.values.atPoint3(nb.pkey) + v_nb * (t - nb.t)
-            init_v = v_nb
-        self.values.insert(pkey, np.asarray(init_p, dtype=float))
-        self.values.insert(vkey, np.asarray(init_v, dtype=float))
-        s = _TrackState(float(t), pkey, vkey)
+            nb = self.values.atVector(chain.states[chain.tkeys[i - 1 if i > 0 else 0]].key)
+            x0 = np.concatenate([nb[:3] + nb[3:] * (t - chain.states[chain.tkeys[i - 1 if i > 0 else 0]].t), nb[3:]])
+        else:
+            x0 = np.concatenate([np.asarray(init_p, dtype=float), np.asarray(init_v, dtype=float)])
+        self.values.insert(key, x0)
+        s = _TrackState(float(t), key)
         chain.tkeys.insert(i, tk)
         chain.states[tk] = s
         if 0 < i < len(chain.tkeys) - 1:
@@ -428,27 +413,30 @@ class FusionGraph:
             self._track_motion(chain, tk, chain.tkeys[i + 1])
         if chain.prior is None:
             sv = self._speed_prior(chain.cls)
-            mean = np.concatenate([self.values.atPoint3(pkey), np.zeros(3)])
+            mean = np.concatenate([x0[:3], np.zeros(3)])
             self._set_prior(chain, tk, mean, np.diag([1e6, 1e6, 1e6, sv**2, sv**2, 0.25]))
         return s
 
     def _track_motion(self, chain: _Chain, ka: int, kb: int) -> None:
+        """Constant velocity from state a to b: e = s_b - F s_a ~ N(0, Q) (linear, so exact as a
+        linear factor about 0: its error at any values is |W (s_b - F s_a)|^2 / 2)."""
         a, b = chain.states[ka], chain.states[kb]
-        f = gtsam.WnoaMotionFactorPoint3(
-            gtsam.StateData(a.pkey, a.vkey, a.t), gtsam.StateData(b.pkey, b.vkey, b.t), self._psd(chain.cls)
-        )
-        chain.motion[ka] = self._add_factor(f)
+        F, Q = _cv_model(b.t - a.t, self._psd(chain.cls))
+        W = _sqrt_info(Q)
+        jf = gtsam.JacobianFactor(a.key, -W @ F, b.key, W, np.zeros(6), _UNIT6)
+        lin = gtsam.Values()
+        lin.insert(a.key, np.zeros(6))
+        lin.insert(b.key, np.zeros(6))
+        chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, lin))
 
     def _set_prior(self, chain: _Chain, tkey: int, mean: np.ndarray, cov: np.ndarray) -> None:
         """Put the Gaussian N(mean, cov) over [p, v] of the state at tkey (replacing the track's prior)."""
         self._remove_factor(chain.prior_fid)
         s = chain.states[tkey]
         cov = 0.5 * (cov + cov.T)
-        A = _sqrt_info(cov)
-        jf = gtsam.JacobianFactor(s.pkey, A[:, :3], s.vkey, A[:, 3:], np.zeros(6), _UNIT6)
+        jf = gtsam.JacobianFactor(s.key, _sqrt_info(cov), np.zeros(6), _UNIT6)
         lin = gtsam.Values()
-        lin.insert(s.pkey, np.asarray(mean[:3], dtype=float))
-        lin.insert(s.vkey, np.asarray(mean[3:], dtype=float))
+        lin.insert(s.key, np.asarray(mean, dtype=float))
         chain.prior = (tkey, np.asarray(mean, dtype=float), cov)
         chain.prior_fid = self._add_factor(gtsam.LinearContainerFactor(jf, lin))
 
@@ -468,7 +456,7 @@ class FusionGraph:
         eta = np.zeros((n, 6))
         shared = np.zeros((n, 3, 3))
         wsum = np.zeros(n)
-        p0 = np.array([self.values.atPoint3(s.pkey) for s in s0])
+        p0 = np.array([self.values.atVector(s.key)[:3] for s in s0])
         has_prior = np.array([c.prior is not None and c.prior[0] == c.tkeys[0] for c in chains])
         for i in np.flatnonzero(has_prior):
             Li = np.linalg.inv(chains[i].prior[2])
@@ -517,14 +505,7 @@ class FusionGraph:
         has = wsum > 0
         P0[has, :3, :3] += shared[has] / wsum[has, None, None]
         dt = np.array([b.t - a.t for a, b in zip(s0, s1, strict=True)])
-        q = np.array([self._psd(c.cls) for c in chains])
-        F = np.tile(np.eye(6), (n, 1, 1))
-        F[:, :3, 3:] = dt[:, None, None] * np.eye(3)
-        idx = np.arange(3)
-        Q = np.zeros((n, 6, 6))
-        Q[:, idx, idx] = q * (dt[:, None] ** 3) / 3
-        Q[:, idx, idx + 3] = Q[:, idx + 3, idx] = q * (dt[:, None] ** 2) / 2
-        Q[:, idx + 3, idx + 3] = q * dt[:, None]
+        F, Q = _cv_model(dt, np.array([self._psd(c.cls) for c in chains]))
         mu1 = np.einsum("nij,nj->ni", F, mu0)
         P1 = F @ P0 @ F.transpose(0, 2, 1) + Q
         for i, c in enumerate(chains):
@@ -553,23 +534,20 @@ class FusionGraph:
         dets = []
         for (pose_key, state, z, _, weight), cov, W in zip(items, covs, Ws, strict=True):
             ps = self._pose_states[pose_key]
-            det = _Detection(pose_key, state.pkey, np.asarray(z, dtype=float), cov, ps.t, weight=weight, W=W)
+            det = _Detection(pose_key, state.key, np.asarray(z, dtype=float), cov, ps.t, weight=weight, W=W)
             state.dets.append(det)
             ps.dets.append(det)
             dets.append(det)
-        if self.params.detection_factor == "linearized":
-            for det, f in zip(dets, self._linear_factors(dets), strict=True):
-                det.fid = self._add_factor(f)
-                self._fid_det[det.fid] = det
-        else:
-            for det in dets:
-                self._insert_detection(det)
+        for det, f in zip(dets, self._linear_factors(dets), strict=True):
+            det.fid = self._add_factor(f)
+            self._fid_det[det.fid] = det
 
     def _linear_factors(self, dets: list[_Detection]) -> list[gtsam.LinearContainerFactor]:
         """Linearized detection factors of track detections (module docstring), vectorised.
 
-        e = R^T (p - t) - z at the current pose x0 and object position p0: with q0 = R0^T (p0 - t0),
-        d e / d xi = [[q0]x, -I], d e / d p = R0^T, e(x0, p0) = q0 - z; whitened by sqrt(weight) W.
+        e = R^T (p - t) - z at the current pose x0 and object state s0 = [p0, v0]: with
+        q0 = R0^T (p0 - t0), d e / d xi = [[q0]x, -I], d e / d s = [R0^T, 0], e(x0, p0) = q0 - z; whitened
+        by sqrt(weight) W.
         """
         M = {}
         for d in dets:
@@ -578,8 +556,8 @@ class FusionGraph:
         T0 = [M[d.pose_key] for d in dets]
         mats = np.array([T.matrix() for T in T0])
         R0, t0 = mats[:, :3, :3], mats[:, :3, 3]
-        p0 = np.array([self.values.atPoint3(d.target_key) for d in dets])
-        q = np.einsum("nji,nj->ni", R0, p0 - t0)
+        s0 = np.array([self.values.atVector(d.target_key) for d in dets])
+        q = np.einsum("nji,nj->ni", R0, s0[:, :3] - t0)
         z = np.array([d.z for d in dets])
         W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * np.array([d.W for d in dets])
         A = np.zeros((len(dets), 3, 6))
@@ -587,13 +565,14 @@ class FusionGraph:
         A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = q[:, 2], -q[:, 1], q[:, 0]
         A[:, :, 3:] = -np.eye(3)
         WA = W @ A
-        WRt = W @ R0.transpose(0, 2, 1)
+        WRt = np.zeros((len(dets), 3, 6))
+        WRt[:, :, :3] = W @ R0.transpose(0, 2, 1)
         b = np.einsum("nij,nj->ni", W, z - q)
         out = []
         for n, d in enumerate(dets):
             lin = gtsam.Values()
             lin.insert(d.pose_key, T0[n])
-            lin.insert(d.target_key, p0[n])
+            lin.insert(d.target_key, s0[n])
             d.lin_pose = T0[n]
             jf = gtsam.JacobianFactor(d.pose_key, WA[n], d.target_key, WRt[n], b[n], _UNIT3)
             out.append(gtsam.LinearContainerFactor(jf, lin))
@@ -611,86 +590,30 @@ class FusionGraph:
             cross=True,
             W=np.linalg.inv(np.linalg.cholesky(cov)),
         )
-        self._insert_detection(det)
+        det.fid = self._add_factor(self._cross_factor(det))
+        self._fid_det[det.fid] = det
         self._pose_states[pose_key].dets.append(det)
 
-    def _insert_detection(self, det: _Detection) -> None:
-        if self.params.detection_factor == "linearized":
-            f = self._linear_detection(det) if det.cross else self._linear_factors([det])[0]
-            det.fid = self._add_factor(f)
-        elif det.cross:
-            det.fid = self._cross_reference_frame(det)
-        else:
-            h = self._helper(det.z, det.cov, robust=True)
-            det.fid = self._tie(h, det.pose_key, det.target_key)
-        self._fid_det[det.fid] = det
-
-    def _linear_detection(self, det: _Detection) -> gtsam.LinearContainerFactor:
-        """e = R^T (p - t) - z linearised at the current pose(s) (module docstring), weighted sqrt(w)."""
+    def _cross_factor(self, det: _Detection) -> gtsam.LinearContainerFactor:
+        """e = R^T (t_target - t) - z linearised at the current poses (module docstring), weighted sqrt(w)."""
         T0 = self.values.atPose3(det.pose_key)
-        R0 = T0.rotation().matrix()
-        if det.W is None:
-            det.W = np.linalg.inv(np.linalg.cholesky(det.cov))
+        Tt = self.values.atPose3(det.target_key)
         W = np.sqrt(det.weight) * det.W
+        q0 = T0.transformTo(Tt.translation())
+        A_x = np.hstack([_skew(q0), -np.eye(3)])
+        A_t = np.hstack([np.zeros((3, 3)), T0.rotation().matrix().T @ Tt.rotation().matrix()])
         lin = gtsam.Values()
         lin.insert(det.pose_key, T0)
-        det.lin_pose = T0
-        if not det.cross:
-            # linearization point of p: where the detection puts it, so that e = 0 there and q0 = z
-            A_x = np.hstack([_skew(det.z), -np.eye(3)])
-            lin.insert(det.target_key, T0.transformFrom(det.z))
-            jf = gtsam.JacobianFactor(det.pose_key, W @ A_x, det.target_key, W @ R0.T, np.zeros(3), _UNIT3)
-        else:
-            Tt = self.values.atPose3(det.target_key)
-            q0 = T0.transformTo(Tt.translation())
-            A_x = np.hstack([_skew(q0), -np.eye(3)])
-            A_t = np.hstack([np.zeros((3, 3)), R0.T @ Tt.rotation().matrix()])
-            lin.insert(det.target_key, Tt)
-            det.lin_target = Tt
-            jf = gtsam.JacobianFactor(det.pose_key, W @ A_x, det.target_key, W @ A_t, W @ (det.z - q0), _UNIT3)
+        lin.insert(det.target_key, Tt)
+        det.lin_pose, det.lin_target = T0, Tt
+        jf = gtsam.JacobianFactor(det.pose_key, W @ A_x, det.target_key, W @ A_t, W @ (det.z - q0), _UNIT3)
         return gtsam.LinearContainerFactor(jf, lin)
-
-    def _helper(self, z, cov, robust: bool, ties: int = 1) -> int:
-        """A helper Point3 h with a prior at z (Huber-robust if ``robust``).
-
-        The ``ties`` reference-frame ties that will hang on it add ties * sigma^2 I to the detection's
-        covariance; the prior gets cov - ties * sigma^2 I so that the chain's total is exactly ``cov``.
-        """
-        h = H(self._n["h"])
-        self._n["h"] += 1
-        z = np.asarray(z, dtype=float)
-        cov = np.asarray(cov, dtype=float)
-        reduced = cov - ties * self.params.reference_frame_sigma_m**2 * np.eye(3)
-        if np.linalg.eigvalsh(reduced)[0] > 0.1 * np.linalg.eigvalsh(cov)[0]:
-            cov = reduced
-        self.values.insert(h, z)
-        noise = self._robust(cov) if robust else gtsam.noiseModel.Gaussian.Covariance(cov)
-        self._add_factor(gtsam.PriorFactorPoint3(h, z, noise), robust=robust and self._huber is not None)
-        return h
-
-    def _tie(self, h: int, pose_key: int, point_key: int) -> int:
-        """pose.transformFrom(h) = point, to within reference_frame_sigma_m."""
-        tie = gtsam.noiseModel.Isotropic.Sigma(3, self.params.reference_frame_sigma_m)
-        return self._add_factor(gtsam.ReferenceFrameFactorPoint3Pose3(h, pose_key, point_key, tie))
-
-    def _cross_reference_frame(self, det: _Detection) -> int:
-        """Tie a map point q to the observer through the detection and to the target's origin."""
-        q = H(self._n["h"])
-        self._n["h"] += 1
-        self.values.insert(q, self.values.atPose3(det.pose_key).transformFrom(det.z))
-        h = self._helper(det.z, det.cov, robust=True, ties=2)
-        fid = self._tie(h, det.pose_key, q)
-        g = self._helper(np.zeros(3), 1e-8 * np.eye(3), robust=False, ties=0)
-        self._tie(g, det.target_key, q)
-        return fid
 
     def _reweight(self) -> int:
         """IRLS step of the linearized detections: new Huber weights from the current estimate for
         detections younger than reweight_s (those not yet through a solve keep the weight of their
         association innovation), and new linearization points for detections whose poses moved.
         Returns how many factors were replaced."""
-        if self.params.detection_factor != "linearized":
-            return 0
         p = self.params
         k = p.huber_k
         moved = set()
@@ -715,7 +638,7 @@ class FusionGraph:
                         M[key] = self.values.atPose3(key).matrix()
             T = np.array([M[d.pose_key] for d in recent])
             target = np.array(
-                [M[d.target_key][:3, 3] if d.cross else self.values.atPoint3(d.target_key) for d in recent]
+                [M[d.target_key][:3, 3] if d.cross else self.values.atVector(d.target_key)[:3] for d in recent]
             )
             e = np.einsum("nji,nj->ni", T[:, :3, :3], target - T[:, :3, 3]) - np.array([d.z for d in recent])
             we = np.einsum("nij,nj->ni", np.array([d.W for d in recent]), e)
@@ -731,7 +654,7 @@ class FusionGraph:
         plain = [det for det, _ in todo if not det.cross]
         factors = dict(zip(map(id, plain), self._linear_factors(plain), strict=True)) if plain else {}
         for det, _ in todo:
-            f = factors[id(det)] if not det.cross else self._linear_detection(det)
+            f = factors[id(det)] if not det.cross else self._cross_factor(det)
             det.fid = self._add_factor(f)
             det.fresh = False
             self._fid_det[det.fid] = det
@@ -744,15 +667,13 @@ class FusionGraph:
             return
         for s in chain.states.values():
             self._drop_track_state(s)
-        self.track_joint.pop(track_id, None)
 
     def _drop_track_state(self, s: _TrackState) -> None:
         for det in s.dets:
             ps = self._pose_states.get(det.pose_key)
             if ps is not None and det in ps.dets:
                 ps.dets.remove(det)
-        self._remove_key(s.pkey)
-        self._remove_key(s.vkey)
+        self._remove_key(s.key)
 
     def prune(self, t_min: float) -> int:
         """Drop every state older than t_min with its factors; returns the number of states dropped.
@@ -776,7 +697,6 @@ class FusionGraph:
         for tid, chain in list(self.tracks.items()):
             if not chain.tkeys:
                 del self.tracks[tid]
-                self.track_joint.pop(tid, None)
         for vid, chain in list(self.vehicles.items()):
             while chain.tkeys and chain.tkeys[0] < kmin:
                 tk = chain.tkeys.pop(0)
@@ -795,10 +715,7 @@ class FusionGraph:
     # ------------------------------------------------------------------ solve
     def latest_keys(self) -> list[int]:
         keys = [c.latest().key for c in self.vehicles.values()]
-        for c in self.tracks.values():
-            s = c.latest()
-            keys += [s.pkey, s.vkey]
-        return keys
+        return keys + [c.latest().key for c in self.tracks.values()]
 
     def solve(self) -> SolveReport:
         """Levenberg-Marquardt from the current values; latest-state covariances (module docstring)."""
@@ -807,7 +724,7 @@ class FusionGraph:
         latest = self.latest_keys()
         n_vars = self.num_variables
         if not self._factors:
-            self.covariances, self.track_joint = {}, {}
+            self.covariances = {}
             return SolveReport(0, 0.0, 0.0, 0, n_vars, 0, reweighted)
         ordering = gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, latest)
         values = self.values
@@ -820,15 +737,10 @@ class FusionGraph:
             gfg = graph.linearize(values)
             lin0 = gfg.error(values.zeroVectors())  # the linear model's cost at the current values
             if err is None:  # without GTSAM-robust factors that is the cost itself
-                err = err0 = graph.error(values) if self._robust_fids else lin0
+                err = err0 = lin0
             if lam > 0:
                 for key in values.keys():
-                    d = _dim(key)
-                    gfg.push_back(
-                        gtsam.JacobianFactor(
-                            key, np.sqrt(lam) * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)
-                        )
-                    )
+                    gfg.push_back(gtsam.JacobianFactor(key, np.sqrt(lam) * np.eye(6), np.zeros(6), _UNIT6))
             try:
                 tree = gfg.eliminateMultifrontal(ordering)
             except RuntimeError:  # indeterminate: damp and retry
@@ -860,8 +772,7 @@ class FusionGraph:
             below = self._covariances(bt, latest)
         except (RuntimeError, np.linalg.LinAlgError):  # a degenerate system: say so with huge covariances
             below = -1
-            self.covariances = {k: 1e6 * np.eye(_dim(k)) for k in latest}
-            self.track_joint = {tid: 1e6 * np.eye(6) for tid in self.tracks}
+            self.covariances = {k: 1e6 * np.eye(6) for k in latest}
         return SolveReport(it, float(err0), float(err), len(self._factors), n_vars, below, reweighted)
 
     def _covariances(self, bt: gtsam.GaussianBayesTree, latest: list[int]) -> int:
@@ -890,8 +801,8 @@ class FusionGraph:
             R = c.R()
             nf, rows = 0, 0
             while rows < R.shape[0]:
-                where[keys[nf]] = (cid, rows, _dim(keys[nf]))
-                rows += _dim(keys[nf])
+                where[keys[nf]] = (cid, rows, 6)
+                rows += 6
                 nf += 1
             Rinv, info = lapack.dtrtri(R, lower=0)  # unblocked for small n: no BLAS thread wake-ups
             if info != 0:
@@ -929,15 +840,7 @@ class FusionGraph:
                 out += La[s][ra : ra + da] @ Lb[s][rb : rb + db].T
             return out
 
-        self.covariances = {k: cross(k, k) for k in wanted}
-        self.track_joint = {}
-        for tid, chain in self.tracks.items():
-            s = chain.latest()
-            J = np.zeros((6, 6))
-            J[:3, :3], J[3:, 3:] = self.covariances[s.pkey], self.covariances[s.vkey]
-            J[:3, 3:] = cross(s.pkey, s.vkey)
-            J[3:, :3] = J[:3, 3:].T
-            self.track_joint[tid] = 0.5 * (J + J.T)
+        self.covariances = {k: 0.5 * (C + C.T) for k in wanted for C in (cross(k, k),)}
         return below
 
     # ------------------------------------------------------------------ results
@@ -949,7 +852,8 @@ class FusionGraph:
     def track_estimate(self, track_id: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
         """(t, p, v, 6x6 covariance of [p, v] or None) of a track's latest state."""
         s = self.tracks[track_id].latest()
-        return s.t, self.values.atPoint3(s.pkey), self.values.atPoint3(s.vkey), self.track_joint.get(track_id)
+        x = self.values.atVector(s.key)
+        return s.t, x[:3], x[3:], self.covariances.get(s.key)
 
 
 def _moved(T0: gtsam.Pose3 | None, T: gtsam.Pose3, rad: float, m: float) -> bool:

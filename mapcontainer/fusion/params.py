@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Literal
-
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import stats
 
@@ -70,29 +68,11 @@ class FusionParams(BaseModel):
     )
 
     # ---- measurement models
-    detection_factor: Literal["linearized", "reference_frame"] = Field(
-        "linearized",
-        description=(
-            "body-frame detection factor (graph.py docstring): 'linearized' — the exact Cartesian model with the"
-            " helper point eliminated analytically (one LinearContainerFactor; Huber by IRLS across cycles);"
-            " 'reference_frame' — helper Point3 with a robust PriorFactorPoint3 tied by"
-            " ReferenceFrameFactorPoint3Pose3 (two factors and a variable per detection; cycles 1.1-1.4x as long)"
-        ),
-    )
     reweight_s: float = Field(
         0.5, ge=0, description="linearized detections get new Huber weights from the estimate while younger than this"
     )
     relinearize_rad: float = Field(0.02, gt=0, description="re-linearise a detection when its pose rotated this much")
     relinearize_m: float = Field(0.5, gt=0, description="... or moved this far from its linearization point")
-    reference_frame_sigma_m: float = Field(
-        0.01,
-        gt=0,
-        description=(
-            "sigma of the tie between a detection's helper point and observer/object (m); taken out of the"
-            " helper's prior so the total is the detection covariance. Tighter ties amplify the rotation"
-            " nonlinearity (second-order terms / sigma) and cost Gauss-Newton iterations"
-        ),
-    )
     huber_k: float | None = Field(
         3.0, gt=0, description="Huber threshold on the whitened 3-D detection residual norm; None = Gaussian"
     )

@@ -3,11 +3,11 @@
 import gtsam
 import numpy as np
 import pytest
-from gtsam.symbol_shorthand import H, P, V, X
+from gtsam.symbol_shorthand import H, P, S, V, X
 
 from mapcontainer import geometry as geo
 from mapcontainer.fusion import FusionParams
-from mapcontainer.fusion.graph import FusionGraph
+from mapcontainer.fusion.graph import FusionGraph, _cv_model
 from schemas import ObjectClass
 
 POSE_COV = np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005]) ** 2
@@ -32,28 +32,34 @@ def test_reference_frame_factor_semantics():
     np.testing.assert_allclose(f.unwhitenedError(v), 0.0, atol=1e-12)
 
 
-def test_wnoa_motion_factor_semantics():
-    """e = [p1 - p0 - dt v0, v1 - v0], Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis."""
+def test_track_motion_factor_is_gtsams_wnoa_model():
+    """The linear constant-velocity factor on s = [p, v] has the error of GTSAM's WnoaMotionFactorPoint3
+    (e = [p1 - p0 - dt v0, v1 - v0], Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis) at any values."""
     q, dt = np.array([2.0, 1.0, 0.5]), 0.4
-    f = gtsam.WnoaMotionFactorPoint3(gtsam.StateData(P(0), V(0), 1.0), gtsam.StateData(P(1), V(1), 1.0 + dt), q)
+    wnoa = gtsam.WnoaMotionFactorPoint3(gtsam.StateData(P(0), V(0), 1.0), gtsam.StateData(P(1), V(1), 1.0 + dt), q)
+    F, Q = _cv_model(dt, q)
+    W = np.linalg.cholesky(np.linalg.inv(Q)).T
+    ours = gtsam.LinearContainerFactor(
+        gtsam.JacobianFactor(S(0), -W @ F, S(1), W, np.zeros(6), gtsam.noiseModel.Unit.Create(6)),
+        _values({S(0): np.zeros(6), S(1): np.zeros(6)}),
+    )
     rng = np.random.default_rng(0)
-    vals = {P(0): rng.normal(size=3), V(0): rng.normal(size=3), P(1): rng.normal(size=3), V(1): rng.normal(size=3)}
+    for _ in range(5):
+        s0, s1 = rng.normal(size=6), rng.normal(size=6)
+        a = wnoa.error(_values({P(0): s0[:3], V(0): s0[3:], P(1): s1[:3], V(1): s1[3:]}))
+        assert ours.error(_values({S(0): s0, S(1): s1})) == pytest.approx(a, rel=1e-9)
+
+
+def _values(d: dict) -> gtsam.Values:
     v = gtsam.Values()
-    for k, x in vals.items():
+    for k, x in d.items():
         v.insert(k, x)
-    e = np.concatenate([vals[P(1)] - vals[P(0)] - dt * vals[V(0)], vals[V(1)] - vals[V(0)]])
-    np.testing.assert_allclose(f.unwhitenedError(v), e, atol=1e-12)
-    R = f.noiseModel().R()
-    Q = np.linalg.inv(R.T @ R)
-    i = np.arange(3)
-    np.testing.assert_allclose(Q[i, i], q * dt**3 / 3, rtol=1e-9)
-    np.testing.assert_allclose(Q[i, i + 3], q * dt**2 / 2, rtol=1e-9)
-    np.testing.assert_allclose(Q[i + 3, i + 3], q * dt, rtol=1e-9)
+    return v
 
 
-def _scene(mode: str, n_frames: int = 8, seed: int = 0, **kw):
+def _scene(n_frames: int = 8, seed: int = 0, **kw):
     """One vehicle driving along x, one object ahead moving along y; detections every frame."""
-    params = FusionParams(detection_factor=mode, **kw)
+    params = FusionParams(**kw)
     g = FusionGraph(params)
     rng = np.random.default_rng(seed)
     for k in range(n_frames):
@@ -71,22 +77,64 @@ def _scene(mode: str, n_frames: int = 8, seed: int = 0, **kw):
     return g
 
 
-def test_linearized_detection_equals_reference_frame_helper():
-    """The analytically eliminated helper gives the helper formulation's estimate and covariance (the
-    scene's pose errors are independent per frame, so is the prior model here)."""
-    a = _scene("linearized", pose_error_persistent_fraction=0.0)
-    b = _scene("reference_frame", pose_error_persistent_fraction=0.0)
-    ta, pa, va, Ca = a.track_estimate(1)
-    tb, pb, vb, Cb = b.track_estimate(1)
-    assert ta == tb
-    sig = np.sqrt(np.diag(Cb))
-    np.testing.assert_array_less(np.abs(np.concatenate([pa - pb, va - vb])), 0.05 * sig)
-    np.testing.assert_allclose(np.sqrt(np.diag(Ca)), sig, rtol=0.02)
-    _, Ta, Xa = a.vehicle_estimate("cv0")
-    _, Tb, Xb = b.vehicle_estimate("cv0")
-    np.testing.assert_allclose(Ta.translation(), Tb.translation(), atol=0.01 * np.sqrt(POSE_COV[0, 0]) + 1e-4)
-    np.testing.assert_allclose(np.diag(Xa), np.diag(Xb), rtol=0.05)
-    assert b.num_variables > a.num_variables  # the helpers
+def test_graph_equals_gtsam_standard_factors():
+    """Oracle: the same problem built from GTSAM's own nonlinear factors — the vehicle's factors as they
+    are, the track as Point3 p and v with WnoaMotionFactorPoint3 and each detection as a helper point h
+    (PriorFactorPoint3(h, z)) tied by ReferenceFrameFactorPoint3Pose3(h, x, p) — solved to convergence
+    by GTSAM's LM, gives the graph's estimate and covariances (Gaussian noise, independent pose errors)."""
+    g = _scene(huber_k=None, pose_error_persistent_fraction=0.0)
+    for _ in range(3):
+        g.solve()
+    oracle, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    chain = g.vehicles["cv0"]
+    for tk in chain.tkeys:
+        key = chain.states[tk].key
+        init.insert(key, g.values.atPose3(key))
+        oracle.push_back(g._factors[chain.pose_prior_fids[tk]])
+    for fid in chain.motion.values():
+        oracle.push_back(g._factors[fid])
+    track = g.tracks[1]
+    _, mean, cov = track.prior
+    assert track.prior[0] == track.tkeys[0]  # the birth prior, nothing summarised
+    sig = np.sqrt(np.diag(cov))
+    oracle.push_back(gtsam.PriorFactorPoint3(P(0), mean[:3], gtsam.noiseModel.Diagonal.Sigmas(sig[:3])))
+    oracle.push_back(gtsam.PriorFactorPoint3(V(0), mean[3:], gtsam.noiseModel.Diagonal.Sigmas(sig[3:])))
+    tie = 1e-4
+    for i, tk in enumerate(track.tkeys):
+        st = track.states[tk]
+        x = g.values.atVector(st.key)
+        init.insert(P(i), x[:3])
+        init.insert(V(i), x[3:])
+        if i:
+            prev = track.states[track.tkeys[i - 1]]
+            oracle.push_back(
+                gtsam.WnoaMotionFactorPoint3(
+                    gtsam.StateData(P(i - 1), V(i - 1), prev.t), gtsam.StateData(P(i), V(i), st.t), g._psd(track.cls)
+                )
+            )
+        for j, det in enumerate(st.dets):
+            h = H(100 * i + j)
+            init.insert(h, det.z)
+            noise = gtsam.noiseModel.Gaussian.Covariance(det.cov - tie**2 * np.eye(3))
+            oracle.push_back(gtsam.PriorFactorPoint3(h, det.z, noise))
+            oracle.push_back(
+                gtsam.ReferenceFrameFactorPoint3Pose3(h, det.pose_key, P(i), gtsam.noiseModel.Isotropic.Sigma(3, tie))
+            )
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    sol = gtsam.LevenbergMarquardtOptimizer(oracle, init, params).optimize()
+    m = gtsam.Marginals(oracle, sol)
+    n = len(track.tkeys) - 1
+    t, p, v, C = g.track_estimate(1)
+    C_oracle = m.jointMarginalCovariance([P(n), V(n)]).fullMatrix()
+    sig = np.sqrt(np.diag(C_oracle))
+    np.testing.assert_array_less(np.abs(np.concatenate([p - sol.atPoint3(P(n)), v - sol.atPoint3(V(n))])), 0.02 * sig)
+    np.testing.assert_allclose(np.sqrt(np.diag(C)), sig, rtol=0.01)
+    key = chain.latest().key
+    _, T, X_cov = g.vehicle_estimate("cv0")
+    np.testing.assert_allclose(T.translation(), sol.atPose3(key).translation(), atol=0.01 * np.sqrt(POSE_COV[0, 0]))
+    np.testing.assert_allclose(np.diag(X_cov), np.diag(m.marginalCovariance(key)), rtol=0.02)
 
 
 def test_linearized_detection_error_is_the_cartesian_model():
@@ -109,9 +157,10 @@ def test_linearized_detection_error_is_the_cartesian_model():
     for _ in range(20):
         v = gtsam.Values()
         T = g.values.atPose3(key).retract(rng.normal(0, [0.005] * 3 + [0.1] * 3))
-        p = g.values.atPoint3(state.pkey) + rng.normal(0, 0.15, 3)
+        s = g.values.atVector(state.key) + np.concatenate([rng.normal(0, 0.15, 3), np.zeros(3)])
+        p = s[:3]
         v.insert(key, T)
-        v.insert(state.pkey, p)
+        v.insert(state.key, s)
         exact = W @ (T.transformTo(p) - z)
         _, b = f.linearize(v).jacobian()
         np.testing.assert_allclose(-b, exact, atol=0.08)
@@ -119,16 +168,15 @@ def test_linearized_detection_error_is_the_cartesian_model():
 
 
 def test_root_covariances_match_gtsam_marginals():
-    g = _scene("linearized")
+    g = _scene()
     for _ in range(3):
         g.solve()  # converged: the last elimination was at the solution
     graph = g._factor_graph()
     m = gtsam.Marginals(graph, g.values)
     for tid, chain in g.tracks.items():
         s = chain.latest()
-        np.testing.assert_allclose(g.covariances[s.pkey], m.marginalCovariance(s.pkey), rtol=1e-6, atol=1e-12)
-        joint = m.jointMarginalCovariance([s.pkey, s.vkey]).fullMatrix()
-        np.testing.assert_allclose(g.track_joint[tid], joint, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(g.covariances[s.key], m.marginalCovariance(s.key), rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(g.track_estimate(tid)[3], m.marginalCovariance(s.key), rtol=1e-6, atol=1e-12)
     key = g.vehicles["cv0"].latest().key
     np.testing.assert_allclose(g.covariances[key], m.marginalCovariance(key), rtol=1e-6, atol=1e-14)
 
