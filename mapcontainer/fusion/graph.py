@@ -435,12 +435,15 @@ class FusionGraph:
         lin.insert(b.key, np.zeros(6))
         chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, lin))
 
-    def _set_prior(self, chain: _Chain, tkey: int, mean: np.ndarray, cov: np.ndarray) -> None:
-        """Put the Gaussian N(mean, cov) over [p, v] of the state at tkey (replacing the track's prior)."""
+    def _set_prior(
+        self, chain: _Chain, tkey: int, mean: np.ndarray, cov: np.ndarray, sqrt_info: np.ndarray | None = None
+    ) -> None:
+        """Put the Gaussian N(mean, cov) over [p, v] of the state at tkey (replacing the track's prior);
+        ``sqrt_info`` is W with W^T W = cov^-1 if the caller has it."""
         self._remove_factor(chain.prior_fid)
         s = chain.states[tkey]
         cov = 0.5 * (cov + cov.T)
-        jf = gtsam.JacobianFactor(s.key, _sqrt_info(cov), np.zeros(6), _UNIT6)
+        jf = gtsam.JacobianFactor(s.key, _sqrt_info(cov) if sqrt_info is None else sqrt_info, np.zeros(6), _UNIT6)
         lin = gtsam.Values()
         lin.insert(s.key, np.asarray(mean, dtype=float))
         chain.prior = (tkey, np.asarray(mean, dtype=float), cov)
@@ -464,10 +467,10 @@ class FusionGraph:
         wsum = np.zeros(n)
         p0 = np.array([self.values.atVector(s.key)[:3] for s in s0])
         has_prior = np.array([c.prior is not None and c.prior[0] == c.tkeys[0] for c in chains])
-        for i in np.flatnonzero(has_prior):
-            Li = np.linalg.inv(chains[i].prior[2])
-            info[i] = Li
-            eta[i] = Li @ chains[i].prior[1]
+        if has_prior.any():
+            idx = np.flatnonzero(has_prior)
+            info[idx] = np.linalg.inv(np.array([chains[i].prior[2] for i in idx]))
+            eta[idx] = np.einsum("nij,nj->ni", info[idx], np.array([chains[i].prior[1] for i in idx]))
         owner, dets = [], []
         for i, s in enumerate(s0):
             for d in s.dets:
@@ -519,8 +522,10 @@ class FusionGraph:
                 Ia, Ib = np.linalg.inv(c.prior[2]), np.linalg.inv(P1[i])
                 P1[i] = np.linalg.inv(Ia + Ib)
                 mu1[i] = P1[i] @ (Ia @ c.prior[1] + Ib @ mu1[i])
+        P1 = 0.5 * (P1 + P1.transpose(0, 2, 1))
+        W1 = np.linalg.cholesky(np.linalg.inv(P1)).transpose(0, 2, 1)
         for i, c in enumerate(chains):
-            self._set_prior(c, c.tkeys[1], mu1[i], P1[i])
+            self._set_prior(c, c.tkeys[1], mu1[i], P1[i], W1[i])
 
     # ------------------------------------------------------------------ detections
     def add_detection(self, pose_key: int, state: _TrackState, z_body, cov_body, weight: float = 1.0) -> None:
