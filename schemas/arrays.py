@@ -7,6 +7,7 @@ the shape follows from the field's declared shape (one free leading dimension at
 
 from __future__ import annotations
 
+from functools import cache
 from typing import Annotated, Any
 
 import numpy as np
@@ -25,6 +26,7 @@ class ArraySpec:
         self.dtype = np.dtype(dtype).newbyteorder("<")
         self.shape = shape
         self.finite = finite
+        self._fixed = int(np.prod([s for s in shape if s is not None], dtype=int))  # values per row
 
     # -- validation ---------------------------------------------------------------------------
     def _validate(self, value: Any) -> np.ndarray:
@@ -37,7 +39,7 @@ class ArraySpec:
                     {"n": len(raw), "dtype": self.dtype.name},
                 )
             arr = np.frombuffer(raw, dtype=self.dtype)
-            fixed = int(np.prod([s for s in self.shape if s is not None], dtype=int))
+            fixed = self._fixed
             if None in self.shape:
                 if fixed == 0 or arr.size % fixed:
                     raise PydanticCustomError(
@@ -82,7 +84,7 @@ class ArraySpec:
                     {"got": str(arr.shape), "want": str(self.shape)},
                 )
             arr = arr.copy()
-        if self.finite and arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        if self.finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
             raise PydanticCustomError("array_finite", "array holds NaN or infinite values", {})
         arr.setflags(write=False)
         return arr
@@ -111,9 +113,10 @@ class ArraySpec:
 
 class CovSpec(ArraySpec):
     """Covariance matrices of size n: in Python float32 upper triangles, shape (k,) or (N, k) with
-    k = n (n + 1) / 2; on the wire each matrix is n standard deviations (float16, m or rad) then the
-    n (n - 1) / 2 correlation coefficients of its strict upper triangle, row-major, as int8 (steps
-    of 1/127) or int16 (steps of 1/32767); the type's most negative value is invalid. The ETSI
+    k = n (n + 1) / 2, each positive definite (checked on validation, one batched Cholesky); on the
+    wire each matrix is n standard deviations (float16, m or rad) then the n (n - 1) / 2 correlation
+    coefficients of its strict upper triangle, row-major, as int8 (steps of 1/127) or int16 (steps
+    of 1/32767); the type's most negative value is invalid. The ETSI
     Collective Perception Message's habit: 2n + n(n-1)/2 (int8) or 2n + n(n-1) (int16) bytes per
     matrix instead of 4k. Strongly correlated matrices (a pose: yaw with lateral position, pitch
     with height) want int16; int8 distorts their small eigenvalues.
@@ -134,11 +137,17 @@ class CovSpec(ArraySpec):
             raise ValueError(f"correlations are signed integers, got {corr}")
         self.q = float(np.iinfo(self.corr).max)
         self.row_bytes = 2 * n + self.corr.itemsize * n * (n - 1) // 2
-        self._iu = np.triu_indices(n, 1)
+        self._iu = _triu(n, 1)
+        self._row = np.dtype([("sigma", "<f2", (n,)), ("rho", self.corr, (n * (n - 1) // 2,))])  # one matrix
+        # Upper triangle (diagonal included) element -> column of [1, rho_01, rho_02, ...]: 0 on the diagonal
+        strict = {ij: 1 + c for c, ij in enumerate(zip(*self._iu, strict=True))}
+        self._rho_col = np.array([strict.get(ij, 0) for ij in zip(*_triu(n), strict=True)])
 
     def _validate(self, value: Any) -> np.ndarray:
         if not isinstance(value, bytes | bytearray | memoryview):
-            return super()._validate(value)
+            arr = super()._validate(value)
+            _require_pd(arr)
+            return arr
         raw = bytes(value)
         if len(raw) % self.row_bytes or (self.shape[0] is not None and len(raw) != self.row_bytes):
             raise PydanticCustomError(
@@ -146,20 +155,27 @@ class CovSpec(ArraySpec):
                 "{n} bytes are not whole covariances of {rb} bytes each",
                 {"n": len(raw), "rb": self.row_bytes},
             )
-        buf = np.frombuffer(raw, dtype=np.uint8).reshape(-1, self.row_bytes)
-        sigma = buf[:, : 2 * self.n].copy().view("<f2").astype(np.float64)
-        rho_q = buf[:, 2 * self.n :].copy().view(self.corr).astype(np.float64)
-        if not np.all(np.isfinite(sigma)):
+        rows = np.frombuffer(raw, dtype=self._row)
+        sigma = rows["sigma"].astype(np.float64)
+        rho_q = rows["rho"].astype(np.float64)
+        if not np.isfinite(sigma).all():
             raise PydanticCustomError("array_finite", "array holds NaN or infinite values", {})
-        if np.any(sigma <= 0):
+        if (sigma <= 0).any():
             raise PydanticCustomError("covariance", "not positive definite: a standard deviation <= 0", {})
-        if np.any(rho_q < -self.q):
+        if (rho_q < -self.q).any():
             raise PydanticCustomError("array_range", "correlation code {c} is not used", {"c": -self.q - 1})
-        rho = np.broadcast_to(np.eye(self.n), (len(buf), self.n, self.n)).copy()
-        rho[:, self._iu[0], self._iu[1]] = rho_q / self.q
-        rho[:, self._iu[1], self._iu[0]] = rho_q / self.q
-        cov = cov_to_upper(sigma[:, :, None] * rho * sigma[:, None, :])
-        return super()._validate(cov if self.shape[0] is None else cov[0])
+        # Straight to the upper triangle: C_ij = sigma_i rho_ij sigma_j (rho_ii = 1), no full matrices.
+        # Finite by construction: |sigma| <= 65504 (float16), |rho| <= 1, so |C_ij| < 4.3e9 fits float32.
+        rho = np.empty((len(rows), 1 + rho_q.shape[1]))
+        rho[:, 0] = 1.0
+        rho[:, 1:] = rho_q / self.q
+        i, j = _triu(self.n)
+        cov = (sigma[:, i] * rho[:, self._rho_col] * sigma[:, j]).astype(self.dtype)
+        if self.shape[0] is not None:
+            cov = cov[0]
+        _require_pd(cov)
+        cov.setflags(write=False)
+        return cov
 
     def _serialize(self, arr: np.ndarray) -> bytes:
         C = cov_from_upper(np.asarray(arr, dtype=np.float64).reshape(-1, self.k))
@@ -183,7 +199,8 @@ class CovSpec(ArraySpec):
 
     def _pd(self, sigma: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Per matrix: positive definite after decoding (sigmas > 0, correlation matrix Cholesky-able)."""
-        rho = np.broadcast_to(np.eye(self.n), (len(q), self.n, self.n)).copy()
+        rho = np.zeros((len(q), self.n, self.n))
+        rho[:, np.arange(self.n), np.arange(self.n)] = 1.0
         rho[:, self._iu[0], self._iu[1]] = rho[:, self._iu[1], self._iu[0]] = q / self.q
         ok = np.all(sigma > 0, axis=1)
         try:
@@ -231,23 +248,50 @@ def U32(*shape: int | None) -> Any:
     return Annotated[np.ndarray, ArraySpec("uint32", shape)]
 
 
+@cache
+def _triu(n: int, k: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, k)``, computed once (it is slow next to the small arrays it indexes)."""
+    iu = np.triu_indices(n, k)
+    for a in iu:
+        a.setflags(write=False)
+    return iu
+
+
+@cache
+def _tri_size(k: int) -> int:
+    """n such that k = n (n + 1) / 2; ValueError if there is none."""
+    n = int(round((np.sqrt(8 * k + 1) - 1) / 2))
+    if n * (n + 1) // 2 != k:
+        raise ValueError(f"{k} values are not the upper triangle of a square matrix")
+    return n
+
+
+def _require_pd(upper: np.ndarray) -> None:
+    """A "not positive definite" validation error unless every matrix (upper triangles (..., k)) is.
+
+    One batched Cholesky factorisation over all matrices, in float64 of the stored values.
+    """
+    if upper.size == 0:
+        return
+    try:
+        np.linalg.cholesky(cov_from_upper(upper))
+    except np.linalg.LinAlgError:
+        raise PydanticCustomError("covariance", "not positive definite", {}) from None
+
+
 def cov_to_upper(cov: np.ndarray) -> np.ndarray:
     """Row-major upper triangle (diagonal included) of square matrices (..., n, n)."""
     cov = np.asarray(cov)
-    n = cov.shape[-1]
-    iu = np.triu_indices(n)
+    iu = _triu(cov.shape[-1])
     return cov[..., iu[0], iu[1]]
 
 
 def cov_from_upper(upper: np.ndarray) -> np.ndarray:
     """Inverse of :func:`cov_to_upper`: symmetric matrices from their upper triangles (..., k)."""
     upper = np.asarray(upper, dtype=float)
-    k = upper.shape[-1]
-    n = int(round((np.sqrt(8 * k + 1) - 1) / 2))
-    if n * (n + 1) // 2 != k:
-        raise ValueError(f"{k} values are not the upper triangle of a square matrix")
-    iu = np.triu_indices(n)
-    out = np.zeros(upper.shape[:-1] + (n, n))
+    n = _tri_size(upper.shape[-1])
+    iu = _triu(n)
+    out = np.empty(upper.shape[:-1] + (n, n))
     out[..., iu[0], iu[1]] = upper
     out[..., iu[1], iu[0]] = upper
     return out

@@ -1,7 +1,8 @@
 """Export the wire contract as JSON Schema files (``schemas/json/``), for readers without our code.
 
 One file per message model, ``<snake_case_name>.json`` (pydantic's serialization-mode JSON Schema;
-array fields carry ``x-dtype`` and ``x-shape`` from :mod:`schemas.arrays`), plus ``topics.json``
+every property carries its wire tag as ``x-tag`` (:mod:`schemas.tags`), array fields ``x-dtype`` and
+``x-shape`` from :mod:`schemas.arrays`), plus ``topics.json``
 describing the topic registry. Output is deterministic (sorted keys, indent 2, trailing newline)
 so that a test can check the committed files are current: :func:`stale` lists the files that
 :func:`export` would change. Regenerate with ``mapc schemas export`` or ``python -m schemas.export``.
@@ -18,6 +19,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from .models import SCHEMA_VERSION
+from .tags import TAGS
 from .topics import TOPICS
 
 __all__ = ["DEFAULT_DIR", "MODELS", "export", "render", "schema_filename", "stale"]
@@ -28,9 +30,10 @@ DEFAULT_DIR = Path(__file__).parent / "json"
 MODELS: tuple[type[BaseModel], ...] = tuple(dict.fromkeys(t.model for t in TOPICS if t.model is not None))
 
 _WIRE_NOTE = (
-    "Wire format: a msgpack map keyed by field name; absent optional fields mean null/default; "
-    "fields marked format=binary (and bytes fields) travel as msgpack bin, arrays little-endian row-major "
-    "with x-dtype and x-shape. Readers ignore unknown fields. See schemas/README.md."
+    "Wire format: a msgpack map keyed by each property's integer x-tag, not its name (nested parts too); "
+    "absent optional fields mean null/default; fields marked format=binary (and bytes fields) travel as "
+    "msgpack bin, arrays little-endian row-major with x-dtype and x-shape. Readers ignore unknown tags. "
+    "See schemas/README.md."
 )
 
 
@@ -61,9 +64,17 @@ def _wire_annotations(node: Any) -> None:
             _wire_annotations(value)
 
 
+def _tag_properties(schema: dict[str, Any]) -> None:
+    """``x-tag`` (the wire key) on every property of the model and of its nested parts (``$defs``)."""
+    for node in [schema, *schema.get("$defs", {}).values()]:
+        for name, prop in node.get("properties", {}).items():
+            prop["x-tag"] = TAGS[name]
+
+
 def _model_schema(model: type[BaseModel]) -> dict[str, Any]:
     schema = model.model_json_schema(mode="serialization")
     _wire_annotations(schema)
+    _tag_properties(schema)
     schema["$comment"] = _WIRE_NOTE
     schema["x-schema-version"] = SCHEMA_VERSION
     return schema

@@ -7,8 +7,11 @@ R_map_body = Rz(yaw) Ry(pitch) Rx(roll); pose covariances are over those six num
 Covariances travel as the row-major upper triangle of the symmetric matrix (21 values for 6x6,
 6 values for 3x3: xx, xy, xz, yy, yz, zz).
 
+On the wire (schemas.codec) every field travels under its integer tag from schemas/tags.py, not
+its name: a new field needs a new tag there.
+
 Evolution rule: add optional fields only (with a default), never change a field's meaning or
-units; readers ignore fields they do not know. A breaking change bumps SCHEMA_VERSION.
+units; readers ignore fields (tags) they do not know. A breaking change bumps SCHEMA_VERSION.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ __all__ = [
     "VehiclePrior",
 ]
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3  # 2: compact V2X covariances; 3: fields keyed by integer tag (schemas/tags.py)
 
 # Limits that keep a hostile payload from allocating without bound.
 MAX_OBJECTS = 1024
@@ -70,9 +73,8 @@ def _check_pd(name: str, upper: np.ndarray) -> None:
     """Raise ValueError unless every matrix given by its upper triangle is positive definite."""
     if upper.size == 0:
         return
-    mats = cov_from_upper(upper.astype(np.float64))
     try:
-        np.linalg.cholesky(mats)
+        np.linalg.cholesky(cov_from_upper(upper))  # one batched factorisation, float64
     except np.linalg.LinAlgError:
         raise ValueError(f"{name} is not positive definite") from None
 
@@ -143,8 +145,7 @@ class ObjectObservations(_Model):
             raise ValueError(f"{n} objects exceed the limit of {MAX_OBJECTS}")
         if len(self.cov) != n or len(self.cls) != n:
             raise ValueError(f"objects: {n} positions but {len(self.cov)} covariances and {len(self.cls)} classes")
-        _check_pd("object covariance", self.cov)
-        return self
+        return self  # cov is positive definite: checked by its type (Cov, schemas.arrays.CovSpec)
 
     def __len__(self) -> int:
         return len(self.p_body_cm)
@@ -234,11 +235,7 @@ class VehiclePrior(Envelope):
     v_map: F32(3) = Field(description="body velocity in the map frame (m/s)")
     quality: LocalizationQuality
     objects: ObjectObservations = Field(default_factory=ObjectObservations)
-
-    @model_validator(mode="after")
-    def _pd(self):
-        _check_pd("pose covariance", self.pose_cov)
-        return self
+    # pose_cov is positive definite: checked by its type (Cov, schemas.arrays.CovSpec)
 
 
 class FusedState(Envelope):

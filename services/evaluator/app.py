@@ -15,10 +15,10 @@ import queue
 import time
 from pathlib import Path
 
-import msgpack
 from pydantic import Field
 
 from schemas import FusedState, GroundTruth, encode
+from schemas.codec import peek
 from schemas.topics import topic
 
 from ..channel.app import parse_receivers
@@ -61,10 +61,7 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
 
 
 def _seq(payload: bytes) -> int | None:
-    try:
-        seq = msgpack.unpackb(payload, raw=False).get("seq")
-    except Exception:  # not our message: counted as bytes, not as a delivery
-        return None
+    seq = peek(payload).get("seq")  # peek gives {} for what is not our message: bytes, not a delivery
     return seq if isinstance(seq, int) else None
 
 

@@ -51,12 +51,9 @@ def _stats(core) -> dict:
         return {"stats_error": str(e)}
 
 
-def _envelope(msgpack, payload: bytes) -> tuple[str, float] | None:
-    """(sender, t_meas) of an accepted payload, for the frame gate."""
-    try:
-        obj = msgpack.unpackb(payload, raw=False)
-    except Exception:  # the container has accepted it; this is only for choosing the solve time
-        return None
+def _envelope(peek, payload: bytes) -> tuple[str, float] | None:
+    """(sender, t_meas) of an accepted payload, for the frame gate (``peek``: schemas.codec.peek)."""
+    obj = peek(payload)  # the container has accepted it; this is only for choosing the solve time
     sender, t = obj.get("sender"), obj.get("t_meas")
     return (sender, float(t)) if isinstance(sender, str) and isinstance(t, int | float) else None
 
@@ -130,9 +127,7 @@ class FrameGate:
 
 def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) -> None:
     """Run until ("stop",) arrives or the parent process is gone."""
-    import msgpack
-
-    from schemas import encode
+    from schemas.codec import encode, peek
 
     try:
         core = make_core(spec)
@@ -164,7 +159,7 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
             r = core.ingest(item[1], item[2])
             accepted = bool(getattr(r, "accepted", r))
             if accepted:
-                head = _envelope(msgpack, item[1])
+                head = _envelope(peek, item[1])
                 if head is not None:
                     gate.arrived(head[0], head[1], time.monotonic())
             results.append((accepted, getattr(r, "reason", None), time.perf_counter() - t0))

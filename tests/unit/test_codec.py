@@ -1,4 +1,4 @@
-"""The msgpack codec: round trips for every message, rejections with their reason, evolution rule."""
+"""The msgpack codec: field tags, round trips for every message, rejections with their reason, evolution rule."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from schemas import (
     REASONS,
     SCHEMA_VERSION,
     CameraInfo,
+    EvalMetrics,
     FusedState,
     GnssFix,
     GroundTruth,
@@ -34,8 +35,9 @@ from schemas import (
     encode,
 )
 from schemas.arrays import CovSpec, cov_from_upper, cov_to_upper
-from schemas.codec import MAX_MESSAGE_BYTES
+from schemas.codec import MAX_MESSAGE_BYTES, peek, tag_map, untag_map
 from schemas.models import MAX_LANDMARKS, MAX_MASK_BYTES
+from schemas.tags import NAMES, TAGS, check_table
 
 README = Path(__file__).resolve().parents[2] / "schemas" / "README.md"
 
@@ -166,6 +168,25 @@ def health(full: bool) -> HealthStatus:
     )
 
 
+def eval_metrics(full: bool) -> EvalMetrics:
+    if not full:
+        return EvalMetrics(**envelope("evaluator"), t_wall=1.7e9, window_s=5.0)
+    return EvalMetrics(
+        **envelope("evaluator"),
+        t_wall=1.7e9,
+        window_s=5.0,
+        fused_per_s=9.8,
+        evaluated=120,
+        vehicle_rmse_m=0.12,
+        object_rmse_m=0.31,
+        e2e_latency_ms_p50=42.0,
+        tx_bytes_per_s={"veh-1": 1900.0, "veh-2": 2100.0},
+        tx_msgs_per_s={"veh-1": 10.0},
+        tx_bytes_per_msg={"veh-1": 190.0},
+        delivered_fraction=0.97,
+    )
+
+
 CASES = {
     "sensor_frame_full": lambda: observations(SensorFrame, True),
     "sensor_frame_min": lambda: observations(SensorFrame, False),
@@ -179,7 +200,15 @@ CASES = {
     "ground_truth_min": lambda: ground_truth(False),
     "health_full": lambda: health(True),
     "health_min": lambda: health(False),
+    "eval_metrics_full": lambda: eval_metrics(True),
+    "eval_metrics_min": lambda: eval_metrics(False),
 }
+
+# Every wire model: the messages and the parts nested in them.
+WIRE_MODELS = [
+    SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus, EvalMetrics,
+    CameraInfo, GnssFix, Odometry, ObjectObservations, LocalizationQuality,
+]  # fmt: skip
 
 
 def assert_same(a: Any, b: Any, where: str = "msg") -> None:
@@ -215,12 +244,85 @@ def assert_cov_close(a: np.ndarray, b: np.ndarray, where: str) -> None:
     assert np.all(np.abs(A - B) <= 0.01 * s[:, :, None] * s[:, None, :] + 1e-12), f"{where}: values differ"
 
 
+def tagged(msg: BaseModel) -> dict[int, Any]:
+    """The encoded msgpack map as it is on the wire: keyed by integer tag."""
+    return msgpack.unpackb(encode(msg), raw=False, strict_map_key=False)
+
+
 def as_map(msg: BaseModel) -> dict[str, Any]:
-    return msgpack.unpackb(encode(msg), raw=False)
+    """The encoded msgpack map with tags turned back into names (nested parts too), for reading."""
+    return untag_map(type(msg), tagged(msg))
 
 
 def pack(obj: Any) -> bytes:
     return msgpack.packb(obj, use_bin_type=True)
+
+
+# ------------------------------------------------------------------------------ field tags
+
+
+def test_tags_are_unique_small_ints_appended_in_order() -> None:
+    assert check_table(TAGS) == NAMES
+    assert len(set(TAGS.values())) == len(TAGS)
+    # Append-only: the table is dense and in tag order, so a new field can only go at the end.
+    assert list(TAGS.values()) == list(range(len(TAGS)))
+    assert max(TAGS.values()) <= 127, "past 127 a tag costs 2 bytes (msgpack uint8): fine, but on purpose"
+    with pytest.raises(ValueError, match="used by both"):
+        check_table({"a": 0, "b": 0})
+    with pytest.raises(ValueError, match="non-negative"):
+        check_table({"a": -1})
+
+
+@pytest.mark.parametrize("model", WIRE_MODELS, ids=lambda m: m.__name__)
+def test_every_field_of_every_wire_model_has_a_tag(model: type[BaseModel]) -> None:
+    missing = [name for name in model.model_fields if name not in TAGS]
+    assert not missing, f"{model.__name__}: no tag for {missing}: add them at the end of schemas/tags.py"
+
+
+def test_every_tag_names_a_field_of_some_wire_model() -> None:
+    used = {name for m in WIRE_MODELS for name in m.model_fields}
+    assert set(TAGS) == used, f"tags without a field: {sorted(set(TAGS) - used)}"
+
+
+def test_tags_are_stable() -> None:
+    """A few tags pinned: renumbering any tag is a breaking wire change (see schemas/tags.py)."""
+    pinned = {"schema_version": 0, "seq": 3, "t_meas": 4, "pose": 6, "pose_cov": 7, "objects": 10, "cov": 17}
+    assert {k: TAGS[k] for k in pinned} == pinned
+    msg = vehicle_prior(False)
+    assert encode(msg)[:3] == bytes([0x80 | 11, 0, SCHEMA_VERSION])  # fixmap of 11 fields, tag 0 = version
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_wire_map_is_keyed_by_tag_at_every_level(case: str) -> None:
+    msg = CASES[case]()
+
+    def check(obj: BaseModel, node: dict) -> None:
+        for key, value in node.items():
+            assert type(key) is int, f"{type(obj).__name__}: key {key!r}"
+            assert NAMES.get(key) in type(obj).model_fields, f"{type(obj).__name__} has no field with tag {key}"
+            inner = getattr(obj, NAMES[key])
+            if isinstance(inner, BaseModel):
+                check(inner, value)
+
+    check(msg, tagged(msg))
+    assert b"\xaet_meas" not in encode(msg)  # the name (fixstr of 6) is nowhere on the wire
+
+
+def test_tag_map_and_untag_map_are_inverse() -> None:
+    msg = observations(RawObservations, True)
+    fields = msg.model_dump(mode="python", exclude_none=True)
+    assert untag_map(RawObservations, tag_map(RawObservations, fields)) == fields
+    assert set(tag_map(RawObservations, fields)[TAGS["gnss"]]) == {TAGS["p_map"], TAGS["sigma_h_m"], TAGS["sigma_v_m"]}
+    with pytest.raises(KeyError):
+        tag_map(RawObservations, {"no_such_field": 1})
+
+
+def test_peek_reads_the_envelope_by_name() -> None:
+    msg = vehicle_prior(True)
+    head = peek(encode(msg))
+    assert (head["sender"], head["seq"], head["t_meas"]) == (msg.sender, msg.seq, msg.t_meas)
+    assert head["schema_version"] == SCHEMA_VERSION
+    assert peek(b"\xc1 not msgpack") == {} and peek(pack([1, 2])) == {} and peek("text") == {}  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------ round trips
@@ -315,7 +417,8 @@ def assert_rejected(data: Any, model: type[BaseModel], reason: str) -> Rejection
 
 
 def with_changes(msg: BaseModel, *path_and_value: tuple[tuple[str, ...], Any]) -> bytes:
-    """Encoded ``msg`` with the msgpack map changed at the given key paths (value ``...`` deletes)."""
+    """Encoded ``msg`` with the msgpack map changed at the given field-name paths (value ``...`` deletes),
+    re-keyed by tag."""
     raw = as_map(msg)
     for path, value in path_and_value:
         node = raw
@@ -325,7 +428,7 @@ def with_changes(msg: BaseModel, *path_and_value: tuple[tuple[str, ...], Any]) -
             del node[path[-1]]
         else:
             node[path[-1]] = value
-    return pack(raw)
+    return pack(tag_map(type(msg), raw))
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -351,12 +454,34 @@ def test_non_map_top_level_is_malformed(top: Any) -> None:
     assert_rejected(pack(top), FusedState, "malformed")
 
 
+@pytest.mark.parametrize("case", ["vehicle_prior_full", "raw_observations_full", "fused_state_full"])
+@pytest.mark.parametrize("version", [2, SCHEMA_VERSION])
+def test_payload_keyed_by_names_is_rejected(case: str, version: int) -> None:
+    """A schema_version 2 writer keyed its maps by field name: rejected, with a detail that says so."""
+    msg = CASES[case]()
+    old = msg.model_dump(mode="python", exclude_none=True) | {"schema_version": version}
+    out = assert_rejected(pack(old), type(msg), "malformed")
+    assert "field name" in out.detail and "tag" in out.detail, out.detail
+
+
 def test_not_bytes_is_malformed() -> None:
     assert_rejected("not bytes", FusedState, "malformed")  # type: ignore[arg-type]
 
 
-def test_map_with_non_string_keys_is_malformed() -> None:
-    assert_rejected(pack({1: 2, "schema_version": 1}), FusedState, "malformed")
+@pytest.mark.parametrize("key", ["fleet", "future", b"\x01", 1.5, None])
+def test_map_with_non_int_keys_is_malformed(key: Any) -> None:
+    raw = tagged(fused_state(True))
+    raw[key] = 1
+    out = assert_rejected(pack(raw), FusedState, "malformed")
+    assert "integer" in out.detail
+    raw = tagged(vehicle_prior(True))
+    raw[TAGS["quality"]][key] = 1  # in a nested part too
+    out = assert_rejected(pack(raw), VehiclePrior, "malformed")
+    assert "quality" in out.detail and "integer" in out.detail
+
+
+def test_bool_map_key_is_malformed() -> None:  # msgpack true is not the tag 1, though True == 1 in Python
+    assert_rejected(pack({0: SCHEMA_VERSION, True: "f"}), FusedState, "malformed")
 
 
 @pytest.mark.parametrize("version", [0, 1, SCHEMA_VERSION + 1, -1, "2", 2.0, True, None, [2], ...])
@@ -468,14 +593,16 @@ def test_oversize_payloads() -> None:
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_reader_ignores_unknown_fields(case: str) -> None:
-    """Evolution rule: a newer writer adds optional fields; this reader decodes and ignores them."""
+def test_reader_ignores_unknown_tags(case: str) -> None:
+    """Evolution rule: a newer writer adds optional fields under new tags; this reader ignores them."""
     msg = CASES[case]()
-    raw = as_map(msg)
-    raw["future_field"] = {"nested": [1, 2, 3], "blob": b"\x00\x01"}
-    raw["future_array"] = np.arange(4, dtype="<f4").tobytes()
-    if "objects" in raw:
-        raw["objects"]["future_extent_cm"] = b"\x00" * 6
+    raw = tagged(msg)
+    future = max(NAMES) + 1
+    raw[future] = {"nested": [1, 2, 3], 5: b"\x00\x01"}  # whatever a future field holds, keys included
+    raw[future + 1] = np.arange(4, dtype="<f4").tobytes()
+    raw[1000] = "a tag beyond one byte"
+    if TAGS["objects"] in raw:
+        raw[TAGS["objects"]][future + 2] = b"\x00" * 6
     back = decode(pack(raw), type(msg))
     assert not isinstance(back, Rejection), back
     assert_same(msg, back)
@@ -500,9 +627,18 @@ import msgpack
 import numpy as np
 
 
+# FusedState's fields by tag (the tag table above, schemas/tags.py)
+FUSED_STATE = {
+    0: "schema_version", 1: "fleet", 2: "sender", 3: "seq", 4: "t_meas", 5: "t_sent",
+    38: "vehicle_ids", 39: "vehicle_pose", 40: "vehicle_pose_cov", 41: "object_id", 42: "object_cls",
+    43: "object_p_map", 44: "object_v_map", 45: "object_cov", 46: "messages_fused",
+}
+
+
 def decode_fused_state(data: bytes) -> dict:
-    msg = msgpack.unpackb(data, raw=False)
-    if msg.get("schema_version") != 2:
+    raw = msgpack.unpackb(data, raw=False, strict_map_key=False)  # a map keyed by integer tag
+    msg = {FUSED_STATE[k]: v for k, v in raw.items() if k in FUSED_STATE}  # unknown tags: ignore
+    if msg.get("schema_version") != 3:
         raise ValueError(f"unsupported schema_version {msg.get('schema_version')!r}")
 
     def arr(name, dtype, cols=None):  # msgpack bin -> little-endian, row-major array
@@ -528,6 +664,21 @@ def decode_fused_state(data: bytes) -> dict:
         "object_cov": full_cov(arr("object_cov", "f4", 6), 3),  # m^2
     }
 """
+
+
+def test_readme_recipe_tags_match_the_table() -> None:
+    namespace: dict[str, Any] = {}
+    exec(RECIPE, namespace)  # noqa: S102 - the README's own code
+    table = namespace["FUSED_STATE"]
+    assert sorted(table.values()) == sorted(FusedState.model_fields)
+    assert all(TAGS[name] == tag for tag, name in table.items())
+
+
+def test_readme_tag_table_is_the_table() -> None:
+    text = README.read_text(encoding="utf-8")
+    for name, tag in TAGS.items():
+        assert f"{tag} `{name}`" in text, f"schemas/README.md lacks tag {tag} of {name}"
+    assert f"({len(TAGS)} next)" in text
 
 
 def test_readme_recipe_is_in_the_readme() -> None:

@@ -11,6 +11,7 @@ from mapcontainer.fusion.bench import _detector_cov
 from mapcontainer.fusion.poses import sym_from_upper, upper_from_sym
 from mapcontainer.metrics import anees_band
 from schemas import FusedState, LocalizationQuality, ObjectObservations, VehiclePrior, decode, encode
+from schemas.codec import tag_map
 
 POSE_COV = np.diag([0.1, 0.1, 0.05, *np.radians([0.3, 0.3, 0.3])]) ** 2
 
@@ -34,14 +35,14 @@ def prior(sender="cv0", seq=0, t=0.0, fleet="f", pose=(0, 0, 0, 0, 0, 0), object
 def tampered(msg, **fields) -> bytes:
     d = msg.model_dump(mode="python", exclude_none=True)
     d.update(fields)
-    return msgpack.packb(d, use_bin_type=True)
+    return msgpack.packb(tag_map(VehiclePrior, d), use_bin_type=True)
 
 
 def test_bad_input_is_rejected_with_reasons_and_the_container_keeps_working():
     box = Container(FusionParams(), "f", "host", known_senders={"cv0", "cv1"})
     good = prior()
     nan_pose = np.array([0, 0, 0, 0, 0, np.nan], "<f4").tobytes()
-    # wire v2: 6 float16 standard deviations, then 15 int16 correlations; rho01 = rho02 = 1, rho12 = -1
+    # compact covariance: 6 float16 standard deviations, then 15 int16 correlations; rho01 = rho02 = 1, rho12 = -1
     rho = np.zeros(15, "<i2")
     rho[[0, 1, 5]] = [32767, 32767, -32767]
     not_pd = np.full(6, 0.1, "<f2").tobytes() + rho.tobytes()

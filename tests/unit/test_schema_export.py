@@ -85,3 +85,19 @@ def test_topics_json_lists_the_registry() -> None:
     }
     alive = next(t for t in doc["topics"] if t["name"] == "alive")
     assert alive["model"] is None and alive["rate_hz"] is None
+
+
+def test_every_property_carries_its_wire_tag() -> None:
+    from schemas.tags import TAGS
+
+    for name, text in render().items():
+        if name == "topics.json":
+            continue
+        schema = json.loads(text)
+        assert "x-tag" in schema["$comment"]
+        for node in [schema, *schema.get("$defs", {}).values()]:
+            for field, prop in node.get("properties", {}).items():
+                assert prop["x-tag"] == TAGS[field], f"{name}: {field}"
+    prior = json.loads(render()["vehicle_prior.json"])
+    assert prior["properties"]["schema_version"]["x-tag"] == 0
+    assert prior["$defs"]["ObjectObservations"]["properties"]["cov"]["x-tag"] == 17
