@@ -26,7 +26,12 @@ treated as white they would make the fallback overconfident).
 
 Start-up (and after :meth:`Localizer.reset`), in this order:
 
-1. ``initial_pose`` (pose and covariance known at start, e.g. the last estimate before parking);
+1. ``initial_pose`` (pose and covariance known at start, e.g. the last estimate before parking),
+   verified: for up to ``verify_start_frames`` frames the global pose search over its own
+   covariance also matches each frame; its accepted solution is taken, and a local match that a
+   distinct search solution beats by the margin is rejected (its basins tracked as hypotheses, as
+   below): a start a few sigma off in yaw otherwise lets the local solve fit a wrong pole exactly,
+   and the tracker never leaves that basin (see ``_verify_start``);
 2. ``initial_yaw`` given to the constructor or to ``reset``, with the GNSS position;
 3. the course over ground (GNSS displacement over ``init_course_distance_m`` aligned with the
    dead-reckoned odometry path);
@@ -175,6 +180,13 @@ class LocalizerParams(BaseModel):
     init_course_distance_m: float = Field(12.0, gt=0, description="GNSS travel that gives a course over ground (m)")
     init_min_speed_mps: float = Field(1.0, ge=0, description="dead reckoning for the course only above this speed")
     max_gap_s: float = Field(5.0, gt=0, description="a longer gap between steps re-initialises")
+    verify_start_frames: int = Field(
+        20,
+        ge=0,
+        description="a known start pose (initial_pose) is verified by the global pose search over its "
+        "covariance, for at most this many frames with features, before local matches are trusted "
+        "(0: trust it at once)",
+    )
 
 
 @dataclass(frozen=True)
@@ -345,6 +357,7 @@ class Localizer:
         self._init_match: MatchResult | None = None
         self._hyps: list[_Hypothesis] = []
         self._last: LocalizationResult | None = None
+        self._verify = 0  # frames left to verify a known start pose by the search (see _verify_start)
 
     @property
     def initialized(self) -> bool:
@@ -396,6 +409,8 @@ class Localizer:
             reason = "no camera frame"
         elif frame.is_empty():
             reason = "no features"
+        elif self._verify > 0:
+            match, reason, y_pred, P_pred = self._verify_start(frame, y_pred, P_pred, dt, odo_prev, odometry)
         else:
             self._hyps = []
             match, reason = self._match(frame, y_pred, P_pred)
@@ -549,6 +564,60 @@ class Localizer:
             return out.match, "", y_pred, P_pred
         self._spawn(y_pred, P_pred, out)
         return None, f"search: {out.reason}", y_pred, P_pred
+
+    def _verify_start(self, frame, y_pred, P_pred, dt: float, odo_a, odo_b):
+        """Match a frame while a known start pose (``initial_pose``) is not yet verified.
+
+        A start pose is a Gaussian prior, but the map-matching cost is multimodal: from a start a few
+        sigma off (a 2.6-sigma yaw puts a pole 40 m ahead 1.8 m sideways) the local solve associates a
+        detection with the wrong landmark, converges on three constraints -- enough for a tracked
+        prediction -- and the tracker, now confident, never sees the true basin again. So until it
+        is verified, every frame is also matched by the global pose search over the prediction's own
+        covariance (3 sigma in position and heading):
+
+        * the search accepts a solution (the strict start-up rules: min_constraints, min_landmarks,
+          margin): it is taken, the start is verified;
+        * a distinct solution of the search beats the local one by the margin: the local one is a
+          wrong basin; the search's basins are tracked as hypotheses (fallback until one wins);
+        * otherwise (too few features to decide): the local match as usual, verification pending.
+
+        After ``verify_start_frames`` frames the local matches are trusted as before.
+        Returns (match or None, reason, y_pred, P_pred) like :meth:`_recover`.
+        """
+        self._verify -= 1
+        if self._hyps:  # basins of an earlier frame: tracked until one wins
+            match, reason, y_pred, P_pred = self._recover(frame, y_pred, P_pred, dt, odo_a, odo_b)
+            if match is not None:
+                self._count("start verified")
+                self._verify = 0
+            elif self._verify == 0:
+                self._hyps = []
+            return match, reason and f"verifying start: {reason}", y_pred, P_pred
+        try:
+            out = self._search(frame, y_pred[:6], P_pred[:6, :6])
+        except ValueError as exc:
+            self._count("frame invalid")
+            return None, f"frame invalid: {exc}", y_pred, P_pred
+        if out.match is not None:
+            self._count("start verified")
+            self._verify = 0
+            self._attempt = out.match
+            return out.match, "", y_pred, P_pred
+        match, reason = self._match(frame, y_pred, P_pred)
+        if match is not None:
+            margin = self.params.search.margin
+            better = [
+                s
+                for s in out.solutions
+                if s.converged
+                and self.search.distinct(s.pose_filtered, match.pose_filtered)
+                and s.score < match.score - margin
+            ]
+            if better:
+                self._count("start rejected")
+                self._spawn(y_pred, P_pred, out)
+                return None, f"verifying start: a distinct solution beats the local one by {margin}", y_pred, P_pred
+        return match, reason, y_pred, P_pred
 
     def _wide(self, Pxx) -> bool:
         """The prediction is too uncertain for one local solve."""
@@ -756,6 +825,7 @@ class Localizer:
             self.P[:6, :] = self.P[:, :6] = 0.0
             self.P[:6, :6] = cov0
             self._initial_pose = None  # used once: a later reset starts from GNSS
+            self._verify = p.verify_start_frames
             return True
         if self._initial_yaw is not None:
             self._init_state(gnss, self._initial_yaw, p.init_yaw_sigma_rad)
