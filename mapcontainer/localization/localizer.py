@@ -187,6 +187,12 @@ class LocalizerParams(BaseModel):
         "covariance, for at most this many frames with features, before local matches are trusted "
         "(0: trust it at once)",
     )
+    verify_agree_frames: int = Field(
+        3,
+        ge=1,
+        description="... or until in this many frames the local match lay in the basin of the search's best "
+        "solution (the search could not accept it alone: too few features for its start-up rules)",
+    )
 
 
 @dataclass(frozen=True)
@@ -358,6 +364,7 @@ class Localizer:
         self._hyps: list[_Hypothesis] = []
         self._last: LocalizationResult | None = None
         self._verify = 0  # frames left to verify a known start pose by the search (see _verify_start)
+        self._agree = 0  # frames in which the local match was the search's best basin (see _verify_start)
 
     @property
     def initialized(self) -> bool:
@@ -579,7 +586,9 @@ class Localizer:
           margin): it is taken, the start is verified;
         * a distinct solution of the search beats the local one by the margin: the local one is a
           wrong basin; the search's basins are tracked as hypotheses (fallback until one wins);
-        * otherwise (too few features to decide): the local match as usual, verification pending.
+        * otherwise (too few features for the search to decide alone): the local match as usual; when it
+          lies in the basin of the search's best converged solution in ``verify_agree_frames`` frames,
+          the start is verified (the search found nothing better over the whole 3-sigma region).
 
         After ``verify_start_frames`` frames the local matches are trusted as before.
         Returns (match or None, reason, y_pred, P_pred) like :meth:`_recover`.
@@ -617,6 +626,12 @@ class Localizer:
                 self._count("start rejected")
                 self._spawn(y_pred, P_pred, out)
                 return None, f"verifying start: a distinct solution beats the local one by {margin}", y_pred, P_pred
+            best = next((s for s in out.solutions if s.converged), None)
+            if best is not None and not self.search.distinct(best.pose_filtered, match.pose_filtered):
+                self._agree += 1
+                if self._agree >= self.params.verify_agree_frames:
+                    self._count("start verified")
+                    self._verify = 0
         return match, reason, y_pred, P_pred
 
     def _wide(self, Pxx) -> bool:
@@ -825,7 +840,7 @@ class Localizer:
             self.P[:6, :] = self.P[:, :6] = 0.0
             self.P[:6, :6] = cov0
             self._initial_pose = None  # used once: a later reset starts from GNSS
-            self._verify = p.verify_start_frames
+            self._verify, self._agree = p.verify_start_frames, 0
             return True
         if self._initial_yaw is not None:
             self._init_state(gnss, self._initial_yaw, p.init_yaw_sigma_rad)
