@@ -97,6 +97,12 @@ class MatcherParams(BaseModel):
     sigma_roll_pitch_rad: float = Field(0.01, gt=0, description="r_n: 1/lambda_n on roll and pitch (rad)")
     sigma_height_m: float = Field(0.05, gt=0, description="r_n: 1/lambda_n on the camera height (m)")
     nominal_roll_pitch_rad: tuple[float, float] = Field((0.0, 0.0), description="roll, pitch of the body at rest")
+    attitude_restart_rad: float = Field(
+        0.005,
+        gt=0,
+        description="a prediction whose roll or pitch is farther than this from nominal is also solved from the "
+        "nominal attitude; the better score wins (pitch has local minima)",
+    )
     body_height_m: float = Field(0.0, description="body origin above the road; H = this + camera z in the body (m)")
     gnss_lever_arm_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="GNSS antenna in the body (m)")
     prior_inflation: float = Field(
@@ -387,7 +393,19 @@ class MapMatcher:
         that are not finite are dropped.
         """
         fd = self.prepare(frame, pose_init, cov_init, gnss)
-        return self.solve_from(fd, fd.x_prior, _safe_inv(fd.I_prior))
+        P = _safe_inv(fd.I_prior)
+        best = self.solve_from(fd, fd.x_prior, P)
+        nominal = np.asarray(self.params.nominal_roll_pitch_rad, dtype=float)
+        if np.any(np.abs(fd.x_prior[3:5] - nominal) > self.params.attitude_restart_rad):
+            # The camera cost has local minima in pitch: a tracked pitch a degree off fits the lanes and
+            # the landmarks' heights with a few px everywhere and a solve from it stays there. Also
+            # solve from the r_n prior's centre; the better score wins.
+            x = fd.x_prior.copy()
+            x[3:5] = nominal
+            alt = self.solve_from(fd, x, P)
+            if alt.score < best.score:
+                best = replace(alt, iterations=alt.iterations + best.iterations)
+        return best
 
     def solve_from(self, fd: FrameData, x, P) -> MatchResult:
         """The best solution from start pose x with association covariance P (the prior stays fd's).

@@ -20,13 +20,17 @@ VID = "cv1"
 FRAMES = 20  # 2 s at 10 Hz
 
 
-def _drive(offset_sigmas, *, seed=1, verify_start_frames=None):
+def _drive(offset_sigmas, *, seed=1, verify_start_frames=None, attitude_restart_rad=None):
     """Horizontal errors (m) and modes of VID's filtered pose, started from truth + offset_sigmas * sigma."""
     world = World(load_scenario("blindspot-occluded"), seed=seed)
     truth0 = np.asarray(world.states(0.0)[VID].pose, dtype=float)
     start = truth0 + np.asarray(offset_sigmas, dtype=float) * WARM_START_SIGMA
     kw = {} if verify_start_frames is None else {"verify_start_frames": verify_start_frames}
-    loc = Localizer(world.hdmap, LocalizerParams(**kw), initial_pose=(start, np.diag(WARM_START_SIGMA**2)))
+    params = LocalizerParams(**kw)
+    if attitude_restart_rad is not None:
+        matcher = params.matcher.model_copy(update={"attitude_restart_rad": attitude_restart_rad})
+        params = params.model_copy(update={"matcher": matcher})
+    loc = Localizer(world.hdmap, params, initial_pose=(start, np.diag(WARM_START_SIGMA**2)))
     errs, modes = [], []
     for tick in world.run(FRAMES * 0.1):
         obs = tick.frames[VID]
@@ -41,10 +45,15 @@ def _drive(offset_sigmas, *, seed=1, verify_start_frames=None):
 OFF_3SIGMA_YAW = [0.0, 0.0, 1.0, 1.0, -1.0, 3.0]
 
 
-def test_warm_start_three_sigma_yaw_is_trap_without_verification():
-    """The case is a real trap: trusting the start, the local solve locks onto a wrong pole for good."""
-    errs, _, _ = _drive(OFF_3SIGMA_YAW, verify_start_frames=0)
+def test_warm_start_three_sigma_yaw_is_trap_without_the_safeguards():
+    """The case is a real trap: trusting the start (no verification) and solving only from the tracked
+    attitude (no restart from the nominal one), the local solve locks onto a wrong pole for good; either
+    safeguard alone gets out of it."""
+    errs, _, _ = _drive(OFF_3SIGMA_YAW, verify_start_frames=0, attitude_restart_rad=1.0)
     assert errs[-5:].min() > 0.5, errs
+    for kw in ({"verify_start_frames": 0}, {"attitude_restart_rad": 1.0}):
+        errs, _, _ = _drive(OFF_3SIGMA_YAW, **kw)
+        assert np.sqrt(np.mean(errs[5:] ** 2)) < 0.25, (kw, errs)
 
 
 @pytest.mark.parametrize("offset", [OFF_3SIGMA_YAW, [0.0, 0.0, 0.0, 0.0, 0.0, -3.0]])
