@@ -42,6 +42,7 @@ from schemas import ObjectClass
 
 from .. import geometry as geo
 from .buffer import time_key
+from .motion import accel_psd, cv_predict, speed_prior
 from .params import FusionParams
 
 __all__ = [
@@ -108,40 +109,6 @@ def _quad_inv3(S: np.ndarray, d: np.ndarray) -> np.ndarray:
 def classes_compatible(a: int, b: int) -> bool:
     """Same class, or one of them unknown."""
     return a == b or a == ObjectClass.UNKNOWN or b == ObjectClass.UNKNOWN
-
-
-def _psd(params: FusionParams, cls: int) -> np.ndarray:
-    horiz = (
-        params.accel_psd_pedestrian
-        if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST)
-        else params.accel_psd_vehicle
-    )
-    return np.array([horiz, horiz, params.accel_psd_vertical])
-
-
-def speed_prior(params: FusionParams, cls: int) -> float:
-    """Sigma of the zero-mean velocity prior of a new track of class ``cls`` (m/s)."""
-    if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST):
-        return params.speed_prior_pedestrian_mps
-    return params.speed_prior_vehicle_mps
-
-
-def cv_predict(x, P, dt: float, q_psd) -> tuple[np.ndarray, np.ndarray]:
-    """Constant-velocity prediction of state [p, v] by dt (may be negative) with WNOA PSD q per axis.
-
-    x' = F x, P' = F P F^T + Q(|dt|), F = [[I, dt I], [0, I]],
-    Q = [[q |dt|^3 / 3, q dt |dt| / 2], [q dt |dt| / 2, q |dt|]] per axis.
-    """
-    q = np.asarray(q_psd, dtype=float)
-    F = np.eye(6)
-    F[:3, 3:] = dt * np.eye(3)
-    a = abs(dt)
-    Q = np.zeros((6, 6))
-    i = np.arange(3)
-    Q[i, i] = q * a**3 / 3
-    Q[i, i + 3] = Q[i + 3, i] = q * dt * a / 2
-    Q[i + 3, i + 3] = q * a
-    return F @ x, F @ P @ F.T + Q
 
 
 @dataclass(frozen=True)
@@ -240,23 +207,14 @@ class Tracker:
         return None if uid is None else self.tracks.get(uid)
 
     def predict(self, tr: Track, t: float) -> tuple[np.ndarray, np.ndarray]:
-        return cv_predict(tr.x, tr.P, t - tr.t, _psd(self.params, tr.cls))
+        return cv_predict(tr.x, tr.P, t - tr.t, accel_psd(self.params, tr.cls))
 
     def predict_states(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
         """:func:`cv_predict` of many tracks to time t at once: states (K, 6), covariances (K, 6, 6)."""
         x = np.array([tr.x for tr in tracks])
         P = np.array([tr.P for tr in tracks])
         dt = np.array([t - tr.t for tr in tracks])
-        q = np.array([_psd(self.params, tr.cls) for tr in tracks])
-        F = np.tile(np.eye(6), (len(tracks), 1, 1))
-        F[:, :3, 3:] = dt[:, None, None] * np.eye(3)
-        a = np.abs(dt)[:, None]
-        Q = np.zeros_like(P)
-        idx = np.arange(3)
-        Q[:, idx, idx] = q * a**3 / 3
-        Q[:, idx, idx + 3] = Q[:, idx + 3, idx] = q * (dt[:, None] * a) / 2
-        Q[:, idx + 3, idx + 3] = q * a
-        return np.einsum("kij,kj->ki", F, x), F @ P @ F.transpose(0, 2, 1) + Q
+        return cv_predict(x, P, dt, np.array([accel_psd(self.params, tr.cls) for tr in tracks]))
 
     def predict_positions(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
         """Predicted positions (K, 3) and their covariances (K, 3, 3) of ``tracks`` at time t."""

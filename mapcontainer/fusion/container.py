@@ -26,6 +26,7 @@ from .. import geometry as geo
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer
 from .graph import FusionGraph, SolveReport
+from .motion import accel_psd, cv_predict
 from .params import FusionParams
 from .poses import pose_cov_from_tangent, sym_from_upper, upper_from_sym, vector_from_pose3
 
@@ -282,15 +283,12 @@ class Container:
             ts, p, v, C = g.track_estimate(tid)
             if C is None:
                 C = tr.P
-            dt = t - ts
-            F = np.hstack([np.eye(3), dt * np.eye(3)])
-            q = g._psd(tr.cls)
-            cov = F @ C @ F.T + np.diag(q) * abs(dt) ** 3 / 3.0
+            x, P = cv_predict(np.concatenate([p, v]), C, t - ts, accel_psd(self.params, tr.cls))
             ids.append(tid)
             cls.append(tr.cls)
-            ps.append(p + v * dt)
+            ps.append(x[:3])
             vs.append(v)
-            covs.append(cov)
+            covs.append(P[:3, :3])
         self._seq += 1
         return FusedState(
             fleet=self.fleet,

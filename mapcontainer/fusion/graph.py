@@ -83,6 +83,7 @@ from scipy.linalg import lapack
 from schemas import ObjectClass
 
 from .buffer import time_key
+from .motion import accel_psd, cv_model, speed_prior
 from .params import FusionParams
 from .poses import pose3_from_vector, pose_cov_to_tangent
 
@@ -90,21 +91,6 @@ __all__ = ["FusionGraph", "SolveReport"]
 
 _UNIT3 = gtsam.noiseModel.Unit.Create(3)
 _UNIT6 = gtsam.noiseModel.Unit.Create(6)
-
-
-def _cv_model(dt, q) -> tuple[np.ndarray, np.ndarray]:
-    """Constant velocity over dt with white acceleration noise of spectral density q (3 axes):
-    s_b = F s_a + w, w ~ N(0, Q), s = [p, v], F = [[I, dt I], [0, I]],
-    Q = [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) diag(q). Vectorised: dt (n,), q (n, 3) give (n, 6, 6)."""
-    dt, q = np.asarray(dt, dtype=float), np.asarray(q, dtype=float)
-    F = np.broadcast_to(np.eye(6), (*dt.shape, 6, 6)).copy()
-    i = np.arange(3)
-    F[..., i, i + 3] = dt[..., None]
-    Q = np.zeros((*dt.shape, 6, 6))
-    Q[..., i, i] = q * dt[..., None] ** 3 / 3
-    Q[..., i, i + 3] = Q[..., i + 3, i] = q * dt[..., None] ** 2 / 2
-    Q[..., i + 3, i + 3] = q * dt[..., None]
-    return F, Q
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -375,17 +361,6 @@ class FusionGraph:
         return None if chain is None else chain.nearest(t, tol)
 
     # ------------------------------------------------------------------ tracks
-    def _psd(self, cls: int) -> np.ndarray:
-        p = self.params
-        h = p.accel_psd_pedestrian if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST) else p.accel_psd_vehicle
-        return np.array([h, h, p.accel_psd_vertical])
-
-    def _speed_prior(self, cls: int) -> float:
-        p = self.params
-        if cls in (ObjectClass.PEDESTRIAN, ObjectClass.CYCLIST):
-            return p.speed_prior_pedestrian_mps
-        return p.speed_prior_vehicle_mps
-
     def track_state(self, track_id: int, t: float, init_p, init_v, cls: int) -> _TrackState:
         """The track's state for time t (an existing one within time_merge_s, else a new one)."""
         chain = self.tracks.get(track_id)
@@ -414,7 +389,7 @@ class FusionGraph:
         if i < len(chain.tkeys) - 1:
             self._track_motion(chain, tk, chain.tkeys[i + 1])
         if chain.prior is None:
-            sv = self._speed_prior(chain.cls)
+            sv = speed_prior(self.params, chain.cls)
             mean = np.concatenate([x0[:3], np.zeros(3)])
             self._set_prior(chain, tk, mean, np.diag([1e6, 1e6, 1e6, sv**2, sv**2, 0.25]))
         return s
@@ -425,7 +400,7 @@ class FusionGraph:
         a, b = chain.states[ka], chain.states[kb]
         ck = (round((b.t - a.t) * 1e6), chain.cls)  # fleets sample on one clock: a few distinct dt
         if ck not in self._motion_blocks:
-            F, Q = _cv_model(b.t - a.t, self._psd(chain.cls))
+            F, Q = cv_model(b.t - a.t, accel_psd(self.params, chain.cls))
             W = _sqrt_info(Q)
             self._motion_blocks[ck] = (-W @ F, W)
         A_a, A_b = self._motion_blocks[ck]
@@ -506,7 +481,7 @@ class FusionGraph:
                 np.add.at(shared, owner, a * w[:, None, None] * Cpose)
                 np.add.at(wsum, owner, w)
         for i in np.flatnonzero(~has_prior):  # the birth prior keeps it well posed
-            sv = self._speed_prior(chains[i].cls)
+            sv = speed_prior(self.params, chains[i].cls)
             info[i] += np.diag([1e-6, 1e-6, 1e-6, sv**-2, sv**-2, 4.0])
             eta[i, :3] += 1e-6 * p0[i]
         P0 = np.linalg.inv(info)
@@ -514,7 +489,7 @@ class FusionGraph:
         has = wsum > 0
         P0[has, :3, :3] += shared[has] / wsum[has, None, None]
         dt = np.array([b.t - a.t for a, b in zip(s0, s1, strict=True)])
-        F, Q = _cv_model(dt, np.array([self._psd(c.cls) for c in chains]))
+        F, Q = cv_model(dt, np.array([accel_psd(self.params, c.cls) for c in chains]))
         mu1 = np.einsum("nij,nj->ni", F, mu0)
         P1 = F @ P0 @ F.transpose(0, 2, 1) + Q
         for i, c in enumerate(chains):

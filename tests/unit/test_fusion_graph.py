@@ -7,7 +7,8 @@ from gtsam.symbol_shorthand import H, P, S, V, X
 
 from mapcontainer import geometry as geo
 from mapcontainer.fusion import FusionParams
-from mapcontainer.fusion.graph import FusionGraph, _cv_model
+from mapcontainer.fusion.graph import FusionGraph
+from mapcontainer.fusion.motion import accel_psd, cv_model
 from schemas import ObjectClass
 
 POSE_COV = np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005]) ** 2
@@ -37,7 +38,7 @@ def test_track_motion_factor_is_gtsams_wnoa_model():
     (e = [p1 - p0 - dt v0, v1 - v0], Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis) at any values."""
     q, dt = np.array([2.0, 1.0, 0.5]), 0.4
     wnoa = gtsam.WnoaMotionFactorPoint3(gtsam.StateData(P(0), V(0), 1.0), gtsam.StateData(P(1), V(1), 1.0 + dt), q)
-    F, Q = _cv_model(dt, q)
+    F, Q = cv_model(dt, q)
     W = np.linalg.cholesky(np.linalg.inv(Q)).T
     ours = gtsam.LinearContainerFactor(
         gtsam.JacobianFactor(S(0), -W @ F, S(1), W, np.zeros(6), gtsam.noiseModel.Unit.Create(6)),
@@ -109,7 +110,9 @@ def test_graph_equals_gtsam_standard_factors():
             prev = track.states[track.tkeys[i - 1]]
             oracle.push_back(
                 gtsam.WnoaMotionFactorPoint3(
-                    gtsam.StateData(P(i - 1), V(i - 1), prev.t), gtsam.StateData(P(i), V(i), st.t), g._psd(track.cls)
+                    gtsam.StateData(P(i - 1), V(i - 1), prev.t),
+                    gtsam.StateData(P(i), V(i), st.t),
+                    accel_psd(g.params, track.cls),
                 )
             )
         for j, det in enumerate(st.dets):
