@@ -507,7 +507,7 @@ class FusionGraph:
         """A body-frame detection z_body (cov_body) of the track state by the vehicle at pose_key.
 
         ``weight`` is the first Huber weight (from the association innovation); later ones follow the
-        estimate (linearized form) or GTSAM's robust noise model (reference_frame form).
+        estimate (IRLS, see :meth:`_reweight`).
         """
         self.add_detections([(pose_key, state, z_body, cov_body, weight)])
 
