@@ -374,8 +374,9 @@ class FusionGraph:
         self._n["s"] += 1
         i = bisect.bisect_left(chain.tkeys, tk)
         if chain.tkeys:  # warm start from the neighbour: constant velocity, as the motion factor predicts
-            nb = self.values.atVector(chain.states[chain.tkeys[i - 1 if i > 0 else 0]].key)
-            x0 = np.concatenate([nb[:3] + nb[3:] * (t - chain.states[chain.tkeys[i - 1 if i > 0 else 0]].t), nb[3:]])
+            nb = chain.states[chain.tkeys[max(i - 1, 0)]]
+            x = self.values.atVector(nb.key)
+            x0 = np.concatenate([x[:3] + x[3:] * (t - nb.t), x[3:]])
         else:
             x0 = np.concatenate([np.asarray(init_p, dtype=float), np.asarray(init_v, dtype=float)])
         self.values.insert(key, x0)

@@ -597,8 +597,7 @@ class Localizer:
         if self._hyps:  # basins of an earlier frame: tracked until one wins
             match, reason, y_pred, P_pred = self._recover(frame, y_pred, P_pred, dt, odo_a, odo_b)
             if match is not None:
-                self._count("start verified")
-                self._verify = 0
+                self._start_verified()
             elif self._verify == 0:
                 self._hyps = []
             return match, reason and f"verifying start: {reason}", y_pred, P_pred
@@ -608,8 +607,7 @@ class Localizer:
             self._count("frame invalid")
             return None, f"frame invalid: {exc}", y_pred, P_pred
         if out.match is not None:
-            self._count("start verified")
-            self._verify = 0
+            self._start_verified()
             self._attempt = out.match
             return out.match, "", y_pred, P_pred
         match, reason = self._match(frame, y_pred, P_pred)
@@ -630,9 +628,12 @@ class Localizer:
             if best is not None and not self.search.distinct(best.pose_filtered, match.pose_filtered):
                 self._agree += 1
                 if self._agree >= self.params.verify_agree_frames:
-                    self._count("start verified")
-                    self._verify = 0
+                    self._start_verified()
         return match, reason, y_pred, P_pred
+
+    def _start_verified(self) -> None:
+        self._count("start verified")
+        self._verify = 0
 
     def _wide(self, Pxx) -> bool:
         """The prediction is too uncertain for one local solve."""
