@@ -84,6 +84,7 @@ class Container:
         self._seq = 0
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
+        self._candidates: dict[float, list[VehicleCandidate]] = {}
 
     # ------------------------------------------------------------------ input
     def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
@@ -133,6 +134,7 @@ class Container:
             if key is None:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
+        self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
                 self.tracker.observe(m.t_meas)
@@ -177,16 +179,7 @@ class Container:
             Detection(m.sender, t, int(i), p_body[i], cov_body[i], int(objs.cls[i]), p_map[j], S_map[j])
             for j, i in enumerate(idx)
         ]
-        vehicles = []
-        for vid, chain in self.graph.vehicles.items():
-            if vid == m.sender:
-                continue
-            s = chain.nearest(t, self.params.vehicle_gate_max_dt_s)
-            if s is None:
-                continue
-            dt = t - s.t
-            cov = s.cov[:3, :3] + (self.params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
-            vehicles.append(VehicleCandidate(vid, s.pose[:3] + s.v_map * dt, cov))
+        vehicles = [v for v in self._vehicle_candidates(t) if v.vid != m.sender]
         assignments, _ = self.tracker.associate(dets, vehicles)
         batch = []
         rotations: dict[int, np.ndarray] = {}
@@ -212,17 +205,38 @@ class Container:
                 cls = tr.cls if tr is not None else det.cls
                 v0 = tr.x[3:] if tr is not None else np.zeros(3)
                 state = self.graph.track_state(a.target, det.t, det.p_map, v0, cls)
+                k = self.params.huber_k
+                d = float(np.sqrt(a.d2))
+                weight = 1.0 if k is None or d <= k else k / d
+                if state is None:  # older than the track's first state: into its prior
+                    self.graph.fold_detection(a.target, obs.key, det.p_body, det.cov_body, weight)
+                    self._counts["detections_folded"] += 1
+                    continue
                 delta = det.t - state.t  # nonzero only for unsynchronised senders (time_merge_s)
                 z, cov = det.p_body, det.cov_body
                 if delta != 0.0 and tr is not None:
                     z = z - R_obs.T @ tr.x[3:] * delta
                     cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
-                k = self.params.huber_k
-                d = float(np.sqrt(a.d2))
-                weight = 1.0 if k is None or d <= k else k / d
                 batch.append((obs.key, state, z, cov, weight))
         self.graph.add_detections(batch)
         self._counts["detections"] += len(batch)
+
+    def _vehicle_candidates(self, t: float) -> list[VehicleCandidate]:
+        """Every connected vehicle's reported position at t (its nearest frame, moved with its v_map),
+        for gating detections of connected vehicles; cached per instant within a cycle."""
+        out = self._candidates.get(t)
+        if out is not None:
+            return out
+        out = []
+        for vid, chain in self.graph.vehicles.items():
+            s = chain.nearest(t, self.params.vehicle_gate_max_dt_s)
+            if s is None:
+                continue
+            dt = t - s.t
+            cov = s.cov[:3, :3] + (self.params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
+            out.append(VehicleCandidate(vid, s.pose[:3] + s.v_map * dt, cov))
+        self._candidates[t] = out
+        return out
 
     def _cross_detections(self, t_min: float) -> None:
         """Tie detections of connected vehicles to the observed vehicle's pose at (about) the same time.
@@ -276,19 +290,21 @@ class Container:
                 cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
             poses.append(pose)
             pose_covs.append(cov)
-        ids, cls, ps, vs, covs = [], [], [], [], []
+        ids, cls, dts, xs, Cs = [], [], [], [], []
         for tid, tr in sorted(self.tracker.confirmed().items()):
             if tid not in g.tracks or len(ids) >= MAX_OBJECTS:
                 continue
             ts, p, v, C = g.track_estimate(tid)
-            if C is None:
-                C = tr.P
-            x, P = cv_predict(np.concatenate([p, v]), C, t - ts, accel_psd(self.params, tr.cls))
             ids.append(tid)
             cls.append(tr.cls)
-            ps.append(x[:3])
-            vs.append(v)
-            covs.append(P[:3, :3])
+            dts.append(t - ts)
+            xs.append(np.concatenate([p, v]))
+            Cs.append(tr.P if C is None else C)
+        ps, covs, vs = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))
+        if ids:
+            q = np.array([accel_psd(self.params, c) for c in cls])
+            x, P = cv_predict(np.array(xs), np.array(Cs), np.array(dts), q)
+            ps, covs, vs = x[:, :3], P[:, :3, :3], np.array(xs)[:, 3:]
         self._seq += 1
         return FusedState(
             fleet=self.fleet,
@@ -332,6 +348,7 @@ class Container:
             "tracks_tentative": sum(not tr.confirmed for tr in tracks),
             "association": dict(self.tracker.counts),
             "detections": self._counts["detections"],
+            "detections_folded": self._counts["detections_folded"],
             "cross_detections": self._counts["cross_detections"],
             "cross_no_state": self._counts["cross_no_state"],
             "observer_gone": self._counts["observer_gone"],

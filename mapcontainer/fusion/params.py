@@ -20,6 +20,14 @@ class FusionParams(BaseModel):
 
     # ---- time
     window_s: float = Field(1.0, gt=0, description="sliding window: states older than fuse time - window_s are dropped")
+    track_lag_s: float | None = Field(
+        0.3,
+        gt=0,
+        description=(
+            "an obstacle track's states older than its newest state by more than this are folded into its prior"
+            " (the smoother's lag for tracks; vehicle poses stay for window_s). None: window_s"
+        ),
+    )
     time_merge_s: float = Field(
         0.02, ge=0, description="observations of one track closer in time than this share one state (async senders)"
     )
@@ -116,6 +124,16 @@ class FusionParams(BaseModel):
         ),
     )
 
+    pose_error_persistence_s: float = Field(
+        1.0,
+        gt=0,
+        description=(
+            "correlation time of that persistent part (first-order Gauss-Markov): a track prior's dependence"
+            " on a vehicle's persistent error fades by exp(-dt / this) as it ages (map matching: correlation"
+            " 0.1-0.45 at 1 s, see pose_error_persistent_fraction)"
+        ),
+    )
+
     # ---- solver
     max_iterations: int = Field(3, ge=1, description="Levenberg-Marquardt iterations per fuse() at most")
     relative_error_tol: float = Field(1e-3, gt=0, description="stop when the cost decreases by less than this fraction")
@@ -137,6 +155,11 @@ class FusionParams(BaseModel):
                 f"death_s ({self.death_s}) must not exceed window_s ({self.window_s}): its states are gone"
             )
         return self
+
+    @property
+    def track_window_s(self) -> float:
+        """How far back from its newest state a track keeps states: track_lag_s, at most window_s."""
+        return self.window_s if self.track_lag_s is None else min(self.track_lag_s, self.window_s)
 
     @property
     def track_death_s(self) -> float:

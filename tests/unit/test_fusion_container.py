@@ -186,22 +186,32 @@ def _wnoa_truth(rng, q, n, dt, x0):
 
 
 def test_anees_inside_the_chi2_band_when_the_world_follows_the_model():
-    nees = _model_world_nees(0.0, 0.0)
+    """With the whole window in the graph (track_lag_s=None) the estimator is consistent. With the default
+    lag, tracks' states older than 0.3 s are folded into priors that neglect the correlation of their
+    detections' frame-to-frame pose errors with the frames still in the window (graph.py): measured 3.88
+    here (3.04 without the lag), the worst case, as one vehicle with loose priors localises itself on the
+    objects. With the default persistent fraction it is 3.42 (test below); on the simulator and the bench
+    ANEES and RMSE do not change measurably (mapc experiment paper, mapc bench fusion)."""
+    nees = _model_world_nees(0.0, 0.0, track_lag_s=None)
     lo, hi = anees_band(3, len(nees))
     assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi)
+    lagged = np.mean(_model_world_nees(0.0, 0.0))
+    assert lo <= lagged <= 1.2 * hi, (lagged, lo, hi)
 
 
 def test_persistent_pose_errors_are_modelled():
     """Half of the pose error variance persists (decorrelating in ~1 s, as map matching's): counted as
-    independent per frame the objects are overconfident (ANEES ~6.0); the shared-bias model brings it
-    to ~3.9 (band ~[2.65, 3.37]; what remains: the window's bias and the track summaries' pose errors
-    are treated as independent of each other)."""
+    independent per frame the objects are overconfident (ANEES ~7.3); the shared-bias model, with track
+    priors that keep their dependence on it (graph.py), brings it to ~3.4 (band ~[2.65, 3.37]; 3.15 with
+    the whole window in the graph; what remains: the frame-to-frame part of the pose errors of folded
+    detections is treated as independent of the frames still in the window). Before the priors kept
+    that dependence (they added the persistent covariance instead) this was 4.1 with the whole window."""
     modelled = np.mean(_model_world_nees(0.5, 0.5))
     independent = np.mean(_model_world_nees(0.5, 0.0))
-    assert modelled < 4.2 and modelled < 0.75 * independent, (modelled, independent)
+    assert modelled < 3.7 and modelled < 0.6 * independent, (modelled, independent)
 
 
-def _model_world_nees(persistent: float, persistent_model: float) -> list[float]:
+def _model_world_nees(persistent: float, persistent_model: float, **params) -> list[float]:
     """The fused object covariances are consistent when the data follow the estimator's models.
 
     Objects move by white-noise acceleration with the container's PSDs; detections carry exactly their
@@ -220,6 +230,7 @@ def _model_world_nees(persistent: float, persistent_model: float) -> list[float]
         vehicle_accel_sigma_mps2=1e-3,
         vehicle_rate_sigma_radps=1e-4,
         pose_error_persistent_fraction=persistent_model,
+        **params,
     )
     q = np.array([params.accel_psd_vehicle, params.accel_psd_vehicle, params.accel_psd_vertical])
     L_pose = np.linalg.cholesky(POSE_COV)
@@ -302,3 +313,92 @@ def test_remote_only_objects_are_confirmed_whatever_the_latency(latency_s):
     np.testing.assert_allclose(fused.vehicle_pose[0, :3], [5.0 * (t + latency_s), 0.0, 0.0], atol=0.05)
     var_x = sym_from_upper(fused.vehicle_pose_cov[0])[0, 0]
     assert (var_x > POSE_COV[0, 0] * 0.2) if latency_s > 0 else (var_x < POSE_COV[0, 0])
+
+
+def _noisy_two_vehicle_stream(n: int, pose_cov: np.ndarray, seed: int = 0) -> list[VehiclePrior]:
+    """cv0 and cv1 following each other past three objects; detections with the detector's noise, poses
+    reported exactly with covariance ``pose_cov``."""
+    rng = np.random.default_rng(seed)
+    msgs = []
+    for k in range(n):
+        t = 0.1 * k
+        objs = np.array([[25 + 6 * t, 1.0, 0.0], [30 + 1.0 * t, -6.0, 0.0], [40.0, 5.0, 0.0]])
+        for i, vid in enumerate(("cv0", "cv1")):
+            pose = np.array([8 * t + 8 * i, -3.5 * i, 0, 0, 0, 0.0])
+            z = geo.transform_points(geo.inverse(geo.pose_to_matrix(pose)), objs)
+            C = _detector_cov(z)
+            z = z + np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=z.shape))
+            msgs.append(
+                VehiclePrior(
+                    fleet="f",
+                    sender=vid,
+                    seq=k,
+                    t_meas=t,
+                    t_sent=t,
+                    pose=pose,
+                    pose_cov=upper_from_sym(pose_cov),
+                    v_map=np.array([8.0, 0, 0]),
+                    quality=LocalizationQuality(mode="map_matching"),
+                    objects=ObjectObservations.from_metres(z, C, [2, 2, 2]),
+                )
+            )
+    return msgs
+
+
+def _run(params: FusionParams, msgs, delay=lambda m: 0.0, t_end: float | None = None) -> Container:
+    """Feed the messages as they arrive (t_meas + delay) and fuse every 0.1 s until t_end (default: the
+    last arrival); ``box.out`` is the last fused state."""
+    box = Container(params, "f", "host")
+    pending = sorted(msgs, key=lambda m: m.t_meas + delay(m))
+    t_end = max(m.t_meas + delay(m) for m in msgs) if t_end is None else t_end
+    for k in range(int(round(t_end / 0.1)) + 1):
+        t = 0.1 * k
+        while pending and pending[0].t_meas + delay(pending[0]) <= t + 1e-9:
+            assert box.ingest(encode(pending.pop(0)), t).accepted
+        box.out = box.fuse(t)
+    return box
+
+
+def test_folding_old_track_states_into_priors_is_exact_for_a_linear_model():
+    """With exact poses (tiny covariances) and Gaussian detections the model is linear in the tracks: a
+    track state folded into its prior (_summarize_first) must give the same estimate and covariance as
+    keeping the whole window in the graph."""
+    msgs = _noisy_two_vehicle_stream(25, np.diag([1e-4] * 3 + [1e-6] * 3) ** 2)
+    kw = dict(huber_k=None, cross_localization=False, pose_error_persistent_fraction=0.0)
+    whole = _run(FusionParams(track_lag_s=None, **kw), msgs).out
+    lagged = _run(FusionParams(track_lag_s=0.2, **kw), msgs).out
+    assert list(whole.object_id) == list(lagged.object_id) and len(whole.object_id) == 3
+    np.testing.assert_allclose(lagged.object_p_map, whole.object_p_map, atol=2e-3)
+    np.testing.assert_allclose(lagged.object_cov, whole.object_cov, rtol=1e-2, atol=1e-6)
+
+
+def test_detections_older_than_a_track_are_folded_into_its_prior():
+    """cv1's messages arrive 0.6 s late (inside the 1 s window, beyond the 0.3 s track lag): its
+    detections of tracks cv0 keeps up to date are older than their first state and go into their priors
+    (counted), so they still inform the estimate: one track per object, tighter than cv0's alone and
+    nearly as tight as with the whole window in the graph (0.6 s old detections are worth little: the
+    objects may have accelerated since)."""
+    msgs = _noisy_two_vehicle_stream(30, POSE_COV)
+    late = dict(delay=lambda m: 0.6 if m.sender == "cv1" else 0.0, t_end=2.9)
+    both = _run(FusionParams(), msgs, **late)
+    whole = _run(FusionParams(track_lag_s=None), msgs, **late)
+    alone = _run(FusionParams(), [m for m in msgs if m.sender == "cv0"])
+    assert both.stats()["detections_folded"] > 50 and whole.stats()["detections_folded"] == 0
+    assert len(both.out.object_id) == len(alone.out.object_id) == 3
+    var = lambda out: np.trace(sym_from_upper(out.object_cov.astype(float)), axis1=1, axis2=2)  # noqa: E731
+    assert np.all(var(both.out) < 0.95 * var(alone.out)) and np.all(var(both.out) < 1.1 * var(whole.out))
+    truth = np.array([[25 + 6 * 2.9, 1.0, 0.0], [30 + 2.9, -6.0, 0.0], [40.0, 5.0, 0.0]])
+    err = np.sort(np.min(np.linalg.norm(both.out.object_p_map[:, None] - truth[None], axis=2), axis=0))
+    assert np.all(err < 0.5), err
+
+
+def test_a_departed_vehicle_leaves_the_track_priors():
+    """A vehicle that falls silent leaves the window; its persistent-error variable is marginalised out
+    of the track priors that held it, and fusion goes on."""
+    msgs = _noisy_two_vehicle_stream(40, POSE_COV)
+    msgs = [m for m in msgs if m.sender == "cv0" or m.t_meas < 1.0]
+    box = _run(FusionParams(), msgs)
+    assert list(box.graph.vehicles) == ["cv0"]
+    assert all("cv1" not in c.prior.vids for c in box.graph.tracks.values())
+    assert any("cv0" in c.prior.vids for c in box.graph.tracks.values())
+    assert len(box.out.object_id) == 3 and box.out.vehicle_ids == ["cv0"]

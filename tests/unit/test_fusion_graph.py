@@ -95,8 +95,8 @@ def test_graph_equals_gtsam_standard_factors():
     for fid in chain.motion.values():
         oracle.push_back(g._factors[fid])
     track = g.tracks[1]
-    _, mean, cov = track.prior
-    assert track.prior[0] == track.tkeys[0]  # the birth prior, nothing summarised
+    mean, cov = track.prior.marginal(g.params.pose_error_persistent_fraction)
+    assert track.prior.tkey == track.tkeys[0]  # the birth prior, nothing summarised
     sig = np.sqrt(np.diag(cov))
     oracle.push_back(gtsam.PriorFactorPoint3(P(0), mean[:3], gtsam.noiseModel.Diagonal.Sigmas(sig[:3])))
     oracle.push_back(gtsam.PriorFactorPoint3(V(0), mean[3:], gtsam.noiseModel.Diagonal.Sigmas(sig[3:])))
