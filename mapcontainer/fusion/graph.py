@@ -46,7 +46,7 @@ Factors (the negative log-likelihood is their sum: the paper's X^D = argmin sum 
   window, and so of other tracks' priors (the model-world test measures the cost: ANEES 3.4 vs 3.15
   with the whole window in the graph). Why a lag at all: the graph is dense in time (every vehicle
   sees about half of the objects at every instant), so elimination grows with the number of track
-  instants; with 0.3 s instead of the 1 s window the host cycle at 16 vehicles / 100 objects is ~40 %
+  instants; with 0.3 s instead of the 1 s window the host cycle at 16 vehicles / 100 objects is ~27 %
   shorter, estimates unchanged on the bench and the simulator. Vehicle frames stay for the window,
   so that late messages still find their poses;
 * a detection z of track position p by the vehicle at pose x, exact Cartesian model in the observer's
