@@ -14,7 +14,9 @@ fit it exactly. The search makes that choice explicit:
    and heading. Vectorised over the whole grid; no lanes (they repeat every lane width).
 2. **Refine.** The best ``n_starts`` hypotheses that lie apart from each other are solved in full by
    the matcher (association rounds, LM, lanes once the basin is reached), each from the hypothesis,
-   with the real prediction as the prior.
+   with the real prediction as the prior; each converged solution is solved once more from itself
+   with its own covariance (lane samples and weights chosen at the solution, not at a start up to a
+   metre off), so that the scores of different basins compare like with like.
 3. **Decide.** Each solution's score is the matcher's: its robust cost plus ``inlier_chi2`` for every
    detection it leaves unexplained. The best is accepted if it is well constrained
    (``min_constraints`` on x, y, yaw: 2 per point inlier, 1 per pole inlier, 2 for the lanes) and no
@@ -115,7 +117,7 @@ class PoseSearch:
         P_start = np.diag([p.start_sigma_m**2, p.start_sigma_m**2, P0[2, 2], P0[3, 3], P0[4, 4], p.start_sigma_rad**2])
         sols: list[MatchResult] = []
         for h in starts:
-            res = self.matcher.solve_from(fd, h, P_start)
+            res = self.matcher.polish(fd, self.matcher.solve_from(fd, h, P_start))
             if all(self.distinct(res.pose_filtered, o.pose_filtered) for o in sols):
                 sols.append(res)
             else:  # two starts fell into one basin: keep its better solution

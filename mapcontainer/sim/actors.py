@@ -6,7 +6,8 @@ a connected vehicle); its extent is an oriented box standing on the ground.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from schemas import ObjectClass
 
 from ..hdmap.model import Polyline
 
-__all__ = ["ActorState", "LaneFollower", "PathWalker", "box_corners"]
+__all__ = ["ActorState", "BodyMotion", "LaneFollower", "PathWalker", "box_corners"]
 
 _YAW_BASE_M = 1.0  # yaw from the chord over +-1 m: smooth across the polyline's 1 m vertices
 
@@ -30,6 +31,7 @@ class ActorState:
     v_map: np.ndarray  # (3,)
     yaw_rate: float
     size: np.ndarray  # (3,) length, width, height
+    body: np.ndarray = field(default_factory=lambda: np.zeros(3))  # heave (m), roll, pitch (rad) about nominal
 
     @property
     def speed(self) -> float:
@@ -37,8 +39,25 @@ class ActorState:
 
     @property
     def pose(self) -> np.ndarray:
-        """[x, y, z, roll, pitch, yaw] (flat ground: roll = pitch = 0)."""
-        return np.array([*self.p_map, 0.0, 0.0, self.yaw])
+        """[x, y, z, roll, pitch, yaw] of the body: the footprint centre raised by the heave, with the
+        body's roll and pitch (flat ground: zero for a rigid body)."""
+        dz, roll, pitch = self.body
+        return np.array([self.p_map[0], self.p_map[1], self.p_map[2] + dz, roll, pitch, self.yaw])
+
+
+class BodyMotion:
+    """Heave, roll and pitch of a body about nominal: per axis a static offset plus a dynamic part, a sum
+    of ``n`` sinusoids at 0.5-1.5 Hz (suspension modes) with random phases. ``static`` and ``dynamic``
+    are 1-sigmas (3,) over (heave m, roll rad, pitch rad); deterministic in t for a given rng."""
+
+    def __init__(self, static, dynamic, rng: np.random.Generator, n: int = 3):
+        self.offset = rng.normal(0.0, 1.0, 3) * np.asarray(static, dtype=float)
+        self.freq = rng.uniform(0.5, 1.5, (3, n))
+        self.phase = rng.uniform(0.0, 2 * np.pi, (3, n))
+        self.amp = np.asarray(dynamic, dtype=float)[:, None] * np.sqrt(2.0 / n)  # variance n a^2 / 2
+
+    def __call__(self, t: float) -> np.ndarray:
+        return self.offset + np.sum(self.amp * np.sin(2 * np.pi * self.freq * t + self.phase), axis=1)
 
 
 class _PathActor:
@@ -50,6 +69,7 @@ class _PathActor:
         self.id = actor_id
         self.line = line
         self.size = np.asarray(size, dtype=float)
+        self.body: Callable[[float], np.ndarray] | None = None  # heave, roll, pitch at t (None: rigid)
 
     def arc(self, t: float) -> tuple[float, float]:
         """Arc length and signed speed along the line at time t."""
@@ -71,7 +91,8 @@ class _PathActor:
         yaw_b = self._yaw(s_b, 1.0 if v_b >= 0 else -1.0)
         yaw_rate = float(np.angle(np.exp(1j * (yaw_b - yaw_a)))) / (2 * dt)
         heading = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-        return ActorState(self.id, self.cls, self.line.point_at(s), yaw, heading * abs(v), yaw_rate, self.size)
+        body = np.zeros(3) if self.body is None else self.body(t)
+        return ActorState(self.id, self.cls, self.line.point_at(s), yaw, heading * abs(v), yaw_rate, self.size, body)
 
 
 class LaneFollower(_PathActor):

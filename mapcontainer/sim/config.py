@@ -11,6 +11,7 @@ from ..config import ConfigError, config_dir, deep_merge, load_yaml_model, read_
 from ..hdmap.generator import MapSpec
 
 __all__ = [
+    "BodyConfig",
     "CameraConfig",
     "DetectorConfig",
     "GnssConfig",
@@ -91,6 +92,21 @@ class DetectorConfig(_Strict):
     false_alarms_per_frame: NonNeg
 
 
+class BodyConfig(_Strict):
+    """How the body the sensors ride on moves about its nominal attitude and height on the road.
+
+    Per vehicle: a static offset (load, tyres) plus a dynamic part (suspension: a sum of sinusoids at
+    0.5-1.5 Hz with seeded phases), each a 1-sigma. Zero everywhere: a rigid body on a flat road.
+    """
+
+    heave_static_m: NonNeg = 0.0
+    heave_dynamic_m: NonNeg = 0.0
+    roll_static_rad: NonNeg = 0.0
+    roll_dynamic_rad: NonNeg = 0.0
+    pitch_static_rad: NonNeg = 0.0
+    pitch_dynamic_rad: NonNeg = 0.0
+
+
 class SensorConfig(_Strict):
     """All sensors of a connected vehicle (configs/sensors/NAME.yaml)."""
 
@@ -99,6 +115,7 @@ class SensorConfig(_Strict):
     gnss: GnssConfig
     odometry: OdometryConfig
     detector: DetectorConfig
+    body: BodyConfig = BodyConfig()
 
 
 class VehicleSpec(_Strict):

@@ -23,7 +23,7 @@ from schemas import (
 
 from ..hdmap.generator import generate_map
 from ..hdmap.model import HDMap
-from .actors import ActorState, LaneFollower, PathWalker
+from .actors import ActorState, BodyMotion, LaneFollower, PathWalker
 from .config import ScenarioConfig
 from .sensors import Camera, CameraObservation, Gnss, ObjectDetector
 from .sensors import Odometry as OdometrySensor
@@ -117,6 +117,12 @@ class World:
         self._sensors = {
             a.id: _VehicleSensors(self, ss) for a, ss in zip(self.connected, root.spawn(n_cv), strict=True)
         }
+        b = scenario.sensors.body
+        static = (b.heave_static_m, b.roll_static_rad, b.pitch_static_rad)
+        dynamic = (b.heave_dynamic_m, b.roll_dynamic_rad, b.pitch_dynamic_rad)
+        if any(static) or any(dynamic):  # spawned after the sensors' streams: those stay as they were
+            for a, ss in zip(self.connected, root.spawn(n_cv), strict=True):
+                a.body = BodyMotion(static, dynamic, np.random.default_rng(ss))
         self._seq = 0
 
     @property

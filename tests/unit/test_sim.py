@@ -9,8 +9,8 @@ from mapcontainer import geometry as geo
 from mapcontainer.config import ConfigError
 from mapcontainer.hdmap.model import HDMap, PointFeature, PoleFeature
 from mapcontainer.sim import World, list_scenarios, load_scenario
-from mapcontainer.sim.actors import ActorState
-from mapcontainer.sim.config import load_sensor_config
+from mapcontainer.sim.actors import ActorState, BodyMotion
+from mapcontainer.sim.config import BodyConfig, load_sensor_config
 from mapcontainer.sim.sensors import Camera, ObjectDetector, occluded
 from schemas import ObjectClass, encode
 
@@ -31,22 +31,88 @@ def test_presets_load_and_paper_counts():
         assert len(world.vehicle_ids) == 2 and len(world.obstacles) == 1
 
 
-def _episode_digest(seed: int, frames: int = 15) -> tuple[str, str]:
-    world = World(load_scenario("paper-urban"), seed=seed)
-    sensors, truth = hashlib.sha256(), hashlib.sha256()
+# A car's body on its suspension (1-sigmas; configs/sensors/default.yaml keeps the bodies rigid).
+CAR_BODY = {
+    "heave_static_m": 0.03,
+    "heave_dynamic_m": 0.01,
+    "roll_static_rad": 0.003,
+    "roll_dynamic_rad": 0.004,
+    "pitch_static_rad": 0.005,
+    "pitch_dynamic_rad": 0.005,
+}
+BODY_ON = {"sensors": {"body": CAR_BODY}}
+
+
+def _episode_digest(seed: int, frames: int = 15, overrides=None) -> tuple[str, str, str]:
+    """Digests of the sensor frames, of the traffic (where every actor is and heads) and of the connected
+    vehicles' body motion (height, roll, pitch)."""
+    world = World(load_scenario("paper-urban", overrides), seed=seed)
+    sensors, traffic, body = hashlib.sha256(), hashlib.sha256(), hashlib.sha256()
     for k in range(frames):
         tick = world.tick(k)
-        truth.update(encode(tick.truth))
+        tr = tick.truth
+        traffic.update(encode(tr.model_copy(update={"vehicle_pose": tr.vehicle_pose[:, [0, 1, 5]]})))
+        body.update(np.ascontiguousarray(tr.vehicle_pose[:, 2:5]).tobytes())
         for vid in world.vehicle_ids:
             sensors.update(encode(tick.frames[vid]))
-    return sensors.hexdigest(), truth.hexdigest()
+    return sensors.hexdigest(), traffic.hexdigest(), body.hexdigest()
 
 
 def test_same_seed_gives_identical_bytes_and_noise_depends_on_seed():
     a, b, c = _episode_digest(3), _episode_digest(3), _episode_digest(4)
     assert a == b
     assert a[0] != c[0], "sensor noise must depend on the seed"
-    assert a[1] == c[1], "the traffic (ground truth) is the same in every Monte Carlo run"
+    assert a[1] == c[1], "the traffic is the same in every Monte Carlo run"
+    a, c = _episode_digest(3, 5, BODY_ON), _episode_digest(4, 5, BODY_ON)
+    assert a[1] == c[1] and a[2] != c[2], "the bodies' suspension motion is drawn per run, like the sensor noise"
+
+
+BODY_OFF = {"sensors": {"body": dict.fromkeys(BodyConfig.model_fields, 0.0)}}
+
+
+def test_body_motion_is_per_vehicle_about_nominal_and_off_is_rigid():
+    assert load_sensor_config().body == BodyConfig(), "the default profile keeps the bodies rigid"
+    cfg = BodyConfig(**CAR_BODY)
+    static = np.array([cfg.heave_static_m, cfg.roll_static_rad, cfg.pitch_static_rad])
+    dynamic = np.array([cfg.heave_dynamic_m, cfg.roll_dynamic_rad, cfg.pitch_dynamic_rad])
+    t = np.arange(0.0, 60.0, 0.1)
+    offsets, wobble = [], []
+    for seed in range(300):
+        m = BodyMotion(static, dynamic, np.random.default_rng(seed))
+        x = np.array([m(ti) for ti in t])
+        offsets.append(m.offset)
+        wobble.append(x - m.offset)
+        np.testing.assert_array_equal(m(12.3), m(12.3))  # a function of t
+    np.testing.assert_allclose(np.std(offsets, axis=0), static, rtol=0.15)
+    np.testing.assert_allclose(np.sqrt(np.mean(np.square(wobble), axis=(0, 1))), dynamic, rtol=0.1)
+    # In the world: the camera rides on the moving body; with the body profile off, the body is rigid.
+    on = World(load_scenario("paper-urban", BODY_ON), seed=1).states(2.0)["cv0"]
+    off = World(load_scenario("paper-urban", BODY_OFF), seed=1).states(2.0)["cv0"]
+    np.testing.assert_array_equal(on.p_map, off.p_map)
+    assert on.pose[2] != on.p_map[2] and np.all(on.pose[3:5] != 0.0)
+    np.testing.assert_array_equal(off.pose, [*off.p_map, 0.0, 0.0, off.yaw])
+
+
+def test_the_camera_sees_from_the_pitched_body():
+    """Detected points sit at their projection from the body's true (heaved, rolled, pitched) pose."""
+    world = World(load_scenario("paper-urban", BODY_ON), seed=5)
+    cam = world.camera("cv0")
+    pts = {f.id: f.p_map for f in world.hdmap.points}
+    res_body, res_rigid, pitch = [], [], []
+    for k in range(40):
+        tick = world.tick(k)
+        st = tick.states["cv0"]
+        obs = tick.debug["cv0"].camera
+        pitch.append(st.pose[4])
+        for pose, out in ((st.pose, res_body), (np.array([*st.p_map, 0.0, 0.0, st.yaw]), res_rigid)):
+            T_cam_map = geo.inverse(geo.pose_to_matrix(pose) @ cam.T_body_cam)
+            for uv, pid in zip(obs.points_uv, obs.point_ids, strict=True):
+                if pid >= 0:
+                    out.append(uv - geo.project_points(cam.intr, T_cam_map, pts[int(pid)])[0][0])
+    assert len(res_body) >= 20 and np.degrees(np.max(np.abs(pitch))) > 0.3
+    rms_body = np.sqrt(np.mean(np.square(res_body)))
+    assert rms_body < 2.5  # pixel noise 1.5 px per axis
+    assert np.sqrt(np.mean(np.square(res_rigid))) > 2.0 * rms_body
 
 
 def _camera(**overrides) -> tuple[Camera, HDMap]:
