@@ -176,6 +176,24 @@ class Track:
             self.cls = int(cls)
 
 
+@dataclass
+class _Instant:
+    """The live tracks predicted to one instant t: states (K, 6) and covariances (K, 6, 6) by row;
+    ``ahead``: the track's filter was already past t (not updated by detections of t)."""
+
+    t: float
+    tracks: list[Track]
+    x: np.ndarray
+    P: np.ndarray
+    ahead: np.ndarray
+
+    def add(self, tr: Track) -> None:
+        self.tracks.append(tr)
+        self.x = np.concatenate([self.x, tr.x[None]])
+        self.P = np.concatenate([self.P, tr.P[None]])
+        self.ahead = np.append(self.ahead, False)
+
+
 class Tracker:
     """Tracks with stable ids; associates one message's detections at a time (module docstring)."""
 
@@ -192,6 +210,7 @@ class Tracker:
         self._next_id = 1
         self.counts: Counter[str] = Counter()
         self.t_data = float("-inf")  # newest t_meas shown to the tracker (observe / associate)
+        self._instant: _Instant | None = None  # see _at
 
     def observe(self, t_meas: float) -> None:
         """A message measured at ``t_meas`` was fused (with or without detections): the tracker's data clock."""
@@ -206,9 +225,6 @@ class Tracker:
         uid = self._uid_of.get(track_id)
         return None if uid is None else self.tracks.get(uid)
 
-    def predict(self, tr: Track, t: float) -> tuple[np.ndarray, np.ndarray]:
-        return cv_predict(tr.x, tr.P, t - tr.t, accel_psd(self.params, tr.cls))
-
     def predict_states(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
         """:func:`cv_predict` of many tracks to time t at once: states (K, 6), covariances (K, 6, 6)."""
         x = np.array([tr.x for tr in tracks])
@@ -216,10 +232,16 @@ class Tracker:
         dt = np.array([t - tr.t for tr in tracks])
         return cv_predict(x, P, dt, np.array([accel_psd(self.params, tr.cls) for tr in tracks]))
 
-    def predict_positions(self, tracks: list[Track], t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted positions (K, 3) and their covariances (K, 3, 3) of ``tracks`` at time t."""
-        x, P = self.predict_states(tracks, t)
-        return x[:, :3], P[:, :3, :3]
+    def _at(self, t: float) -> _Instant:
+        """Every live track predicted to t, kept while the messages of instant t are associated (they
+        update its rows); rebuilt for another instant or after the tracks changed outside association."""
+        inst = self._instant
+        if inst is None or inst.t != t:
+            tracks = list(self.tracks.values())
+            x, P = self.predict_states(tracks, t) if tracks else (np.zeros((0, 6)), np.zeros((0, 6, 6)))
+            ahead = np.array([tr.t > t for tr in tracks], dtype=bool)
+            inst = self._instant = _Instant(t, tracks, x, P, ahead)
+        return inst
 
     # ---------------------------------------------------------------- association
     def associate(self, dets: list[Detection], vehicles: list[VehicleCandidate]) -> tuple[list[Assignment], list[int]]:
@@ -234,30 +256,25 @@ class Tracker:
             return [], []
         t = dets[0].t
         self.observe(t)
+        inst = self._at(t)
         m = np.array([d.p_map for d in dets])
-        live = list(self.tracks.values())
-        if live:  # only tracks that could be near a detection (a cheap Euclidean pre-gate)
-            xs = np.array([tr.x for tr in live])
-            dts = np.array([t - tr.t for tr in live])[:, None]
-            near = np.min(np.linalg.norm((xs[:, None, :3] + dts[:, None] * xs[:, None, 3:]) - m[None], axis=2), axis=1)
-            live = [tr for tr, d in zip(live, near, strict=True) if d <= self.params.pregate_m]
-        n, nv, nt = len(dets), len(vehicles), len(live)
-        S_m = np.array([d.cov_map for d in dets])
-        cost = np.full((n, nv + nt), _INFEASIBLE)
-        d2_all = np.full((n, nv + nt), np.inf)
+        # only tracks that could be near a detection (a cheap Euclidean pre-gate)
+        near = np.zeros(0, dtype=int)
+        if len(inst.tracks):
+            gap = np.linalg.norm(inst.x[:, None, :3] - m[None], axis=2).min(axis=1)
+            near = np.flatnonzero(gap <= self.params.pregate_m)
+        live = [inst.tracks[k] for k in near]
+        nv, nt = len(vehicles), len(live)
+        # one Mahalanobis matrix against the vehicles' reported positions and the tracks' predictions
+        c = np.concatenate([np.array([v.p_map for v in vehicles]).reshape(-1, 3), inst.x[near, :3]])
+        S_c = np.concatenate([np.array([v.cov for v in vehicles]).reshape(-1, 3, 3), inst.P[near, :3, :3]])
+        d2 = mahalanobis_matrix(m, np.array([d.cov_map for d in dets]), c, S_c)
         dc = np.array([d.cls for d in dets])[:, None]
-        if nv:
-            d2 = mahalanobis_matrix(m, S_m, [v.p_map for v in vehicles], [v.cov for v in vehicles])
-            compat = (dc == ObjectClass.VEHICLE) | (dc == ObjectClass.UNKNOWN)
-            d2_all[:, :nv] = np.where(compat, d2, np.inf)
-            cost[:, :nv] = np.where(d2_all[:, :nv] <= self.vehicle_gate, d2, _INFEASIBLE)
-        if nt:
-            p_pred, S_pred = self.predict_positions(live, t)
-            d2 = mahalanobis_matrix(m, S_m, p_pred, S_pred)
-            tc = np.array([tr.cls for tr in live])[None, :]
-            compat = (dc == tc) | (dc == ObjectClass.UNKNOWN) | (tc == ObjectClass.UNKNOWN)
-            d2_all[:, nv:] = np.where(compat, d2, np.inf)
-            cost[:, nv:] = np.where(d2_all[:, nv:] <= self.gate, d2, _INFEASIBLE)
+        tc = np.array([int(ObjectClass.VEHICLE)] * nv + [tr.cls for tr in live])[None, :]
+        compat = (dc == tc) | (dc == ObjectClass.UNKNOWN) | (tc == ObjectClass.UNKNOWN)
+        d2_all = np.where(compat, d2, np.inf)
+        gate = np.r_[np.full(nv, self.vehicle_gate), np.full(nt, self.gate)]
+        cost = np.where(d2_all <= gate, d2, _INFEASIBLE)
         rows, cols = linear_sum_assignment(cost)
         matched: dict[int, int] = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < _INFEASIBLE}
         taken = np.zeros(nv + nt, dtype=bool)
@@ -265,14 +282,16 @@ class Tracker:
 
         out: list[Assignment] = []
         born: list[int] = []
-        kf: list[tuple[Track, Detection]] = []
+        kf: list[tuple[int, Detection]] = []  # (row of the instant, detection)
         for i, det in enumerate(dets):
             j = matched.get(i)
             if j is None:
                 if np.any(d2_all[i, ~taken] <= self.exclusion_gate):
                     self.counts["birth_suppressed"] += 1
                 else:
-                    self._maybe_confirm(self._new_track(det), out, born)
+                    tr = self._new_track(det)
+                    inst.add(tr)
+                    self._maybe_confirm(tr, out, born)
                     self.counts["new_tentative"] += 1
             elif j < nv:
                 out.append(Assignment("vehicle", vehicles[j].vid, det, float(cost[i, j])))
@@ -280,7 +299,7 @@ class Tracker:
             else:
                 tr = live[j - nv]
                 self._record(tr, det)
-                kf.append((tr, det))
+                kf.append((int(near[j - nv]), det))
                 if tr.confirmed:
                     out.append(Assignment("track", tr.id, det, float(cost[i, j])))
                     self.counts["matched_track"] += 1
@@ -288,7 +307,7 @@ class Tracker:
                     tr.pending.append((det, float(cost[i, j])))
                     self.counts["matched_tentative"] += 1
                     self._maybe_confirm(tr, out, born)
-        self._update(kf)
+        self._update(inst, kf)
         return out, born
 
     def _maybe_confirm(self, tr: Track, out: list[Assignment], born: list[int]) -> None:
@@ -328,22 +347,24 @@ class Tracker:
         tr.t_last = max(tr.t_last, det.t)
         tr.t_first = min(tr.t_first, det.t)
 
-    def _update(self, pairs: list[tuple[Track, Detection]]) -> None:
-        """Kalman updates of distinct tracks with their map-frame detections, all at once (detections
-        older than a track's filter are skipped: the filter only gates and initialises)."""
-        pairs = [(tr, det) for tr, det in pairs if det.t >= tr.t]
-        if not pairs:
+    def _update(self, inst: _Instant, pairs: list[tuple[int, Detection]]) -> None:
+        """Kalman updates of distinct tracks (rows of the instant) with their map-frame detections, all at
+        once (tracks whose filter is already past the instant are skipped: the filter only gates and
+        initialises)."""
+        rows = np.array([k for k, _ in pairs if not inst.ahead[k]], dtype=int)
+        if not len(rows):
             return
-        tracks = [tr for tr, _ in pairs]
-        x, P = self.predict_states(tracks, pairs[0][1].t)
-        m = np.array([det.p_map for _, det in pairs])
-        S = P[:, :3, :3] + np.array([det.cov_map for _, det in pairs])
+        x, P = inst.x[rows], inst.P[rows]
+        m = np.array([det.p_map for k, det in pairs if not inst.ahead[k]])
+        S = P[:, :3, :3] + np.array([det.cov_map for k, det in pairs if not inst.ahead[k]])
         K = np.linalg.solve(S, P[:, :3, :]).transpose(0, 2, 1)  # P H^T S^-1 (S symmetric)
         x = x + np.einsum("nij,nj->ni", K, m - x[:, :3])
         P = P - K @ P[:, :3, :]
         P = 0.5 * (P + P.transpose(0, 2, 1))
-        for n, (tr, det) in enumerate(pairs):
-            tr.x, tr.P, tr.t = x[n], P[n], det.t
+        inst.x[rows], inst.P[rows] = x, P
+        for n, k in enumerate(rows):
+            tr = inst.tracks[k]
+            tr.x, tr.P, tr.t = x[n], P[n], inst.t
 
     # ---------------------------------------------------------------- maintenance
     def sync(self, track_id: int, t: float, x, P) -> None:
@@ -351,6 +372,7 @@ class Tracker:
         tr = self.by_id(track_id)
         if tr is not None and t >= tr.t - 1e-9:
             tr.x, tr.P, tr.t = np.asarray(x, dtype=float), np.asarray(P, dtype=float), float(t)
+            self._instant = None
 
     def merge_duplicates(self, t: float) -> list[int]:
         """Delete confirmed tracks that duplicate an older one; returns the deleted global ids.
@@ -394,6 +416,7 @@ class Tracker:
                 older.cls = int(older.cls_votes.most_common(1)[0][0])
                 older.hit_keys |= young.hit_keys
             del self.tracks[self._uid_of.pop(tid)]
+            self._instant = None
             self.counts["merged"] += 1
         self._merge_streak = {p: c for p, c in streak.items() if p[0] not in gone and p[1] not in gone}
         return gone
@@ -415,6 +438,7 @@ class Tracker:
         for uid, tr in list(self.tracks.items()):
             if t - tr.t_last > death or (not tr.confirmed and t_data - tr.t_last > timeout):
                 del self.tracks[uid]
+                self._instant = None
                 if tr.confirmed:
                     dead.append(tr.id)
                     del self._uid_of[tr.id]

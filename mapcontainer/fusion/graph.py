@@ -141,9 +141,12 @@ def _sqrt_information(info: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np
 def _jacobian_factor(keys: list[int], A: np.ndarray, b: np.ndarray) -> gtsam.JacobianFactor:
     """||A y - b||^2 / 2 over the 6-D variables ``keys`` (A's columns in that order), any number of keys
     (the Python JacobianFactor constructors take at most three; a GaussianConditional takes a list of
-    terms and is a JacobianFactor)."""
-    terms = [(k, A[:, 6 * i : 6 * i + 6]) for i, k in enumerate(keys)]
-    return gtsam.JacobianFactor(gtsam.GaussianConditional(terms, 1, b, gtsam.noiseModel.Unit.Create(len(b))))
+    terms and is a JacobianFactor, at twice the cost)."""
+    blocks = [A[:, 6 * i : 6 * i + 6] for i in range(len(keys))]
+    unit = gtsam.noiseModel.Unit.Create(len(b))
+    if len(keys) <= 3:
+        return gtsam.JacobianFactor(*[x for kb in zip(keys, blocks, strict=True) for x in kb], b, unit)
+    return gtsam.JacobianFactor(gtsam.GaussianConditional(list(zip(keys, blocks, strict=True)), 1, b, unit))
 
 
 @dataclass

@@ -122,7 +122,7 @@ def test_connected_vehicles_are_matched_to_their_reported_position():
 def test_unassigned_detection_close_to_an_untaken_track_starts_no_duplicate():
     tr = Tracker(FusionParams(birth_hits=1))
     _feed(tr, [(0.0, [[0, 0, 0]])])
-    tr.tracks[1].P = np.eye(6) * 1e-4
+    tr.sync(1, 0.0, tr.tracks[1].x, np.eye(6) * 1e-4)  # a confident track
     # just outside the 99 % gate, well inside the 99.99 % birth exclusion
     a, _ = tr.associate([_det([0.0, 0.75, 0.0], 0.0)], [])
     assert a == [] and len(tr.tracks) == 1 and tr.counts["birth_suppressed"] == 1
