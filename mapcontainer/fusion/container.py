@@ -135,10 +135,13 @@ class Container:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
         self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
+        batch = []
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
                 self.tracker.observe(m.t_meas)
-                self._associate(m)
+                batch += self._associate(m)
+        self.graph.add_detections(batch)
+        self._counts["detections"] += len(batch)
         self._cross_detections(t_min)
         for tid in self.tracker.expire(t):
             self.graph.remove_track(tid)
@@ -160,17 +163,19 @@ class Container:
                 if C is not None:
                     self.tracker.sync(tid, ts, np.concatenate([p, v]), C)
 
-    def _associate(self, m: VehiclePrior) -> None:
+    def _associate(self, m: VehiclePrior) -> list[tuple]:
+        """Associate a message's detections; returns the track detections for the graph
+        (:meth:`FusionGraph.add_detections` items)."""
         objs = m.objects
         if len(objs) == 0:
-            return
+            return []
         t = float(m.t_meas)
         p_body = objs.p_body
         cov_body = sym_from_upper(np.asarray(objs.cov, dtype=np.float64))
         keep = np.linalg.norm(p_body, axis=1) >= self.params.min_range_m
         self._counts["too_close"] += int((~keep).sum())
         if not keep.any():
-            return
+            return []
         pose = np.asarray(m.pose, dtype=float)
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
@@ -218,8 +223,7 @@ class Container:
                     z = z - R_obs.T @ tr.x[3:] * delta
                     cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
                 batch.append((obs.key, state, z, cov, weight))
-        self.graph.add_detections(batch)
-        self._counts["detections"] += len(batch)
+        return batch
 
     def _vehicle_candidates(self, t: float) -> list[VehicleCandidate]:
         """Every connected vehicle's reported position at t (its nearest frame, moved with its v_map),

@@ -159,7 +159,7 @@ class _PoseState:
     cov_xi: np.ndarray  # reported covariance in Pose3's tangent [rotation, translation]
     T: gtsam.Pose3 | None = None  # the reported pose
     dets: list = field(default_factory=list)  # _Detection records made from this frame
-    prior_lin: gtsam.Pose3 | None = None  # linearization point of a self-localization factor with a bias
+    prior_lin: np.ndarray | None = None  # linearization point (4x4) of a self-localization factor with a bias
     vid: str = ""
 
 
@@ -183,8 +183,7 @@ class _Detection:
     weight: float = 1.0
     fid: int = -1
     W: np.ndarray | None = None  # W^T W = cov^-1
-    lin_pose: gtsam.Pose3 | None = None  # linearization point of the observer (linearized form)
-    lin_target: gtsam.Pose3 | None = None  # ... of the observed vehicle (cross)
+    lin_pose: np.ndarray | None = None  # linearization point (4x4) of the observer
     fresh: bool = True  # not yet through a solve: keep the weight from the association innovation
 
 
@@ -388,23 +387,36 @@ class FusionGraph:
             r = s.T.localCoordinates(xk)
             jf = gtsam.JacobianFactor(s.key, c * W, chain.bias_key, -c * np.eye(6), -c * (W @ r - beta), _UNIT6)
             f = gtsam.LinearContainerFactor(jf, self.values)  # linearised at the current values
-            s.prior_lin = xk
+            s.prior_lin = xk.matrix()
         chain.pose_prior_fids[tk] = self._add_factor(f)
 
     def _relinearize_pose_priors(self) -> int:
         """Re-make the self-localization factors (with a persistent part) whose pose moved from its
         linearization point by more than relinearize_rad / relinearize_m; returns how many."""
-        p = self.params
+        moved = self._moved({s.key: s.prior_lin for s in self._pose_states.values() if s.prior_lin is not None})
         n = 0
         for chain in self.vehicles.values():
             for i, tk in enumerate(chain.tkeys):
-                s = chain.states[tk]
-                if s.prior_lin is not None and _moved(
-                    s.prior_lin, self.values.atPose3(s.key), p.relinearize_rad, p.relinearize_m
-                ):
+                if chain.states[tk].key in moved:
                     self._pose_prior(chain, i)
                     n += 1
         return n
+
+    def _moved(self, lin: dict[int, np.ndarray]) -> set[int]:
+        """The pose keys whose current value is farther from their linearization point (``lin``: 4x4) than
+        relinearize_rad (angle of R0^T R) or relinearize_m (length of R0^T (t - t0)). Vectorised."""
+        if not lin:
+            return set()
+        keys = list(lin)
+        M0 = np.array([lin[k] for k in keys])
+        M = np.array([self.values.atPose3(k).matrix() for k in keys])
+        R0t = M0[:, :3, :3].transpose(0, 2, 1)
+        cos = 0.5 * (np.trace(R0t @ M[:, :3, :3], axis1=1, axis2=2) - 1.0)
+        dt = np.einsum("nij,nj->ni", R0t, M[:, :3, 3] - M0[:, :3, 3])
+        far = (np.arccos(np.clip(cos, -1.0, 1.0)) > self.params.relinearize_rad) | (
+            np.linalg.norm(dt, axis=1) > self.params.relinearize_m
+        )
+        return {k for k, f in zip(keys, far, strict=True) if f}
 
     def _vehicle_motion(self, chain: _Chain, ka: int, kb: int) -> None:
         a, b = chain.states[ka], chain.states[kb]
@@ -726,7 +738,7 @@ class FusionGraph:
         b = np.einsum("nij,nj->ni", W, z - q)
         out = []
         for n, d in enumerate(dets):
-            d.lin_pose = T0[n]
+            d.lin_pose = mats[n]
             jf = gtsam.JacobianFactor(d.pose_key, WA[n], d.target_key, WRt[n], b[n], _UNIT3)
             out.append(gtsam.LinearContainerFactor(jf, self.values))
         return out
@@ -755,7 +767,7 @@ class FusionGraph:
         q0 = T0.transformTo(Tt.translation())
         A_x = np.hstack([_skew(q0), -np.eye(3)])
         A_t = np.hstack([np.zeros((3, 3)), T0.rotation().matrix().T @ Tt.rotation().matrix()])
-        det.lin_pose, det.lin_target = T0, Tt
+        det.lin_pose = T0.matrix()
         jf = gtsam.JacobianFactor(det.pose_key, W @ A_x, det.target_key, W @ A_t, W @ (det.z - q0), _UNIT3)
         return gtsam.LinearContainerFactor(jf, self.values)
 
@@ -766,10 +778,7 @@ class FusionGraph:
         Returns how many factors were replaced."""
         p = self.params
         k = p.huber_k
-        moved = set()
-        for key, ps in self._pose_states.items():
-            if ps.dets and _moved(ps.dets[0].lin_pose, self.values.atPose3(key), p.relinearize_rad, p.relinearize_m):
-                moved.add(key)
+        moved = self._moved({key: ps.dets[0].lin_pose for key, ps in self._pose_states.items() if ps.dets})
         newest = max((c.latest().t for c in self.vehicles.values()), default=0.0)
         todo = []
         recent = []
@@ -1006,11 +1015,3 @@ class FusionGraph:
         s = self.tracks[track_id].latest()
         x = self.values.atVector(s.key)
         return s.t, x[:3], x[3:], self.covariances.get(s.key)
-
-
-def _moved(T0: gtsam.Pose3 | None, T: gtsam.Pose3, rad: float, m: float) -> bool:
-    """Whether T is farther than (rad, m) from the linearization point T0."""
-    if T0 is None:
-        return True
-    xi = T0.localCoordinates(T)
-    return bool(np.linalg.norm(xi[:3]) > rad or np.linalg.norm(xi[3:]) > m)
