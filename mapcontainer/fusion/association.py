@@ -195,7 +195,9 @@ class _Instant:
 
 
 class Tracker:
-    """Tracks with stable ids; associates one message's detections at a time (module docstring)."""
+    """Tracks with stable ids; associates one message's detections at a time (module docstring). The
+    messages of one instant share one prediction of every track (``_at``), which their Kalman updates
+    change; anything else that changes the tracks (sync, merge, expire) drops it."""
 
     def __init__(self, params: FusionParams):
         self.params = params
