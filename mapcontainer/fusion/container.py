@@ -249,7 +249,8 @@ class Container:
         may arrive later than the observer's. The observed vehicle moved v * delta between its frame and
         the detection; that is taken out of the detection and its uncertainty added.
         """
-        waiting = []
+        waiting, items = [], []
+        rotations: dict[int, np.ndarray] = {}
         for vid, det in self._cross:
             if det.t < t_min:
                 self._counts["cross_no_state"] += 1
@@ -262,12 +263,15 @@ class Container:
             if target is None:
                 waiting.append((vid, det))
                 continue
-            R_obs = geo.rpy_to_matrix(*obs.pose[3:])
+            R_obs = rotations.get(obs.key)
+            if R_obs is None:
+                R_obs = rotations[obs.key] = geo.rpy_to_matrix(*obs.pose[3:])
             delta = det.t - target.t
             z = det.p_body - R_obs.T @ target.v_map * delta
             cov = det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3)
-            self.graph.add_cross_detection(obs.key, target.key, z, cov)
-            self._counts["cross_detections"] += 1
+            items.append((obs.key, target.key, z, cov))
+        self.graph.add_cross_detections(items)
+        self._counts["cross_detections"] += len(items)
         self._cross = waiting
 
     def _output(self, t: float) -> FusedState:

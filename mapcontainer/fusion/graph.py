@@ -104,8 +104,12 @@ _UNIT3 = gtsam.noiseModel.Unit.Create(3)
 _UNIT6 = gtsam.noiseModel.Unit.Create(6)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def _skews(q: np.ndarray) -> np.ndarray:
+    """[q]x (N, 3, 3) of vectors q (N, 3): [q]x v = q x v."""
+    out = np.zeros((len(q), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -q[:, 2], q[:, 1], -q[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = q[:, 2], -q[:, 1], q[:, 0]
+    return out
 
 
 def _inv_chol(cov: np.ndarray) -> np.ndarray:
@@ -729,8 +733,7 @@ class FusionGraph:
         z = np.array([d.z for d in dets])
         W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * np.array([d.W for d in dets])
         A = np.zeros((len(dets), 3, 6))
-        A[:, 0, 1], A[:, 0, 2], A[:, 1, 2] = -q[:, 2], q[:, 1], -q[:, 0]
-        A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = q[:, 2], -q[:, 1], q[:, 0]
+        A[:, :, :3] = _skews(q)
         A[:, :, 3:] = -np.eye(3)
         WA = W @ A
         WRt = np.zeros((len(dets), 3, 6))
@@ -743,33 +746,45 @@ class FusionGraph:
             out.append(gtsam.LinearContainerFactor(jf, self.values))
         return out
 
-    def add_cross_detection(self, pose_key: int, target_key: int, z_body, cov_body) -> None:
-        """A body-frame detection of another connected vehicle's body origin (cross-localization)."""
-        cov = np.asarray(cov_body, dtype=float)
-        det = _Detection(
-            pose_key,
-            target_key,
-            np.asarray(z_body, dtype=float),
-            cov,
-            self._pose_states[pose_key].t,
-            cross=True,
-            W=np.linalg.inv(np.linalg.cholesky(cov)),
-        )
-        det.fid = self._add_factor(self._cross_factor(det), (det.pose_key, det.target_key))
-        self._fid_det[det.fid] = det
-        self._pose_states[pose_key].dets.append(det)
+    def add_cross_detections(self, items: list) -> None:
+        """Body-frame detections of other connected vehicles' body origins (cross-localization): items of
+        (observer pose key, observed vehicle's pose key, z_body, cov_body)."""
+        if not items:
+            return
+        covs = np.array([it[3] for it in items], dtype=float).reshape(-1, 3, 3)
+        Ws = np.linalg.inv(np.linalg.cholesky(covs))  # W^T W = cov^-1
+        dets = []
+        for (pose_key, target_key, z, _), cov, W in zip(items, covs, Ws, strict=True):
+            ps = self._pose_states[pose_key]
+            det = _Detection(pose_key, target_key, np.asarray(z, dtype=float), cov, ps.t, cross=True, W=W)
+            ps.dets.append(det)
+            dets.append(det)
+        for det, f in zip(dets, self._cross_factors(dets), strict=True):
+            det.fid = self._add_factor(f, (det.pose_key, det.target_key))
+            self._fid_det[det.fid] = det
 
-    def _cross_factor(self, det: _Detection) -> gtsam.LinearContainerFactor:
-        """e = R^T (t_target - t) - z linearised at the current poses (module docstring), weighted sqrt(w)."""
-        T0 = self.values.atPose3(det.pose_key)
-        Tt = self.values.atPose3(det.target_key)
-        W = np.sqrt(det.weight) * det.W
-        q0 = T0.transformTo(Tt.translation())
-        A_x = np.hstack([_skew(q0), -np.eye(3)])
-        A_t = np.hstack([np.zeros((3, 3)), T0.rotation().matrix().T @ Tt.rotation().matrix()])
-        det.lin_pose = T0.matrix()
-        jf = gtsam.JacobianFactor(det.pose_key, W @ A_x, det.target_key, W @ A_t, W @ (det.z - q0), _UNIT3)
-        return gtsam.LinearContainerFactor(jf, self.values)
+    def _cross_factors(self, dets: list[_Detection]) -> list[gtsam.LinearContainerFactor]:
+        """e = R^T (t_target - t) - z linearised at the current poses (module docstring), whitened by
+        sqrt(weight) W; vectorised. With q0 = R0^T (t_target - t0): d e / d xi = [[q0]x, -I],
+        d e / d xi_target = [0, R0^T R_target]."""
+        M = np.array([self.values.atPose3(d.pose_key).matrix() for d in dets])
+        Mt = np.array([self.values.atPose3(d.target_key).matrix() for d in dets])
+        R0t = M[:, :3, :3].transpose(0, 2, 1)
+        q = np.einsum("nij,nj->ni", R0t, Mt[:, :3, 3] - M[:, :3, 3])
+        W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * np.array([d.W for d in dets])
+        A_x = np.zeros((len(dets), 3, 6))
+        A_x[:, :, :3] = _skews(q)
+        A_x[:, :, 3:] = -np.eye(3)
+        A_t = np.zeros((len(dets), 3, 6))
+        A_t[:, :, 3:] = R0t @ Mt[:, :3, :3]
+        WA_x, WA_t = W @ A_x, W @ A_t
+        b = np.einsum("nij,nj->ni", W, np.array([d.z for d in dets]) - q)
+        out = []
+        for n, d in enumerate(dets):
+            d.lin_pose = M[n]
+            jf = gtsam.JacobianFactor(d.pose_key, WA_x[n], d.target_key, WA_t[n], b[n], _UNIT3)
+            out.append(gtsam.LinearContainerFactor(jf, self.values))
+        return out
 
     def _reweight(self) -> int:
         """IRLS step of the linearized detections: new Huber weights from the current estimate for
@@ -811,10 +826,11 @@ class FusionGraph:
             det.weight = w
             self._remove_factor(det.fid)
         plain = [det for det, _ in todo if not det.cross]
+        cross = [det for det, _ in todo if det.cross]
         factors = dict(zip(map(id, plain), self._linear_factors(plain), strict=True)) if plain else {}
+        factors.update(zip(map(id, cross), self._cross_factors(cross), strict=True) if cross else {})
         for det, _ in todo:
-            f = factors[id(det)] if not det.cross else self._cross_factor(det)
-            det.fid = self._add_factor(f, (det.pose_key, det.target_key))
+            det.fid = self._add_factor(factors[id(det)], (det.pose_key, det.target_key))
             det.fresh = False
             self._fid_det[det.fid] = det
         return len(todo)
