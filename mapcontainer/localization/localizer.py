@@ -40,7 +40,9 @@ Start-up (and after :meth:`Localizer.reset`), in this order:
    Two (a two-way road): the camera decides, by the global pose search (:mod:`.search`) over both
    directions and the GNSS region. One clear solution starts the track; otherwise its candidate
    basins are tracked as hypotheses (prediction, local match, accumulated score, distinct
-   landmarks counted) until one is well constrained and beats the others by a margin.
+   landmarks counted) until one is well constrained and beats the others by a margin. While a
+   lone hypothesis has not won, the search runs again on every frame and its new basins join as
+   rivals (a weakly supported wrong basin would otherwise hold the start for good).
 
 Until then the result is the GNSS fix with a yaw variance of pi^2 / 3 (uniform), ``initialized``
 False, mode "fallback". Whenever the prediction is too wide for one local solve (horizontal
@@ -552,7 +554,9 @@ class Localizer:
         Returns (match or None, reason, y_pred, P_pred): a winning hypothesis brings its own prediction.
         """
         if self._hyps:
-            win = self._advance_hypotheses(frame, dt, odo_a, odo_b)
+            win = self._advance_hypotheses(
+                frame, dt, odo_a, odo_b, lambda: (y_pred, P_pred, self._search(frame, y_pred[:6], P_pred[:6, :6]))
+            )
             if win is not None:
                 self._attempt = win.last
                 return win.last, "", win.y_pred, win.P_pred
@@ -851,13 +855,15 @@ class Localizer:
             self._hyps = []
             self._init_state(gnss, course[0], max(course[1], p.init_yaw_sigma_rad))
             return True
+        radius = 3.0 * float(np.sqrt(p.gnss_bias_sigma_m**2 + self._gnss_white_var(gnss) + p.init_extra_sigma_m**2))
+        yaws = self._map_yaws(gnss.p_map[:2], radius)
         if self._hyps:
-            win = self._advance_hypotheses(frame, dt, odo_a, odo_b)
+            win = self._advance_hypotheses(
+                frame, dt, odo_a, odo_b, lambda: self._gnss_search(frame, gnss, yaws, radius)
+            )
             if win is not None:
                 self.y, self.P, self._init_match = win.y_pred, win.P_pred, win.last
             return win is not None
-        radius = 3.0 * float(np.sqrt(p.gnss_bias_sigma_m**2 + self._gnss_white_var(gnss) + p.init_extra_sigma_m**2))
-        yaws = self._map_yaws(gnss.p_map[:2], radius)
         if len(yaws) == 0:
             return False
         centre = float(np.angle(np.mean(np.exp(1j * yaws))))
@@ -867,11 +873,8 @@ class Localizer:
             return True
         if frame is None or frame.is_empty():
             return False
-        self._init_state(gnss, centre, np.sqrt(_UNIFORM_YAW_VAR))
-        y0, P0 = self.y, self.P
-        self.y = self.P = None
         try:
-            out = self.search.search(frame, y0[:6], P0[:6, :6], yaws, radius)
+            y0, P0, out = self._gnss_search(frame, gnss, yaws, radius)
         except ValueError:
             self._count("frame invalid")
             return False
@@ -882,6 +885,17 @@ class Localizer:
         self._spawn(y0, P0, out)
         return False
 
+    def _gnss_search(self, frame, gnss: GnssMeasurement, yaws, radius: float):
+        """The global pose search at start-up: over ``radius`` of the GNSS fix and the headings ``yaws``, from
+        the GNSS state with a uniform heading. Returns (y0, P0, outcome) with that state; None without headings.
+        Raises ValueError on a malformed frame."""
+        if len(yaws) == 0:
+            return None
+        self._init_state(gnss, float(np.angle(np.mean(np.exp(1j * yaws)))), np.sqrt(_UNIFORM_YAW_VAR))
+        y0, P0 = self.y, self.P
+        self.y = self.P = None
+        return y0, P0, self.search.search(frame, y0[:6], P0[:6, :6], yaws, radius)
+
     def _spawn(self, y0, P0, out: SearchOutcome) -> None:
         """Start-up hypotheses from the search's converged solutions (each folded into (y0, P0))."""
         self._hyps = []
@@ -891,8 +905,12 @@ class Localizer:
                 h.add(sol)
                 self._hyps.append(h)
 
-    def _advance_hypotheses(self, frame, dt: float, odo_a, odo_b) -> _Hypothesis | None:
-        """Predict and match every hypothesis with this frame; the winner, if one has won (it ends the search)."""
+    def _advance_hypotheses(self, frame, dt: float, odo_a, odo_b, search) -> _Hypothesis | None:
+        """Predict and match every hypothesis with this frame; the winner, if one has won (it ends the search).
+
+        ``search()`` runs the global pose search on this frame: (y0, P0, outcome) or None (see
+        :meth:`_rivals`, for a lone hypothesis that has not won).
+        """
         p, sp = self.params, self.params.search
         n_det = 0 if frame is None or frame.is_empty() else len(frame.points_uv) + len(frame.poles_uv)
         for h in self._hyps:
@@ -930,9 +948,43 @@ class Localizer:
             or best.landmarks < sp.min_landmarks
             or runner - best.score < sp.margin
         ):
+            if len(kept) == 1 and n_det:
+                return self._rivals(search, n_det)
             return None
         self._hyps = []
         return best
+
+    def _rivals(self, search, n_det: int) -> _Hypothesis | None:
+        """Search again while a lone hypothesis has not won; the winner if the search accepts a solution.
+
+        A lone hypothesis has no rival to beat, only too few constraints: a wrong basin from a frame
+        that showed one pole (urban seed 0: 7 m across, 10 degrees off, one pole and the lanes) keeps
+        converging on its pole and the lanes frame after frame, never wins, and held the vehicle in
+        fallback for the whole episode while the true basin came into view. So the search runs on
+        every such frame: a solution it accepts wins at once (as at a cold start); its other converged
+        solutions distinct from the hypothesis join it as rivals, scored as if they had explained the
+        earlier frames as well as it did (only this frame's evidence tells them apart).
+        """
+        lone = self._hyps[0]
+        self._count("search")
+        try:
+            found = search()
+        except ValueError:
+            self._count("frame invalid")
+            return None
+        if found is None:
+            return None
+        y0, P0, out = found
+        if out.match is not None:
+            self._hyps = []
+            return _Hypothesis(y0, P0, out.match.score, set(), set(), y_pred=y0, P_pred=P0, last=out.match)
+        earlier = lone.score - (lone.last.score if lone.last is not None else self.params.matcher.inlier_chi2 * n_det)
+        for sol in out.solutions:
+            if sol.converged and self.search.distinct(sol.pose_filtered, lone.y):
+                h = _Hypothesis(*self._match_update(y0, P0, sol), earlier, set(), set())
+                h.add(sol)
+                self._hyps.append(h)
+        return None
 
     # ------------------------------------------------------------------ results
 

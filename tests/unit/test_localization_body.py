@@ -131,3 +131,16 @@ def test_simulated_cold_start_locks_onto_the_true_basin(seed, vid):
     assert matched[:5].any(), modes
     assert matched.mean() > 0.85
     assert errs[matched].max() < 0.5, errs
+
+
+def test_a_lone_start_up_hypothesis_does_not_stop_the_search():
+    """Urban seed 0, cv2 (cold start, course over ground after 1.8 s): the first search sees one pole and finds
+    one converged solution, 7 m across and 10 degrees off, too weakly constrained to win. It kept matching its
+    pole and the lanes, so it was never dropped, and no search ran again: the vehicle stayed in fallback for the
+    whole episode. The search now runs on while the lone hypothesis has not won, and the true basin takes over."""
+    modes, errs, _ = _sim_cold_start("paper-urban", 0, "cv2", 4.0)
+    matched = np.array(modes) == "map_matching"
+    assert matched[:32].any(), modes  # locked by 3.2 s
+    first = int(np.argmax(matched))
+    assert matched[first:].mean() > 0.9, modes
+    assert errs[matched].max() < 0.5, errs

@@ -31,7 +31,7 @@ def test_presets_load_and_paper_counts():
         assert len(world.vehicle_ids) == 2 and len(world.obstacles) == 1
 
 
-# A car's body on its suspension (1-sigmas; configs/sensors/default.yaml keeps the bodies rigid).
+# A car's body on its suspension (1-sigmas; the profile of configs/sensors/default.yaml).
 CAR_BODY = {
     "heave_static_m": 0.03,
     "heave_dynamic_m": 0.01,
@@ -71,7 +71,7 @@ BODY_OFF = {"sensors": {"body": dict.fromkeys(BodyConfig.model_fields, 0.0)}}
 
 
 def test_body_motion_is_per_vehicle_about_nominal_and_off_is_rigid():
-    assert load_sensor_config().body == BodyConfig(), "the default profile keeps the bodies rigid"
+    assert load_sensor_config().body == BodyConfig(**CAR_BODY), "the default profile: a car's body"
     cfg = BodyConfig(**CAR_BODY)
     static = np.array([cfg.heave_static_m, cfg.roll_static_rad, cfg.pitch_static_rad])
     dynamic = np.array([cfg.heave_dynamic_m, cfg.roll_dynamic_rad, cfg.pitch_dynamic_rad])
