@@ -699,89 +699,71 @@ class FusionGraph:
 
     def add_detections(self, items: list) -> None:
         """Many :meth:`add_detection` calls at once: items of (pose_key, state, z_body, cov_body, weight)."""
-        if not items:
-            return
-        covs = np.array([it[3] for it in items], dtype=float).reshape(-1, 3, 3)
-        Ws = np.linalg.inv(np.linalg.cholesky(covs))  # W^T W = cov^-1
-        dets = []
-        for (pose_key, state, z, _, weight), cov, W in zip(items, covs, Ws, strict=True):
-            ps = self._pose_states[pose_key]
-            det = _Detection(pose_key, state.key, np.asarray(z, dtype=float), cov, ps.t, weight=weight, W=W)
+        dets = self._new_detections([(pk, state.key, z, cov) for pk, state, z, cov, _ in items], cross=False)
+        for det, (_, state, _, _, weight) in zip(dets, items, strict=True):
+            det.weight = weight
             state.dets.append(det)
-            ps.dets.append(det)
-            dets.append(det)
-        for det, f in zip(dets, self._linear_factors(dets), strict=True):
-            det.fid = self._add_factor(f, (det.pose_key, det.target_key))
-            self._fid_det[det.fid] = det
-
-    def _linear_factors(self, dets: list[_Detection]) -> list[gtsam.LinearContainerFactor]:
-        """Linearized detection factors of track detections (module docstring), vectorised.
-
-        e = R^T (p - t) - z at the current pose x0 and object state s0 = [p0, v0]: with
-        q0 = R0^T (p0 - t0), d e / d xi = [[q0]x, -I], d e / d s = [R0^T, 0], e(x0, p0) = q0 - z; whitened
-        by sqrt(weight) W.
-        """
-        M = {}
-        for d in dets:
-            if d.pose_key not in M:
-                M[d.pose_key] = self.values.atPose3(d.pose_key)
-        T0 = [M[d.pose_key] for d in dets]
-        mats = np.array([T.matrix() for T in T0])
-        R0, t0 = mats[:, :3, :3], mats[:, :3, 3]
-        s0 = np.array([self.values.atVector(d.target_key) for d in dets])
-        q = np.einsum("nji,nj->ni", R0, s0[:, :3] - t0)
-        z = np.array([d.z for d in dets])
-        W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * np.array([d.W for d in dets])
-        A = np.zeros((len(dets), 3, 6))
-        A[:, :, :3] = _skews(q)
-        A[:, :, 3:] = -np.eye(3)
-        WA = W @ A
-        WRt = np.zeros((len(dets), 3, 6))
-        WRt[:, :, :3] = W @ R0.transpose(0, 2, 1)
-        b = np.einsum("nij,nj->ni", W, z - q)
-        out = []
-        for n, d in enumerate(dets):
-            d.lin_pose = mats[n]
-            jf = gtsam.JacobianFactor(d.pose_key, WA[n], d.target_key, WRt[n], b[n], _UNIT3)
-            out.append(gtsam.LinearContainerFactor(jf, self.values))
-        return out
+        self._attach(dets)
 
     def add_cross_detections(self, items: list) -> None:
         """Body-frame detections of other connected vehicles' body origins (cross-localization): items of
         (observer pose key, observed vehicle's pose key, z_body, cov_body)."""
+        self._attach(self._new_detections(items, cross=True))
+
+    def _new_detections(self, items: list, cross: bool) -> list[_Detection]:
+        """Detection records of items (pose_key, target_key, z_body, cov_body), on their observers' frames."""
         if not items:
-            return
+            return []
         covs = np.array([it[3] for it in items], dtype=float).reshape(-1, 3, 3)
         Ws = np.linalg.inv(np.linalg.cholesky(covs))  # W^T W = cov^-1
         dets = []
         for (pose_key, target_key, z, _), cov, W in zip(items, covs, Ws, strict=True):
             ps = self._pose_states[pose_key]
-            det = _Detection(pose_key, target_key, np.asarray(z, dtype=float), cov, ps.t, cross=True, W=W)
+            det = _Detection(pose_key, target_key, np.asarray(z, dtype=float), cov, ps.t, cross=cross, W=W)
             ps.dets.append(det)
             dets.append(det)
-        for det, f in zip(dets, self._cross_factors(dets), strict=True):
+        return dets
+
+    def _attach(self, dets: list[_Detection]) -> None:
+        """Put the detections' factors in the graph."""
+        if not dets:
+            return
+        for det, f in zip(dets, self._linear_factors(dets), strict=True):
             det.fid = self._add_factor(f, (det.pose_key, det.target_key))
             self._fid_det[det.fid] = det
 
-    def _cross_factors(self, dets: list[_Detection]) -> list[gtsam.LinearContainerFactor]:
-        """e = R^T (t_target - t) - z linearised at the current poses (module docstring), whitened by
-        sqrt(weight) W; vectorised. With q0 = R0^T (t_target - t0): d e / d xi = [[q0]x, -I],
-        d e / d xi_target = [0, R0^T R_target]."""
-        M = np.array([self.values.atPose3(d.pose_key).matrix() for d in dets])
-        Mt = np.array([self.values.atPose3(d.target_key).matrix() for d in dets])
-        R0t = M[:, :3, :3].transpose(0, 2, 1)
-        q = np.einsum("nij,nj->ni", R0t, Mt[:, :3, 3] - M[:, :3, 3])
+    def _linear_factors(self, dets: list[_Detection]) -> list[gtsam.LinearContainerFactor]:
+        """Linearized detection factors (module docstring), both kinds, vectorised.
+
+        e = R^T (p - t) - z at the current observer pose x0 = (R0, t0) and target: p is a track state's
+        position (state [p, v]) or an observed vehicle's origin (cross). With q0 = R0^T (p0 - t0):
+        d e / d xi = [[q0]x, -I]; d e / d s = [R0^T, 0] (track) or d e / d xi_target = [0, R0^T R_target]
+        (cross); e(x0, p0) = q0 - z; whitened by sqrt(weight) W.
+        """
+        M: dict[int, np.ndarray] = {}
+        for d in dets:
+            for key in (d.pose_key, d.target_key) if d.cross else (d.pose_key,):
+                if key not in M:
+                    M[key] = self.values.atPose3(key).matrix()
+        mats = np.array([M[d.pose_key] for d in dets])
+        R0t, t0 = mats[:, :3, :3].transpose(0, 2, 1), mats[:, :3, 3]
+        cross = np.array([d.cross for d in dets])
+        p0 = np.array([M[d.target_key][:3, 3] if d.cross else self.values.atVector(d.target_key)[:3] for d in dets])
+        q = np.einsum("nij,nj->ni", R0t, p0 - t0)
         W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * np.array([d.W for d in dets])
         A_x = np.zeros((len(dets), 3, 6))
         A_x[:, :, :3] = _skews(q)
         A_x[:, :, 3:] = -np.eye(3)
         A_t = np.zeros((len(dets), 3, 6))
-        A_t[:, :, 3:] = R0t @ Mt[:, :3, :3]
+        A_t[~cross, :, :3] = R0t[~cross]
+        if cross.any():
+            R_t = np.array([M[d.target_key][:3, :3] for d in dets if d.cross])
+            A_t[cross, :, 3:] = R0t[cross] @ R_t
         WA_x, WA_t = W @ A_x, W @ A_t
         b = np.einsum("nij,nj->ni", W, np.array([d.z for d in dets]) - q)
         out = []
         for n, d in enumerate(dets):
-            d.lin_pose = M[n]
+            d.lin_pose = mats[n]
             jf = gtsam.JacobianFactor(d.pose_key, WA_x[n], d.target_key, WA_t[n], b[n], _UNIT3)
             out.append(gtsam.LinearContainerFactor(jf, self.values))
         return out
@@ -825,14 +807,9 @@ class FusionGraph:
         for det, w in todo:
             det.weight = w
             self._remove_factor(det.fid)
-        plain = [det for det, _ in todo if not det.cross]
-        cross = [det for det, _ in todo if det.cross]
-        factors = dict(zip(map(id, plain), self._linear_factors(plain), strict=True)) if plain else {}
-        factors.update(zip(map(id, cross), self._cross_factors(cross), strict=True) if cross else {})
+        self._attach([det for det, _ in todo])
         for det, _ in todo:
-            det.fid = self._add_factor(factors[id(det)], (det.pose_key, det.target_key))
             det.fresh = False
-            self._fid_det[det.fid] = det
         return len(todo)
 
     # ------------------------------------------------------------------ window
