@@ -353,12 +353,13 @@ class Tracker:
         """Kalman updates of distinct tracks (rows of the instant) with their map-frame detections, all at
         once (tracks whose filter is already past the instant are skipped: the filter only gates and
         initialises)."""
-        rows = np.array([k for k, _ in pairs if not inst.ahead[k]], dtype=int)
-        if not len(rows):
+        pairs = [(k, det) for k, det in pairs if not inst.ahead[k]]
+        if not pairs:
             return
+        rows = np.array([k for k, _ in pairs])
         x, P = inst.x[rows], inst.P[rows]
-        m = np.array([det.p_map for k, det in pairs if not inst.ahead[k]])
-        S = P[:, :3, :3] + np.array([det.cov_map for k, det in pairs if not inst.ahead[k]])
+        m = np.array([det.p_map for _, det in pairs])
+        S = P[:, :3, :3] + np.array([det.cov_map for _, det in pairs])
         K = np.linalg.solve(S, P[:, :3, :]).transpose(0, 2, 1)  # P H^T S^-1 (S symmetric)
         x = x + np.einsum("nij,nj->ni", K, m - x[:, :3])
         P = P - K @ P[:, :3, :]

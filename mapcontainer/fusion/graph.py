@@ -740,16 +740,9 @@ class FusionGraph:
         d e / d xi = [[q0]x, -I]; d e / d s = [R0^T, 0] (track) or d e / d xi_target = [0, R0^T R_target]
         (cross); e(x0, p0) = q0 - z; whitened by sqrt(weight) W.
         """
-        M: dict[int, np.ndarray] = {}
-        for d in dets:
-            for key in (d.pose_key, d.target_key) if d.cross else (d.pose_key,):
-                if key not in M:
-                    M[key] = self.values.atPose3(key).matrix()
-        mats = np.array([M[d.pose_key] for d in dets])
-        R0t, t0 = mats[:, :3, :3].transpose(0, 2, 1), mats[:, :3, 3]
+        M, mats, q = self._observed(dets)
+        R0t = mats[:, :3, :3].transpose(0, 2, 1)
         cross = np.array([d.cross for d in dets])
-        p0 = np.array([M[d.target_key][:3, 3] if d.cross else self.values.atVector(d.target_key)[:3] for d in dets])
-        q = np.einsum("nij,nj->ni", R0t, p0 - t0)
         W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * np.array([d.W for d in dets])
         A_x = np.zeros((len(dets), 3, 6))
         A_x[:, :, :3] = _skews(q)
@@ -767,6 +760,19 @@ class FusionGraph:
             jf = gtsam.JacobianFactor(d.pose_key, WA_x[n], d.target_key, WA_t[n], b[n], _UNIT3)
             out.append(gtsam.LinearContainerFactor(jf, self.values))
         return out
+
+    def _observed(self, dets: list[_Detection]) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+        """Where the detections' targets are in their observers' frames at the current values: the 4x4 of
+        every pose involved (by key), the observers' (N, 4, 4) and q = R0^T (p0 - t0) (N, 3), p0 the track
+        state's position or the observed vehicle's origin (cross)."""
+        M: dict[int, np.ndarray] = {}
+        for d in dets:
+            for key in (d.pose_key, d.target_key) if d.cross else (d.pose_key,):
+                if key not in M:
+                    M[key] = self.values.atPose3(key).matrix()
+        mats = np.array([M[d.pose_key] for d in dets])
+        p0 = np.array([M[d.target_key][:3, 3] if d.cross else self.values.atVector(d.target_key)[:3] for d in dets])
+        return M, mats, np.einsum("nji,nj->ni", mats[:, :3, :3], p0 - mats[:, :3, 3])
 
     def _reweight(self) -> int:
         """IRLS step of the linearized detections: new Huber weights from the current estimate for
@@ -787,16 +793,7 @@ class FusionGraph:
             elif det.pose_key in moved or (det.cross and det.target_key in moved):
                 todo.append((det, det.weight))
         if recent:
-            M = {}
-            for det in recent:
-                for key in (det.pose_key, det.target_key) if det.cross else (det.pose_key,):
-                    if key not in M:
-                        M[key] = self.values.atPose3(key).matrix()
-            T = np.array([M[d.pose_key] for d in recent])
-            target = np.array(
-                [M[d.target_key][:3, 3] if d.cross else self.values.atVector(d.target_key)[:3] for d in recent]
-            )
-            e = np.einsum("nji,nj->ni", T[:, :3, :3], target - T[:, :3, 3]) - np.array([d.z for d in recent])
+            e = self._observed(recent)[2] - np.array([d.z for d in recent])
             we = np.einsum("nij,nj->ni", np.array([d.W for d in recent]), e)
             dist = np.linalg.norm(we, axis=1)
             w_new = np.minimum(1.0, k / np.maximum(dist, 1e-12))
@@ -805,11 +802,9 @@ class FusionGraph:
                 if relin or abs(w - det.weight) > 0.05 * det.weight:
                     todo.append((det, float(w)))
         for det, w in todo:
-            det.weight = w
+            det.weight, det.fresh = w, False
             self._remove_factor(det.fid)
         self._attach([det for det, _ in todo])
-        for det, _ in todo:
-            det.fresh = False
         return len(todo)
 
     # ------------------------------------------------------------------ window

@@ -47,7 +47,12 @@ def parse_args(argv: list[str] | None = None) -> VehicleSettings:
     p = argparse.ArgumentParser(prog="python -m services.vehicle", description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="paper-urban", help="scenario whose HD map the vehicle carries")
     p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
-    p.add_argument("--queue", type=int, default=2, help="frames waiting before new ones are dropped")
+    p.add_argument(
+        "--queue",
+        type=int,
+        default=VehicleSettings.model_fields["queue"].default,
+        help="frames waiting before new ones are dropped",
+    )
     add_service_args(p, "vehicle")
     a = p.parse_args(argv)
     return VehicleSettings(
