@@ -43,7 +43,7 @@ from ..runtime import (
 )
 from .worker import fusion_loop, fusion_process
 
-__all__ = ["HostSettings", "main", "parse_args"]
+__all__ = ["HostSettings", "fusion_stall", "main", "parse_args"]
 
 
 class HostSettings(ServiceSettings):
@@ -80,6 +80,25 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
     )
 
 
+def fusion_stall(
+    since_fused_s: float,
+    input_idle_s: float | None,
+    rejects: dict[str, int],
+    rejects_at_fused: dict[str, int],
+    stall_s: float | None,
+) -> str | None:
+    """Why the host is degraded although its input flows, or None: messages kept arriving (the last
+    one at most ``stall_s`` ago) but no fused state was published for more than ``stall_s`` seconds,
+    typically because the container refused them all (e.g. stale: the vehicles' clocks or latency put
+    them outside the window). The reason names the rejections counted since the last fused state.
+    (Input that stops altogether is the generic "input stalled" of every service.)"""
+    if stall_s is None or since_fused_s <= stall_s or input_idle_s is None or input_idle_s > stall_s:
+        return None
+    new = {r: n - rejects_at_fused.get(r, 0) for r, n in rejects.items() if n > rejects_at_fused.get(r, 0)}
+    why = ", ".join(f"{n} {r}" for r, n in sorted(new.items(), key=lambda kv: -kv[1])) or "none"
+    return f"input is flowing but nothing was fused for {since_fused_s:.1f} s (rejected since then: {why})"
+
+
 def main(s: HostSettings) -> int:
     log = setup_logging("host", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
@@ -96,9 +115,7 @@ def main(s: HostSettings) -> int:
     if s.inline:
         inbox: Any = queue.Queue(maxsize=s.inbox)
         outbox: Any = queue.Queue()
-        worker: Any = threading.Thread(
-            target=fusion_loop, args=(spec, inbox, outbox), daemon=True, name="fusion"
-        )
+        worker: Any = threading.Thread(target=fusion_loop, args=(spec, inbox, outbox), daemon=True, name="fusion")
     else:
         ctx = mp.get_context("spawn")
         inbox, outbox = ctx.Queue(maxsize=s.inbox), ctx.Queue()
@@ -112,9 +129,7 @@ def main(s: HostSettings) -> int:
             first = outbox.get(timeout=0.5)
         except queue.Empty:
             if not worker.is_alive():
-                log.error(
-                    "the fusion worker died while starting (exit code %s)", getattr(worker, "exitcode", None)
-                )
+                log.error("the fusion worker died while starting (exit code %s)", getattr(worker, "exitcode", None))
                 return 1
     if first[0] != "ready":
         log.error("the fusion core did not start:\n%s", first[1])
@@ -132,11 +147,6 @@ def main(s: HostSettings) -> int:
     t0_mono = time.monotonic()
     warned = threading.Event()
 
-    def check() -> tuple[str, str | None]:
-        if not worker.is_alive():
-            return "failed", "the fusion worker is gone"
-        return "ok", None
-
     def figures() -> dict[str, Any]:
         try:
             fig["inbox"] = inbox.qsize()
@@ -144,8 +154,23 @@ def main(s: HostSettings) -> int:
             pass
         return {**core_stats["stats"], **fig}
 
+    fused_at = {"t": time.monotonic(), "rejects": {}}  # the last publish and the rejections until then
     rc = 0
-    with Service("host", s, figures=figures, health_check=check) as svc:
+    with Service("host", s, figures=figures) as svc:
+
+        def check() -> tuple[str, str | None]:
+            if not worker.is_alive():
+                return "failed", "the fusion worker is gone"
+            why = fusion_stall(
+                time.monotonic() - fused_at["t"],
+                svc.metrics.msgs_in.idle_s(),
+                dict(svc.metrics.rejects),
+                fused_at["rejects"],
+                s.stale_input_s,
+            )
+            return ("degraded", why) if why else ("ok", None)
+
+        svc.health_check = check
         fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=s.id))
 
         def on_msg(msg: Received) -> None:
@@ -197,6 +222,8 @@ def main(s: HostSettings) -> int:
                 for accepted, reason, _ in results:
                     if not accepted:
                         svc.metrics.reject(reason or "rejected", "by the container", log)
+                if item[0] == "fused":
+                    fused_at.update(t=time.monotonic(), rejects=dict(svc.metrics.rejects))
 
         svc.spawn(drain, "drain")
         svc.wait()

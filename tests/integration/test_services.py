@@ -10,19 +10,18 @@ import re
 import signal
 import time
 
+import numpy as np
 import pytest
 
-from schemas import HealthStatus, VehiclePrior, decode
+from schemas import HealthStatus, LocalizationQuality, ObjectObservations, VehiclePrior, decode, encode
 from schemas.topics import topic
 from services.health import fleet_health
-from services.runtime import ZenohSettings, open_session
+from services.runtime import ZenohSettings, make_attachment, open_session
 
 pytestmark = pytest.mark.integration
 
 
-def test_world_is_seen_healthy_and_stops_cleanly_on_sigint(
-    rendezvous, fleet_name, spawn, mapc, watch_liveliness
-):
+def test_world_is_seen_healthy_and_stops_cleanly_on_sigint(rendezvous, fleet_name, spawn, mapc, watch_liveliness):
     session, endpoint = rendezvous
     alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
     world = spawn(
@@ -101,6 +100,54 @@ def test_sensor_frames_become_priors_behind_the_channel(rendezvous, fleet_name, 
     assert vehicle.msgs_in_per_s > 0 and vehicle.msgs_out_per_s > 0 and vehicle.latency_ms_p50 is not None
     channel = views[("channel", "channel")].status
     assert channel.figures["offered_msgs"] >= 3 and channel.figures["delivered_fraction"] == 1.0
+
+
+def test_host_says_why_it_fuses_nothing_and_recovers(rendezvous, fleet_name, spawn, wait_for, watch_liveliness):
+    """Priors that arrive but are all older than the window: the host reports "degraded" with the
+    rejections by reason instead of going silent, and returns to "ok" once fresh priors fuse."""
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    spawn("services.host", "--fleet", fleet_name, "--connect", endpoint, "--known-senders", "cv0")
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="host", id="host"), timeout=90)
+    pub = session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src="cv0"))
+    epoch = time.time_ns()  # the scenario clock the attachments carry: t = wall seconds since epoch
+    attachment = make_attachment(epoch_wall_ns=epoch, time_scale=1.0)
+    seq = 0
+
+    def send(lag_s: float) -> None:
+        nonlocal seq
+        t = round((time.time_ns() - epoch) * 1e-9 - lag_s, 1)
+        p = np.array([[20.0, 0.0, 0.0]])
+        msg = VehiclePrior(
+            fleet=fleet_name,
+            sender="cv0",
+            seq=seq,
+            t_meas=t,
+            t_sent=t,
+            pose=np.array([5.0 * t, 0, 0, 0, 0, 0]),
+            pose_cov=np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005])[np.triu_indices(6)] ** 2,
+            v_map=np.array([5.0, 0, 0]),
+            quality=LocalizationQuality(mode="map_matching"),
+            objects=ObjectObservations.from_metres(p, np.diag([0.2, 0.15, 0.05])[None] ** 2, [2]),
+        )
+        seq += 1
+        pub.put(encode(msg), attachment=attachment)
+
+    def host_status(lag_s: float) -> HealthStatus:
+        for _ in range(5):  # half a second of priors at 10 Hz between looks
+            send(lag_s)
+            time.sleep(0.1)
+        views = fleet_health(session, fleet_name, timeout_s=1.0)
+        return next(v.status for v in views if v.role == "host")
+
+    degraded = wait_for(
+        lambda: (st := host_status(lag_s=5.0)).state == "degraded" and st, timeout=60, what="a degraded host"
+    )
+    assert "nothing was fused" in degraded.last_error and "stale" in degraded.last_error, degraded
+    assert degraded.rejects.get("stale", 0) > 0 and degraded.figures.get("fused_published", 0) == 0
+    recovered = wait_for(lambda: (st := host_status(lag_s=0.0)).state == "ok" and st, timeout=60, what="ok again")
+    assert recovered.figures["fused_published"] > 0
+    pub.undeclare()
 
 
 def test_router_mode_with_clients(fleet_name, spawn, wait_for, watch_liveliness):

@@ -13,6 +13,7 @@ from schemas import FusedState, GroundTruth
 from services.channel.app import Relay, parse_receivers
 from services.evaluator.core import Evaluator, match_objects
 from services.evaluator.plot import ellipse_params
+from services.host.app import fusion_stall
 from services.host.worker import FrameGate
 from services.launcher.app import parse_args as launcher_parse_args
 from services.launcher.app import summary_line
@@ -178,6 +179,18 @@ def test_frame_gate_without_a_sender_list_expects_the_active_ones() -> None:
     g.arrived("b", 0.2, now=0.25)
     assert g.due(0.25) == pytest.approx(0.2)  # complete; the incomplete older frame is dropped
     assert g.next_deadline() is None
+
+
+def test_host_stall_names_the_rejections_since_the_last_fused_state() -> None:
+    then, now = {"stale": 4, "duplicate": 1}, {"stale": 40, "duplicate": 1, "future": 2}
+    why = fusion_stall(5.0, 0.1, now, then, stall_s=3.0)
+    assert why is not None and "nothing was fused for 5.0 s" in why and "36 stale, 2 future" in why
+    assert "duplicate" not in why  # none since the last fused state
+    assert fusion_stall(2.0, 0.1, now, then, stall_s=3.0) is None  # fused recently
+    assert fusion_stall(5.0, 4.0, now, then, stall_s=3.0) is None  # no input: the generic "input stalled"
+    assert fusion_stall(5.0, None, now, then, stall_s=3.0) is None  # never had input
+    assert fusion_stall(5.0, 0.1, now, then, stall_s=None) is None  # check disabled
+    assert "(rejected since then: none)" in fusion_stall(5.0, 0.1, then, then, stall_s=3.0)
 
 
 # ------------------------------------------------------------------------------ channel relay
