@@ -22,7 +22,6 @@ import numpy as np
 from schemas import FusedState, Rejection, VehiclePrior, decode
 from schemas.models import MAX_OBJECTS
 
-from .. import geometry as geo
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer
 from .graph import FusionGraph, SolveReport
@@ -187,7 +186,6 @@ class Container:
         vehicles = [v for v in self._vehicle_candidates(t) if v.vid != m.sender]
         assignments, _ = self.tracker.associate(dets, vehicles)
         batch = []
-        rotations: dict[int, np.ndarray] = {}
         observers: dict[tuple[str, float], object] = {}
         for a in assignments:
             det = a.det
@@ -198,9 +196,7 @@ class Container:
             if obs is None:  # the observer's frame has left the window
                 self._counts["observer_gone"] += 1
                 continue
-            R_obs = rotations.get(obs.key)
-            if R_obs is None:
-                R_obs = rotations[obs.key] = geo.rpy_to_matrix(*obs.pose[3:])
+            R_obs = obs.M[:3, :3]
             if a.kind == "vehicle":
                 if self.params.cross_localization:
                     self._cross.append((a.target, det))
@@ -250,7 +246,6 @@ class Container:
         the detection; that is taken out of the detection and its uncertainty added.
         """
         waiting, items = [], []
-        rotations: dict[int, np.ndarray] = {}
         for vid, det in self._cross:
             if det.t < t_min:
                 self._counts["cross_no_state"] += 1
@@ -263,9 +258,7 @@ class Container:
             if target is None:
                 waiting.append((vid, det))
                 continue
-            R_obs = rotations.get(obs.key)
-            if R_obs is None:
-                R_obs = rotations[obs.key] = geo.rpy_to_matrix(*obs.pose[3:])
+            R_obs = obs.M[:3, :3]
             delta = det.t - target.t
             z = det.p_body - R_obs.T @ target.v_map * delta
             cov = det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3)

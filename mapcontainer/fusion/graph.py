@@ -93,10 +93,12 @@ from scipy.linalg import lapack
 
 from schemas import ObjectClass
 
+from .. import geometry as geo
+
 from .buffer import time_key
 from .motion import accel_psd, cv_model, speed_prior
 from .params import FusionParams
-from .poses import pose3_from_vector, pose_cov_to_tangent
+from .poses import pose_cov_to_tangent
 
 __all__ = ["FusionGraph", "SolveReport"]
 
@@ -110,11 +112,6 @@ def _skews(q: np.ndarray) -> np.ndarray:
     out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -q[:, 2], q[:, 1], -q[:, 0]
     out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = q[:, 2], -q[:, 1], q[:, 0]
     return out
-
-
-def _inv_chol(cov: np.ndarray) -> np.ndarray:
-    """L^-1 with L L^T = cov (lower triangular): the whitening matrix."""
-    return np.linalg.inv(np.linalg.cholesky(cov))
 
 
 def _sqrt_info(cov: np.ndarray) -> np.ndarray:
@@ -161,7 +158,9 @@ class _PoseState:
     cov: np.ndarray  # reported 6x6 over pose
     v_map: np.ndarray
     cov_xi: np.ndarray  # reported covariance in Pose3's tangent [rotation, translation]
-    T: gtsam.Pose3 | None = None  # the reported pose
+    L_xi: np.ndarray  # its Cholesky factor, L L^T = cov_xi
+    T: gtsam.Pose3  # the reported pose
+    M: np.ndarray  # and its 4x4 matrix
     dets: list = field(default_factory=list)  # _Detection records made from this frame
     prior_lin: np.ndarray | None = None  # linearization point (4x4) of a self-localization factor with a bias
     vid: str = ""
@@ -338,10 +337,12 @@ class FusionGraph:
         cov = np.asarray(pose_cov, dtype=float)
         key = X(self._n["x"])
         self._n["x"] += 1
-        T = pose3_from_vector(pose)
+        M = geo.pose_to_matrix(pose)
+        T = gtsam.Pose3(M)
         self.values.insert(key, T)
         cov_xi = pose_cov_to_tangent(pose, cov)
-        state = _PoseState(float(t), key, pose, cov, np.asarray(v_map, dtype=float), cov_xi, T, vid=vid)
+        L_xi = np.linalg.cholesky(cov_xi)
+        state = _PoseState(float(t), key, pose, cov, np.asarray(v_map, dtype=float), cov_xi, L_xi, T, M, vid=vid)
         self._pose_states[key] = state
         i = bisect.bisect_left(chain.tkeys, tk)
         chain.tkeys.insert(i, tk)
@@ -385,7 +386,7 @@ class FusionGraph:
                     )
                 )
             c = 1.0 / np.sqrt(1.0 - a)
-            W = _inv_chol(s.cov_xi)
+            W = np.linalg.inv(s.L_xi)
             xk = self.values.atPose3(s.key)
             beta = self.values.atVector(chain.bias_key)
             r = s.T.localCoordinates(xk)
@@ -428,8 +429,7 @@ class FusionGraph:
         if dt <= 0 or dt > self.params.motion_factor_max_dt_s:
             return
         p = self.params
-        R_a = pose3_from_vector(a.pose).rotation().matrix()
-        t_rel = R_a.T @ (0.5 * (a.v_map + b.v_map) * dt)
+        t_rel = a.M[:3, :3].T @ (0.5 * (a.v_map + b.v_map) * dt)
         s_t = np.hypot(p.vehicle_velocity_sigma_mps * dt, 0.5 * p.vehicle_accel_sigma_mps2 * dt**2)
         s_r = p.vehicle_rate_sigma_radps * dt
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_r, s_r, s_r, s_t, s_t, s_t]))
@@ -514,11 +514,11 @@ class FusionGraph:
         covariance in that tangent. The reported pose, not the estimate: the graph models the true pose as
         z_k (+) L (b + n_k) (``_pose_prior``), so the errors of m are J L b (persistent, kept as b) and
         J L n_k (independent). Vectorised."""
-        M = np.array([self._pose_states[d.pose_key].T.matrix() for d in dets])
+        M = np.array([self._pose_states[d.pose_key].M for d in dets])
         R, t = M[:, :3, :3], M[:, :3, 3]
         z = np.array([d.z for d in dets])
         Sz = np.array([d.cov for d in dets])
-        L = np.linalg.cholesky(np.array([self._pose_states[d.pose_key].cov_xi for d in dets]))
+        L = np.array([self._pose_states[d.pose_key].L_xi for d in dets])
         zx = np.zeros((len(dets), 3, 3))
         zx[:, 0, 1], zx[:, 0, 2], zx[:, 1, 2] = -z[:, 2], z[:, 1], -z[:, 0]
         zx[:, 1, 0], zx[:, 2, 0], zx[:, 2, 1] = z[:, 2], -z[:, 1], z[:, 0]
