@@ -15,6 +15,7 @@ Conventions (README "Frames and units"):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,18 +78,37 @@ def rot_z(a: float) -> np.ndarray:
 
 
 def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+    """R = Rz(yaw) Ry(pitch) Rx(roll), written out (scalars first, then one array: this and
+    :func:`rpy_to_matrix_jac` run tens of times per camera frame in the map matcher)."""
+    sr, cr = math.sin(roll), math.cos(roll)
+    sp, cp = math.sin(pitch), math.cos(pitch)
+    sy, cy = math.sin(yaw), math.cos(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def rpy_to_matrix_jac(roll: float, pitch: float, yaw: float):
-    """R and its partial derivatives dR/droll, dR/dpitch, dR/dyaw (each 3x3)."""
-    Rx, Ry, Rz = rot_x(roll), rot_y(pitch), rot_z(yaw)
-    # d/da Rx(a) = Rx(a) [e_x]x, and likewise for y, z.
-    dRx = Rx @ skew((1.0, 0.0, 0.0))
-    dRy = Ry @ skew((0.0, 1.0, 0.0))
-    dRz = Rz @ skew((0.0, 0.0, 1.0))
-    return Rz @ Ry @ Rx, Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx
+    """R and its partial derivatives dR/droll = R [e_x]x, dR/dpitch = Rz Ry [e_y]x Rx and
+    dR/dyaw = [e_z]x R (each 3x3), written out."""
+    R = rpy_to_matrix(roll, pitch, yaw)
+    sr, cr = math.sin(roll), math.cos(roll)
+    sp, cp = math.sin(pitch), math.cos(pitch)
+    sy, cy = math.sin(yaw), math.cos(yaw)
+    d_roll = np.array([[0.0, R[0, 2], -R[0, 1]], [0.0, R[1, 2], -R[1, 1]], [0.0, R[2, 2], -R[2, 1]]])
+    d_pitch = np.array(
+        [
+            [-cy * sp, cy * cp * sr, cy * cp * cr],
+            [-sy * sp, sy * cp * sr, sy * cp * cr],
+            [-cp, -sp * sr, -sp * cr],
+        ]
+    )
+    d_yaw = np.array([[-R[1, 0], -R[1, 1], -R[1, 2]], [R[0, 0], R[0, 1], R[0, 2]], [0.0, 0.0, 0.0]])
+    return R, d_roll, d_pitch, d_yaw
 
 
 def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
