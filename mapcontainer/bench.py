@@ -14,10 +14,13 @@ from .metrics import percentile, rmse
 from .sim import World, load_scenario
 from .vehicle import VehicleAgent
 
-__all__ = ["bench_localization"]
+__all__ = ["WARMUP_S", "bench_localization"]
 
 
-def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, warmup_s: float = 2.0) -> dict:
+WARMUP_S = 2.0  # seconds of an episode not scored (initialisation from GNSS)
+
+
+def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, warmup_s: float = WARMUP_S) -> dict:
     """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes.
 
     The vehicle's estimate is the localizer's filtered pose (what the vehicle knows of itself);
@@ -25,15 +28,19 @@ def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, 
     figures (``mapmatch_*``, ``lateral_*``, ``longitudinal_*``, ``yaw_*``) are over the frames the
     vehicle reports map matching (``converged_fraction`` of them); ``all_frames_*`` include the
     GNSS + odometry fallback frames (start-up, blind stretches). NEES is over the six pose parameters
-    and all frames: the covariance must be honest in fallback too. ``prior_*`` score what the
+    and all frames: the covariance must be honest in fallback too; ``nees_axes_mean`` is the mean of
+    each parameter's squared error over its variance (1 when honest; it shows which axes a NEES above
+    6 comes from). ``prior_*`` score what the
     VehiclePrior carries instead: this frame's
     camera evidence with a weak prior (independent from frame to frame, for the host's graph) --
     noisier, with its own covariance. Frames in the first ``warmup_s`` seconds (initialisation
     from GNSS) are not scored. Time is the whole vehicle step (PNG decode, distance transform,
     matching, message build).
     """
+    if seeds < 1 or not duration_s > warmup_s:
+        raise ValueError(f"need seeds >= 1 and duration_s > warmup_s, got {seeds}, {duration_s}, {warmup_s}")
     e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched = [], [], [], [], [], [], [], [], []
-    e_prior, nees_prior, e_all, e_all_yaw = [], [], [], []
+    e_prior, nees_prior, e_all, e_all_yaw, nees_axes = [], [], [], [], []
     frames = 0
     for seed in range(seeds):
         world = World(load_scenario(scenario), seed=seed)
@@ -54,6 +61,7 @@ def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, 
                 e_all_yaw.append(np.degrees(err[5:]))
                 e_gnss.append(np.asarray(frame.gnss.p_map[:2], float) - truth[:2])
                 nees.append(float(err @ np.linalg.solve(res.cov_filtered, err)))
+                nees_axes.append(err**2 / np.diag(res.cov_filtered))
                 matched.append(prior.quality.mode == "map_matching")
                 if matched[-1]:
                     e_body = geo.rot_z(truth[5]).T[:2, :2] @ err[:2]
@@ -79,12 +87,16 @@ def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, 
         "all_frames_rmse_m": round(rmse(e_all), 3),
         "all_frames_yaw_rmse_deg": round(rmse(e_all_yaw), 3),
         "nees_mean": round(float(np.mean(nees)), 2),
+        "nees_axes_mean": dict(zip(_AXES, np.round(np.mean(nees_axes, axis=0), 2).tolist(), strict=True)),
         "ms_per_frame_p50": round(percentile(ms, 50), 2),
         "ms_per_frame_p99": round(percentile(ms, 99), 2),
         "prior_bytes_mean": round(float(np.mean(sizes)), 1),
         "prior_rmse_m": round(rmse(e_prior), 3),
         "prior_nees_mean": round(float(np.mean(nees_prior)), 2),
     }
+
+
+_AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 
 
 def _pose_error(pose, truth) -> np.ndarray:

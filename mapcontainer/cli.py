@@ -61,8 +61,10 @@ def _cmd_schemas_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_localization(args: argparse.Namespace) -> int:
-    from .bench import bench_localization
+    from .bench import WARMUP_S, bench_localization
 
+    if not args.duration > WARMUP_S:
+        raise ConfigError(f"--duration must be longer than the {WARMUP_S:g} s warm-up, got {args.duration:g}")
     print(json.dumps(bench_localization(args.scenario, args.seeds, args.duration)))
     return 0
 
@@ -148,8 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bl = bench.add_parser("localization", help="map-matching accuracy, consistency and speed")
     bl.add_argument("--scenario", default="paper-urban")
-    bl.add_argument("--seeds", type=int, default=3, help="independent episodes")
-    bl.add_argument("--duration", type=float, default=20.0, help="seconds per episode")
+    bl.add_argument("--seeds", type=_positive_int, default=3, help="independent episodes")
+    bl.add_argument("--duration", type=float, default=20.0, help="seconds per episode (the first 2 are not scored)")
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
     bf.add_argument("--vehicles", type=_positive_int, default=4)

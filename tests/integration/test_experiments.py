@@ -1,4 +1,4 @@
-"""`mapc experiment paper|network` and `mapc bench fusion` end to end (fixed seeds, no wall-clock bounds)."""
+"""`mapc experiment paper|network`, `mapc bench fusion|localization` end to end (fixed seeds, no wall-clock bounds)."""
 
 from __future__ import annotations
 
@@ -104,6 +104,23 @@ def test_experiment_network_quick_writes_table_and_plots(tmp_path):
     assert len(doc["rows"]) == 16 and doc["meta"]["quick"] is True
     for png in ("network_latency.png", "network_bandwidth.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
+
+
+def test_bench_localization_prints_accuracy_consistency_and_speed():
+    proc = _mapc("bench", "localization", "--scenario", "paper-urban", "--seeds", "1", "--duration", "4")
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["frames"] == 4 * 20  # four vehicles, the 2 s after the warm-up at 10 Hz
+    for key in ("gnss_rmse_m", "all_frames_rmse_m", "nees_mean", "ms_per_frame_p50", "prior_rmse_m"):
+        assert _finite(result[key]), key
+    assert set(result["nees_axes_mean"]) == {"x", "y", "z", "roll", "pitch", "yaw"}
+    # seed 0: map matching locks on within the warm-up and beats GNSS by an order of magnitude
+    assert result["converged_fraction"] > 0.7 and result["mapmatch_rmse_m"] < 0.3 < result["gnss_rmse_m"]
+    bad = subprocess.run(
+        [sys.executable, "-m", "mapcontainer.cli", "bench", "localization", "--duration", "1"],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and "warm-up" in bad.stderr
 
 
 def test_bench_fusion_prints_json_last(tmp_path):
