@@ -15,7 +15,10 @@ One step::
     fallback     + the ground constraint (height on the road, roll = pitch = 0)
 
 If converged matches keep being rejected as jumps (``jump_reset_after`` in a row), the prediction
-is distrusted: its position and yaw covariance are widened and the match is tried again.
+is distrusted: its position and yaw covariance are widened and the match is tried again. If the
+state stays farther from the GNSS fixes than GNSS alone can err (``gnss_divergence_m`` for
+``gnss_divergence_fixes`` fixes in a row), it is in a wrong basin that its own matches keep
+confirming (the fixes are all refused by the gate): the localizer starts again from GNSS.
 
 The state is ``[x, y, z, roll, pitch, yaw, k_v, b_w, b_E, b_N]``: the pose, the wheel-speed
 scale factor, the gyro bias and the GNSS receiver's slowly drifting horizontal bias (first-order
@@ -182,6 +185,15 @@ class LocalizerParams(BaseModel):
     init_course_distance_m: float = Field(12.0, gt=0, description="GNSS travel that gives a course over ground (m)")
     init_min_speed_mps: float = Field(1.0, ge=0, description="dead reckoning for the course only above this speed")
     max_gap_s: float = Field(5.0, gt=0, description="a longer gap between steps re-initialises")
+    gnss_divergence_m: float = Field(
+        15.0,
+        gt=0,
+        description="a state farther than this from the GNSS fix is in a wrong basin (m); the receiver errs at "
+        "most about 3 sigma of bias (4.5 m) + 3 sigma white (2.4 m) + a multipath jump (up to 8 m)",
+    )
+    gnss_divergence_fixes: int = Field(
+        5, ge=1, description="that many fixes in a row that far apart re-initialise from GNSS"
+    )
     verify_start_frames: int = Field(
         20,
         ge=0,
@@ -362,6 +374,7 @@ class Localizer:
         self._initial_yaw = initial_yaw
         self._init = _Init()
         self._jumps = 0
+        self._far = 0  # GNSS fixes in a row farther than gnss_divergence_m from the state
         self._init_match: MatchResult | None = None
         self._hyps: list[_Hypothesis] = []
         self._last: LocalizationResult | None = None
@@ -439,6 +452,13 @@ class Localizer:
             y, P = y_pred, P_pred
             mode = "fallback"
         y, P, gnss_used = self._gnss_update(y, P, gnss)
+        if gnss is not None:
+            self._far = self._far + 1 if np.hypot(*(gnss.p_map[:2] - y[:2])) > p.gnss_divergence_m else 0
+            if self._far >= p.gnss_divergence_fixes:
+                self._count("gnss_divergence_reset")
+                log.warning("%d GNSS fixes in a row > %.0f m away: re-initialising", self._far, p.gnss_divergence_m)
+                self.reset(None)
+                return self.step(t, frame, odometry, gnss)
         if mode == "fallback":
             y, P = self._ground_update(y, P)
         self.y, self.P = y, P

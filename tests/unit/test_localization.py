@@ -544,3 +544,24 @@ def test_known_start_pose_matches_from_the_first_frame():
     assert np.hypot(*pose_error(res.pose, truth)[:2]) < 0.2
     with pytest.raises(ValueError, match="positive definite"):
         Localizer(HDMAP, initial_pose=(truth, -np.eye(6)))
+
+
+@pytest.mark.parametrize("offset_m, resets", [(20.0, 1), (10.0, 0)])
+def test_a_state_far_from_every_gnss_fix_starts_again_from_gnss(offset_m, resets):
+    """A wrong basin that its own matches keep confirming refuses every GNSS fix (the gate). When the
+    state stays farther from the fixes than GNSS alone can err (15 m, 5 fixes in a row), the localizer
+    starts again from GNSS; 10 m away (a multipath jump on a biased receiver) it keeps its state."""
+    rng = np.random.default_rng(9)
+    truth = pose_on(40.0)
+    wrong = truth + np.r_[offset_m * np.array([np.cos(truth[5] + 1.0), np.sin(truth[5] + 1.0)]), 0, 0, 0, 0]
+    cov = np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])
+    loc = Localizer(HDMAP, LocalizerParams(verify_start_frames=0), initial_pose=(wrong, cov))
+    for k in range(8):
+        fix = GnssMeasurement(truth[:3] + np.r_[rng.normal(0, 0.8, 2), 0.0], 2.0, 3.0)
+        res = loc.step(0.1 * k, None, OdometryMeasurement(0.0, 0.0), fix)  # standing still, camera blind
+    assert loc.stats.get("gnss_divergence_reset", 0) == resets
+    assert loc.stats["gnss rejected"] >= 5 - resets
+    if resets:  # back to the GNSS fix, heading unknown until the course or the camera gives it
+        assert not res.initialized and np.hypot(*(res.pose[:2] - truth[:2])) < 3.0
+    else:
+        assert res.initialized and np.hypot(*(res.pose[:2] - wrong[:2])) < 1.0
