@@ -117,6 +117,7 @@ class World:
         self._sensors = {
             a.id: _VehicleSensors(self, ss) for a, ss in zip(self.connected, root.spawn(n_cv), strict=True)
         }
+        self._last_k: dict[str, int] = {}  # the last frame each vehicle's sensors measured
         b = scenario.sensors.body
         static = (b.heave_static_m, b.roll_static_rad, b.pitch_static_rad)
         dynamic = (b.heave_dynamic_m, b.roll_dynamic_rad, b.pitch_dynamic_rad)
@@ -163,7 +164,9 @@ class World:
         ok, png = cv2.imencode(".png", cam.lane_mask, _PNG_PARAMS)
         if not ok:
             raise RuntimeError("PNG encoding of the lane mask failed")
-        p_gnss, sh, sv = sensors.gnss.measure(t, me.p_map, self.dt)
+        skipped = k - self._last_k.get(vid, k - 1)  # frames since the last one sensed (1 when in order)
+        self._last_k[vid] = k
+        p_gnss, sh, sv = sensors.gnss.measure(t, me.p_map, self.dt * skipped)
         speed, yaw_rate = sensors.odometry.measure(me.speed, me.yaw_rate)
         p_obj, cov_obj, cls_obj, ids = sensors.detector.observe(me, others, others + [me])
         frame = SensorFrame(
@@ -184,7 +187,9 @@ class World:
         return frame, FrameDebug(cam, ids)
 
     def tick(self, k: int) -> Tick:
-        """Everything at frame k (t = k dt). Call with k = 0, 1, 2, ... in order (sensor state advances)."""
+        """Everything at frame k (t = k dt). Call with increasing k (sensor state advances); frames left
+        out are never sensed (an overloaded live world drops them), the sensors' error processes advance
+        over the time elapsed since the last frame."""
         t = k * self.dt
         states = self.states(t)
         frames, debug = {}, {}

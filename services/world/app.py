@@ -3,8 +3,12 @@
 Publishes each vehicle's SensorFrame on ``mc/{fleet}/sim/{vid}/sensors`` and GroundTruth on
 ``mc/{fleet}/sim/truth``. Frame k is computed ahead, then published at its due wall time
 ``epoch + k dt / time_scale``; the attachment carries the clock (``epoch_wall_ns``, ``time_scale``)
-and the publish time (``t_wall_ns``). If a frame takes longer than its period the world falls
-behind: the lag is a health figure and the state turns degraded beyond ``--max-lag``.
+and the publish time (``t_wall_ns``). If frames take longer than their period (an overloaded
+machine) the world drops frames instead of falling behind: once a frame is due before it was even
+computed, it skips to the frame due next, as an overloaded sensor pipeline does, and its state turns
+degraded while it does (``skipped_frames``). Publishing ever staler frames instead would make every
+prior older than the host's window, and nothing would be fused. The lag behind the clock is a health
+figure too, degraded beyond ``--max-lag``.
 
 With ``--state-file`` the clock is kept in a file: a restarted world resumes the same timeline
 (at the frame now due, with fresh sensor noise state) instead of starting again at t = 0.
@@ -14,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -104,13 +109,22 @@ def main(s: WorldSettings) -> int:
         "t": 0.0,
         "lag_s": 0.0,
         "late_frames": 0,
+        "skipped_frames": 0,
         "vehicles": len(world.vehicle_ids),
         "tick_ms": 0.0,
     }
 
+    skipping = {"t": -math.inf}  # monotonic time of the last skip
+
     def check() -> tuple[str, str | None]:
         if fig["lag_s"] > s.max_lag_s:
             return "degraded", f"{fig['lag_s']:.2f} s behind the clock (frames take {fig['tick_ms']:.0f} ms)"
+        if time.monotonic() - skipping["t"] < s.rate_window_s:
+            period_ms = world.dt / s.time_scale * 1e3
+            return "degraded", (
+                f"dropping frames to keep up ({fig['skipped_frames']:.0f} so far): frames take "
+                f"{fig['tick_ms']:.0f} ms, the period is {period_ms:.0f} ms"
+            )
         return "ok", None
 
     with Service("world", s, figures=lambda: fig, health_check=check) as svc:
@@ -119,9 +133,7 @@ def main(s: WorldSettings) -> int:
         svc.ready()
         if s.wait_subscribers_s > 0 and not svc.wait_matching(pubs.values(), s.wait_subscribers_s):
             missing = [v for v, p in pubs.items() if not p.matching]
-            log.warning(
-                "no subscriber yet for %s after %.1f s; starting anyway", missing, s.wait_subscribers_s
-            )
+            log.warning("no subscriber yet for %s after %.1f s; starting anyway", missing, s.wait_subscribers_s)
         epoch = _load_clock(s.state_file, s)
         if epoch is None:
             epoch = time.time_ns() + int(s.start_delay_s * 1e9)
@@ -171,4 +183,9 @@ def main(s: WorldSettings) -> int:
             fig.update(k=k, t=t, lag_s=max(lag, 0.0))
             svc.metrics.latency.add(fig["tick_ms"] * 1e-3)
             k += 1
+            due_next = pacer.first_k_at(time.time_ns())  # the first frame not due yet
+            if due_next > k:  # frame k is due already, before it is computed: skip to the next one
+                fig["skipped_frames"] += due_next - k
+                skipping["t"] = time.monotonic()
+                k = due_next
     return 0

@@ -13,10 +13,18 @@ import time
 import numpy as np
 import pytest
 
-from schemas import HealthStatus, LocalizationQuality, ObjectObservations, VehiclePrior, decode, encode
+from schemas import (
+    HealthStatus,
+    LocalizationQuality,
+    ObjectObservations,
+    SensorFrame,
+    VehiclePrior,
+    decode,
+    encode,
+)
 from schemas.topics import topic
 from services.health import fleet_health
-from services.runtime import ZenohSettings, make_attachment, open_session
+from services.runtime import ZenohSettings, make_attachment, open_session, read_attachment
 
 pytestmark = pytest.mark.integration
 
@@ -59,6 +67,35 @@ def test_world_is_seen_healthy_and_stops_cleanly_on_sigint(rendezvous, fleet_nam
     world.send_signal(signal.SIGINT)
     assert world.wait(timeout=20) == 0, world.log_path.read_text()[-2000:]
     alive.wait_gone(key, timeout=5)
+
+
+def test_an_overloaded_world_drops_frames_instead_of_falling_behind(rendezvous, fleet_name, spawn, watch_liveliness):
+    """At 20x real time a frame is due every 5 ms, far less than it takes to compute: the world skips to
+    the frame due next (gaps in the sequence numbers), stays on the clock and says so in its health."""
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    got = []
+    sub = session.declare_subscriber(
+        topic("sensors").key(fleet=fleet_name, vid="cv0"),
+        lambda smp: got.append((time.time_ns(), read_attachment(smp), decode(smp.payload.to_bytes(), SensorFrame))),
+    )
+    common = ["--fleet", fleet_name, "--connect", endpoint, "--wait-subscribers", "5"]
+    spawn("services.world", *common, "--vehicles", "2", "--time-scale", "20")
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="world", id="world"), timeout=60)
+    deadline = time.monotonic() + 30
+    while len(got) < 40 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    views = {(v.role, v.id): v for v in fleet_health(session, fleet_name, timeout_s=2.0)}
+    sub.undeclare()
+    assert len(got) >= 40
+    seqs = np.array([f.seq for _, _, f in got[5:]])
+    assert np.all(np.diff(seqs) >= 1) and np.diff(seqs).max() > 1, seqs  # in order, with frames left out
+    # on the clock: a frame arrives within a few periods of its due time (falling behind would grow this)
+    lag_s = [(t_ns - a["epoch_wall_ns"]) * 1e-9 - f.t_meas / a["time_scale"] for t_ns, a, f in got[5:]]
+    assert max(lag_s) < 0.25, lag_s
+    world = views[("world", "world")].status
+    assert world.state == "degraded" and "dropping frames" in world.last_error, world
+    assert world.figures["skipped_frames"] > 0 and world.figures["lag_s"] < 0.5
 
 
 def test_health_exit_code_2_when_nothing_answers(rendezvous, fleet_name, mapc):
