@@ -92,7 +92,7 @@ def test_an_overloaded_world_drops_frames_instead_of_falling_behind(rendezvous, 
     assert np.all(np.diff(seqs) >= 1) and np.diff(seqs).max() > 1, seqs  # in order, with frames left out
     # on the clock: a frame arrives within a few periods of its due time (falling behind would grow this)
     lag_s = [(t_ns - a["epoch_wall_ns"]) * 1e-9 - f.t_meas / a["time_scale"] for t_ns, a, f in got[5:]]
-    assert max(lag_s) < 0.25, lag_s
+    assert max(lag_s) < 0.5, lag_s
     world = views[("world", "world")].status
     assert world.state == "degraded" and "dropping frames" in world.last_error, world
     assert world.figures["skipped_frames"] > 0 and world.figures["lag_s"] < 0.5
