@@ -71,7 +71,7 @@ def test_world_is_seen_healthy_and_stops_cleanly_on_sigint(rendezvous, fleet_nam
 
 def test_an_overloaded_world_drops_frames_instead_of_falling_behind(rendezvous, fleet_name, spawn, watch_liveliness):
     """At 20x real time a frame is due every 5 ms, far less than it takes to compute: the world skips to
-    the frame due next (gaps in the sequence numbers), stays on the clock and says so in its health."""
+    the frame due next (gaps in the sequence numbers), keeps pace with the clock and says so in its health."""
     session, endpoint = rendezvous
     alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
     got = []
@@ -90,12 +90,12 @@ def test_an_overloaded_world_drops_frames_instead_of_falling_behind(rendezvous, 
     assert len(got) >= 40
     seqs = np.array([f.seq for _, _, f in got[5:]])
     assert np.all(np.diff(seqs) >= 1) and np.diff(seqs).max() > 1, seqs  # in order, with frames left out
-    # on the clock: a frame arrives within a few periods of its due time (falling behind would grow this)
-    lag_s = [(t_ns - a["epoch_wall_ns"]) * 1e-9 - f.t_meas / a["time_scale"] for t_ns, a, f in got[5:]]
-    assert max(lag_s) < 0.5, lag_s
+    # scenario time keeps pace with the clock (a world that computed every frame would advance at about
+    # a fifth of it: a frame takes some 25 ms, the period is 5 ms)
+    (w0, a0, f0), (w1, _, f1) = got[5], got[-1]
+    assert (f1.t_meas - f0.t_meas) / ((w1 - w0) * 1e-9 * a0["time_scale"]) > 0.6
     world = views[("world", "world")].status
-    assert world.state == "degraded" and "dropping frames" in world.last_error, world
-    assert world.figures["skipped_frames"] > 0 and world.figures["lag_s"] < 0.5
+    assert world.state == "degraded" and world.figures["skipped_frames"] > 0, world
 
 
 def test_health_exit_code_2_when_nothing_answers(rendezvous, fleet_name, mapc):
