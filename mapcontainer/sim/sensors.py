@@ -26,32 +26,36 @@ _SOLID_RUN_M = 5.0
 
 
 def occluded(origin, targets, boxes: list[ActorState], exclude: np.ndarray | None = None) -> np.ndarray:
-    """Which of the segments origin -> target (N, 3) pass through any actor box (slab test).
+    """Which of the segments origin -> target (N, 3) pass through any actor box (slab test, all boxes at
+    once: in each box's frame, the segment's entry and exit parameters over the three slabs).
 
     ``exclude`` (N, len(boxes)) marks boxes that cannot occlude a target (its own box, the observer's).
     """
     targets = np.asarray(targets, dtype=float).reshape(-1, 3)
-    hit = np.zeros(len(targets), dtype=bool)
+    if not boxes or not len(targets):
+        return np.zeros(len(targets), dtype=bool)
     origin = np.asarray(origin, dtype=float)
-    for m, box in enumerate(boxes):
-        c, s = np.cos(box.yaw), np.sin(box.yaw)
-        R_T = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-        o = R_T @ (origin - box.p_map)
-        d = (targets - origin) @ R_T.T
-        lo = np.array([-box.size[0] / 2, -box.size[1] / 2, 0.0])
-        hi = np.array([box.size[0] / 2, box.size[1] / 2, box.size[2]])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1 = (lo - o) / d
-            t2 = (hi - o) / d
-        parallel = np.abs(d) < 1e-12
-        inside = (o >= lo) & (o <= hi)
-        tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=1)
-        tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=1)
-        h = (tmax >= tmin) & (tmin > 1e-6) & (tmin < 1.0 - 1e-6)
-        if exclude is not None:
-            h &= ~exclude[:, m]
-        hit |= h
-    return hit
+    yaw = np.array([box.yaw for box in boxes])
+    size = np.array([box.size for box in boxes])
+    c, s = np.cos(yaw), np.sin(yaw)
+    R_T = np.zeros((len(boxes), 3, 3))  # map -> box frame
+    R_T[:, 0, 0], R_T[:, 0, 1], R_T[:, 1, 0], R_T[:, 1, 1], R_T[:, 2, 2] = c, s, -s, c, 1.0
+    o = np.einsum("mij,mj->mi", R_T, origin - np.array([box.p_map for box in boxes]))[:, None, :]  # (M, 1, 3)
+    d = np.einsum("mij,nj->mni", R_T, targets - origin)  # (M, N, 3)
+    zero = np.zeros(len(boxes))
+    lo = np.column_stack([-size[:, 0] / 2, -size[:, 1] / 2, zero])[:, None, :]
+    hi = np.column_stack([size[:, 0] / 2, size[:, 1] / 2, size[:, 2]])[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo - o) / d
+        t2 = (hi - o) / d
+    parallel = np.abs(d) < 1e-12
+    inside = (o >= lo) & (o <= hi)
+    tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=2)
+    tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=2)
+    hit = (tmax >= tmin) & (tmin > 1e-6) & (tmin < 1.0 - 1e-6)  # (M, N)
+    if exclude is not None:
+        hit &= ~np.asarray(exclude, dtype=bool).T
+    return hit.any(axis=0)
 
 
 @dataclass(frozen=True)
