@@ -93,12 +93,10 @@ from scipy.linalg import lapack
 
 from schemas import ObjectClass
 
-from .. import geometry as geo
-
 from .buffer import time_key
 from .motion import accel_psd, cv_model, speed_prior
 from .params import FusionParams
-from .poses import pose_cov_to_tangent
+from .poses import pose3_from_vector, pose_cov_to_tangent
 
 __all__ = ["FusionGraph", "SolveReport"]
 
@@ -337,8 +335,8 @@ class FusionGraph:
         cov = np.asarray(pose_cov, dtype=float)
         key = X(self._n["x"])
         self._n["x"] += 1
-        M = geo.pose_to_matrix(pose)
-        T = gtsam.Pose3(M)
+        T = pose3_from_vector(pose)
+        M = T.matrix()
         self.values.insert(key, T)
         cov_xi = pose_cov_to_tangent(pose, cov)
         L_xi = np.linalg.cholesky(cov_xi)
