@@ -275,3 +275,22 @@ def test_pruning_keeps_one_prior_per_frame_and_the_bias():
     assert np.all(np.diag(C) < np.diag(POSE_COV)[[3, 4, 5, 0, 1, 2]] * 1.0001)
     g.prune(5.0)
     assert not g.vehicles and g.num_variables == 0 and g.num_factors == 0
+
+
+def test_track_summaries_batch_by_size_and_padding_changes_nothing(monkeypatch):
+    from mapcontainer.fusion import graph as G
+    from mapcontainer.fusion.bench import bench_fusion
+
+    sizes = np.array([4, 3, 4, 2, 0, 8, 8, 8, 1])
+    batches = G._batches(sizes)
+    assert sorted(np.concatenate([idx for _, idx in batches]).tolist()) == list(range(len(sizes)))
+    assert all(m >= sizes[idx].max() for m, idx in batches)
+    assert [m for m, _ in batches][0] == 8  # three priors of 8 vehicles: padding the others to 8 costs too much
+    monkeypatch.setattr(G, "_BATCH_UNITS", 1e12)
+    assert len(G._batches(sizes)) == 1
+    # every prior padded into one batch vs. one batch per size: the same estimates
+    one = bench_fusion(4, 14, 10, ticks=25)
+    monkeypatch.setattr(G, "_BATCH_UNITS", 0.0)
+    per_size = bench_fusion(4, 14, 10, ticks=25)
+    for key in ("object_rmse_m", "object_anees", "vehicle_rmse_m"):
+        assert one[key] == pytest.approx(per_size[key], rel=1e-9)
