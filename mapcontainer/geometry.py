@@ -24,6 +24,7 @@ __all__ = [
     "R_BODY_CAM",
     "CameraIntrinsics",
     "camera_extrinsic",
+    "circular_mean",
     "inverse",
     "matrix_to_pose",
     "matrix_to_rpy",
@@ -54,6 +55,11 @@ R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 def wrap_angle(a):
     """Wrap angle(s) to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def circular_mean(angles) -> float:
+    """Mean direction of angles (rad), in [-pi, pi]: the angle of the mean unit vector."""
+    return float(np.angle(np.mean(np.exp(1j * np.asarray(angles)))))
 
 
 def skew(v) -> np.ndarray:

@@ -71,7 +71,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
-from ..geometry import wrap_angle
+from ..geometry import circular_mean, wrap_angle
 from ..hdmap.model import HDMap
 from .matcher import CameraFrame, MapMatcher, MatcherParams, MatchResult
 from .search import PoseSearch, PoseSearchParams, SearchOutcome
@@ -886,7 +886,7 @@ class Localizer:
             return win is not None
         if len(yaws) == 0:
             return False
-        centre = float(np.angle(np.mean(np.exp(1j * yaws))))
+        centre = circular_mean(yaws)
         spread = float(np.max(np.abs(wrap_angle(yaws - centre))))
         if spread < np.radians(45.0):  # one driving direction (a one-way road): that is the heading
             self._init_state(gnss, centre, max(spread, p.init_yaw_sigma_rad))
@@ -911,7 +911,7 @@ class Localizer:
         Raises ValueError on a malformed frame."""
         if len(yaws) == 0:
             return None
-        self._init_state(gnss, float(np.angle(np.mean(np.exp(1j * yaws)))), np.sqrt(_UNIFORM_YAW_VAR))
+        self._init_state(gnss, circular_mean(yaws), np.sqrt(_UNIFORM_YAW_VAR))
         y0, P0 = self.y, self.P
         self.y = self.P = None
         return y0, P0, self.search.search(frame, y0[:6], P0[:6, :6], yaws, radius)

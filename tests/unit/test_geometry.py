@@ -120,3 +120,8 @@ def test_grid_projection_matches_the_single_pose_projection():
             uv, zc, _, _ = geo.project_points_jac(intr, p, T_bc, pts)
             np.testing.assert_allclose(np.stack([u[i, j], v[i, j]], axis=1), uv, atol=1e-9)
             np.testing.assert_allclose(z[i, j], zc, atol=1e-12)
+
+
+def test_circular_mean_wraps_across_pi():
+    assert abs(abs(geo.circular_mean(np.radians([179.0, -179.0]))) - np.pi) < 1e-12
+    assert geo.circular_mean(np.radians([10.0, 30.0])) == pytest.approx(np.radians(20.0))
