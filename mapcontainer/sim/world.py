@@ -156,7 +156,9 @@ class World:
         )
 
     def sense(self, k: int, t: float, vid: str, states: dict[str, ActorState]) -> tuple[SensorFrame, FrameDebug]:
-        """One sensor frame of vehicle ``vid``."""
+        """One sensor frame of vehicle ``vid`` at frame k, after its last one (the sensors' error
+        processes only run forward; ValueError otherwise)."""
+        last = self._forward(vid, k)
         sensors = self._sensors[vid]
         me = states[vid]
         others = [s for i, s in states.items() if i != vid]
@@ -164,7 +166,7 @@ class World:
         ok, png = cv2.imencode(".png", cam.lane_mask, _PNG_PARAMS)
         if not ok:
             raise RuntimeError("PNG encoding of the lane mask failed")
-        skipped = k - self._last_k.get(vid, k - 1)  # frames since the last one sensed (1 when in order)
+        skipped = 1 if last is None else k - last  # frames since the last one sensed (1 when in order)
         self._last_k[vid] = k
         p_gnss, sh, sv = sensors.gnss.measure(t, me.p_map, self.dt * skipped)
         speed, yaw_rate = sensors.odometry.measure(me.speed, me.yaw_rate)
@@ -186,10 +188,22 @@ class World:
         )
         return frame, FrameDebug(cam, ids)
 
+    def _forward(self, vid: str, k: int) -> int | None:
+        """The last frame vehicle ``vid`` sensed (None: none yet); ValueError unless k comes after it."""
+        last = self._last_k.get(vid)
+        if last is not None and k <= last:
+            raise ValueError(
+                f"{vid}: frame {k} is not after its last frame {last}: a World senses forward in time only"
+                " (a new World starts again)"
+            )
+        return last
+
     def tick(self, k: int) -> Tick:
-        """Everything at frame k (t = k dt). Call with increasing k (sensor state advances); frames left
-        out are never sensed (an overloaded live world drops them), the sensors' error processes advance
-        over the time elapsed since the last frame."""
+        """Everything at frame k (t = k dt). Call with increasing k (sensor state advances; ValueError
+        otherwise); frames left out are never sensed (an overloaded live world drops them), the sensors'
+        error processes advance over the time elapsed since the last frame."""
+        for vid in self.vehicle_ids:  # before anything moves
+            self._forward(vid, k)
         t = k * self.dt
         states = self.states(t)
         frames, debug = {}, {}
@@ -198,5 +212,8 @@ class World:
         return Tick(k, t, self.truth(k, t, states), states, frames, debug)
 
     def run(self, duration_s: float) -> Iterator[Tick]:
-        for k in range(int(round(duration_s / self.dt))):
+        """The frames of the next ``duration_s``: from frame 0 on a new World, from the frame after the
+        last one sensed on a World that has run before."""
+        k0 = max(self._last_k.values(), default=-1) + 1
+        for k in range(k0, k0 + int(round(duration_s / self.dt))):
             yield self.tick(k)

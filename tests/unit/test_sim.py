@@ -228,3 +228,16 @@ def test_bad_scenario_file_is_a_clear_error(tmp_path):
         load_scenario(bad)
     with pytest.raises(ConfigError, match="unknown scenario"):
         load_scenario("no-such-scenario")
+
+
+def test_a_world_runs_forward_only():
+    """A second run continues where the first stopped; a frame at or before the last one is refused
+    clearly (the sensors' error processes cannot run backwards: they used to give NaN GNSS fixes)."""
+    world = World(load_scenario("paper-urban"), seed=0)
+    first = [tick.k for tick in world.run(0.3)]
+    second = [tick for tick in world.run(0.2)]
+    assert first == [0, 1, 2] and [tick.k for tick in second] == [3, 4]
+    assert all(np.isfinite(f.gnss.p_map).all() for tick in second for f in tick.frames.values())
+    with pytest.raises(ValueError, match="frame 4 is not after its last frame 4"):
+        world.tick(4)
+    assert world.tick(6).k == 6  # a frame left out (dropped) is fine
