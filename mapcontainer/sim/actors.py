@@ -75,24 +75,25 @@ class _PathActor:
         """Arc length and signed speed along the line at time t."""
         raise NotImplementedError
 
-    def _yaw(self, s: float, direction: float) -> float:
-        d = self.line.point_at(s + _YAW_BASE_M) - self.line.point_at(s - _YAW_BASE_M)
-        if direction < 0:
-            d = -d
-        return float(np.arctan2(d[1], d[0]))
-
     def state(self, t: float, dt: float = 0.05) -> ActorState:
         s, v = self.arc(t)
-        direction = 1.0 if v >= 0 else -1.0
-        yaw = self._yaw(s, direction)
         s_a, v_a = self.arc(t - dt)
         s_b, v_b = self.arc(t + dt)
-        yaw_a = self._yaw(s_a, 1.0 if v_a >= 0 else -1.0)
-        yaw_b = self._yaw(s_b, 1.0 if v_b >= 0 else -1.0)
+        # One polyline lookup: the position and, at t and t -+ dt, the chord over +-_YAW_BASE_M.
+        b = _YAW_BASE_M
+        p = self.line.point_at(np.array([s, s + b, s - b, s_a + b, s_a - b, s_b + b, s_b - b]))
+        yaw, yaw_a, yaw_b = (_chord_yaw(p[i] - p[i + 1], vi) for i, vi in ((1, v), (3, v_a), (5, v_b)))
         yaw_rate = float(np.angle(np.exp(1j * (yaw_b - yaw_a)))) / (2 * dt)
         heading = np.array([np.cos(yaw), np.sin(yaw), 0.0])
         body = np.zeros(3) if self.body is None else self.body(t)
-        return ActorState(self.id, self.cls, self.line.point_at(s), yaw, heading * abs(v), yaw_rate, self.size, body)
+        return ActorState(self.id, self.cls, p[0], yaw, heading * abs(v), yaw_rate, self.size, body)
+
+
+def _chord_yaw(d: np.ndarray, v: float) -> float:
+    """Heading of a chord d along the line, for motion with signed speed v (backwards: reversed)."""
+    if v < 0:
+        d = -d
+    return float(np.arctan2(d[1], d[0]))
 
 
 class LaneFollower(_PathActor):
@@ -134,8 +135,8 @@ class PathWalker(_PathActor):
 
 def box_corners(state: ActorState) -> np.ndarray:
     """The 8 corners (8, 3) of an actor's box in the map frame."""
-    l, w, h = state.size
-    x = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * l / 2
+    length, w, h = state.size
+    x = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * length / 2
     y = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * w / 2
     z = np.array([0, 0, 0, 0, 1, 1, 1, 1]) * h
     c, s = np.cos(state.yaw), np.sin(state.yaw)
