@@ -79,7 +79,7 @@ class _PathActor:
         s, v = self.arc(t)
         s_a, v_a = self.arc(t - dt)
         s_b, v_b = self.arc(t + dt)
-        # One polyline lookup: the position and, at t and t -+ dt, the chord over +-_YAW_BASE_M.
+        # One polyline lookup: the position, and the chords over +-_YAW_BASE_M at t, t - dt and t + dt.
         b = _YAW_BASE_M
         p = self.line.point_at(np.array([s, s + b, s - b, s_a + b, s_a - b, s_b + b, s_b - b]))
         yaw, yaw_a, yaw_b = (_chord_yaw(p[i] - p[i + 1], vi) for i, vi in ((1, v), (3, v_a), (5, v_b)))
