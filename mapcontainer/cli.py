@@ -73,7 +73,12 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
     from .fusion.bench import bench_fusion
 
     result = bench_fusion(
-        vehicles=args.vehicles, objects=args.objects, window=args.window, seed=args.seed, ticks=args.ticks
+        vehicles=args.vehicles,
+        objects=args.objects,
+        window=args.window,
+        seed=args.seed,
+        ticks=args.ticks,
+        batch_samples=args.batch_samples,
     )
     print(json.dumps(result))
     return 0
@@ -128,6 +133,13 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapc", description="Map Container: map-based cooperative perception over V2X")
     sub = p.add_subparsers(dest="command", required=True)
@@ -159,6 +171,13 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--window", type=_positive_int, default=10, help="frames in the sliding window")
     bf.add_argument("--ticks", type=_positive_int, default=100, help="frames to run (timings skip the first window)")
     bf.add_argument("--seed", type=int, default=0)
+    bf.add_argument(
+        "--batch-samples",
+        type=_non_negative_int,
+        default=5,
+        help="windows also solved by plain GTSAM LM + Marginals after the run, as a yardstick of the "
+        "machine's speed (batch_ms_p50, cycle_over_batch); 0 skips it",
+    )
     bf.set_defaults(func=_cmd_bench_fusion)
 
     exp = sub.add_parser("experiment", help="experiments that write tables and plots").add_subparsers(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 
+import gtsam
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -24,7 +25,7 @@ from .params import FusionParams
 from .poses import sym_from_upper, upper_from_sym
 from .simfeed import pose_covariance
 
-__all__ = ["bench_fusion"]
+__all__ = ["batch_solve_ms", "bench_fusion"]
 
 
 def _detector_cov(p_body: np.ndarray) -> np.ndarray:
@@ -56,6 +57,7 @@ def bench_fusion(
     blas_threads: int | None = 1,
     pose_persistent: float = 0.5,
     pose_tau_s: float = 1.0,
+    batch_samples: int = 0,
 ) -> dict:
     """Run the container on a synthetic scene; returns timing and accuracy figures.
 
@@ -68,9 +70,18 @@ def bench_fusion(
     a = ``pose_persistent``, n_k white and b_k per vehicle first-order Gauss-Markov with time constant
     ``pose_tau_s`` (the simulator's map matcher: whitened error correlation 0.1-0.8 at 0.1 s, 0.1-0.45
     at 1 s). ``pose_persistent=0`` gives independent errors per frame (the bench before 2026-12).
+
+    ``batch_samples``: that many copies of the window, spread over the timed ticks, are each solved once
+    more after the run by plain GTSAM (:func:`batch_solve_ms`): ``batch_ms_p50`` is a yardstick of the
+    machine's speed at the time, and ``cycle_over_batch`` the cycle in its units (DESIGN.md's cold batch
+    solves, ~27 ms at 4 / 14 / 10 and ~450 ms at 16 / 100 / 10, were measured the same way from a cold
+    start, so they cost more than this lower bound).
     """
-    if vehicles < 1 or objects < 0 or window < 1 or ticks <= window:
-        raise ValueError(f"bad bench size: vehicles={vehicles}, objects={objects}, window={window}, ticks={ticks}")
+    if vehicles < 1 or objects < 0 or window < 1 or ticks <= window or batch_samples < 0:
+        raise ValueError(
+            f"bad bench size: vehicles={vehicles}, objects={objects}, window={window}, ticks={ticks}, "
+            f"batch_samples={batch_samples}"
+        )
     if blas_threads is not None:
         limit_blas_threads(blas_threads)
     dt = 1.0 / rate_hz
@@ -104,6 +115,9 @@ def bench_fusion(
     errors, nees, veh_err = [], [], []
     last_match: dict[int, int] = {}
     switches = 0
+    timed = ticks - window
+    snap_at = set(window + (np.arange(batch_samples) * timed) // max(batch_samples, 1)) if batch_samples else set()
+    snapshots = []
     for k in range(ticks):
         t = k * dt
         vp = veh_p0 + veh_v * t
@@ -146,6 +160,8 @@ def bench_fusion(
         cpu = (time.process_time() - c0) * 1e3
         if k < window:
             continue
+        if k in snap_at:
+            snapshots.append(box.graph.snapshot())
         st = box.stats()
         cycle_ms.append(elapsed)
         cpu_ms.append(cpu)
@@ -169,6 +185,7 @@ def bench_fusion(
                     switches += 1
                 last_match[r] = fid
     st = box.stats()
+    batch_ms = [batch_solve_ms(*snap) for snap in snapshots]
     e = np.array(errors).reshape(-1, 3)
     ve = np.array(veh_err).reshape(-1, 3)
     return {
@@ -182,6 +199,8 @@ def bench_fusion(
         "cycle_ms_p99": float(np.percentile(cycle_ms, 99)),
         "cycle_ms_max": float(np.max(cycle_ms)),
         "cycle_cpu_ms_p50": float(np.percentile(cpu_ms, 50)),
+        "batch_ms_p50": float(np.median(batch_ms)) if batch_ms else None,
+        "cycle_over_batch": float(np.percentile(cycle_ms, 50) / np.median(batch_ms)) if batch_ms else None,
         "iterations_mean": float(np.mean(iters)),
         "factors_mean": float(np.mean(factors)),
         "variables_mean": float(np.mean(variables)),
@@ -193,6 +212,18 @@ def bench_fusion(
         "tracks_confirmed": st["tracks_confirmed"],
         "association": st["association"],
     }
+
+
+def batch_solve_ms(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[int]) -> float:
+    """Wall time (ms) of the window solved the textbook way: GTSAM's LevenbergMarquardtOptimizer from
+    ``values``, then gtsam.Marginals for the ``latest`` keys. From the window's own solution this is one
+    iteration: a lower bound of a batch solve of the same window."""
+    t0 = time.perf_counter()
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+    marginals = gtsam.Marginals(graph, result)
+    for key in latest:
+        marginals.marginalCovariance(key)
+    return (time.perf_counter() - t0) * 1e3
 
 
 if __name__ == "__main__":  # python -m mapcontainer.fusion.bench [vehicles objects window seed]

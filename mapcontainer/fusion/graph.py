@@ -885,6 +885,13 @@ class FusionGraph:
         return dropped
 
     # ------------------------------------------------------------------ solve
+    def snapshot(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int]]:
+        """A copy of the window: its factors (no empty slots), its values and its latest keys."""
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self._factors.values():
+            graph.add(f)
+        return graph, gtsam.Values(self.values), self.latest_keys()
+
     def latest_keys(self) -> list[int]:
         keys = [c.latest().key for c in self.vehicles.values()]
         return keys + [c.latest().key for c in self.tracks.values()]

@@ -126,7 +126,7 @@ def test_bench_localization_prints_accuracy_consistency_and_speed():
 def test_bench_fusion_prints_json_last(tmp_path):
     proc = _mapc("bench", "fusion", "--vehicles", "2", "--objects", "4", "--window", "3", "--ticks", "15")
     result = json.loads(proc.stdout.strip().splitlines()[-1])
-    for key in ("cycle_ms_p50", "cycle_ms_p99", "iterations_mean", "object_rmse_m"):
+    for key in ("cycle_ms_p50", "cycle_ms_p99", "iterations_mean", "object_rmse_m", "batch_ms_p50", "cycle_over_batch"):
         assert _finite(result[key]), key
     assert result["vehicles"] == 2 and result["objects"] == 4 and result["window"] == 3
     assert result["object_rmse_m"] < 1.0

@@ -184,6 +184,24 @@ def test_root_covariances_match_gtsam_marginals():
     np.testing.assert_allclose(g.covariances[key], m.marginalCovariance(key), rtol=1e-6, atol=1e-14)
 
 
+def test_snapshot_is_a_copy_at_gtsams_optimum():
+    """The bench's yardstick solves snapshots by plain GTSAM: a snapshot is the window as it was, and the
+    window's own solution is where GTSAM's Levenberg-Marquardt stays."""
+    from mapcontainer.fusion.bench import batch_solve_ms
+
+    g = _scene()
+    for _ in range(3):
+        g.solve()
+    graph, values, latest = g.snapshot()
+    n_factors, n_values = graph.size(), values.size()
+    assert n_factors == g.num_factors and n_values == g.num_variables and latest == g.latest_keys()
+    g.prune(1e9)  # the window empties; the copy does not
+    assert graph.size() == n_factors and values.size() == n_values
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    assert graph.error(result) == pytest.approx(graph.error(values), rel=1e-6)
+    assert 0.0 < batch_solve_ms(graph, values, latest) < float("inf")
+
+
 def test_window_summary_preserves_the_estimate():
     """Dropping old states folds them into a prior: with a (nearly) known pose this is exact."""
     tiny = POSE_COV * 1e-6
