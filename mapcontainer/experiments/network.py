@@ -37,7 +37,6 @@ import csv
 import itertools
 import json
 import math
-import multiprocessing as mp
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -47,7 +46,7 @@ import numpy as np
 
 from ..channel import NetworkProfile
 from ..pipeline import View, run_pipeline
-from .progress import Progress
+from .runner import run_all
 from .scoring import age_of_information, horizontal_sq_error, obstacle_errors, rmse_sq, vehicle_pose
 
 __all__ = [
@@ -229,21 +228,8 @@ def run_network_sweep(
         (lat, ls, bw, mode, seed, dur, scenario, warmup_s)
         for mode, bw, lat, ls in itertools.product(MODES, bws, lats, loss)
     ]
-    bar = Progress(len(tasks), "experiment network", enabled=progress)
-    rows = []
     t0 = time.perf_counter()
-    try:
-        if workers == 1:
-            for task in tasks:
-                rows.append(_point_task(task))
-                bar.update(note=rows[-1]["mode"] + " " + rows[-1]["profile"])
-        else:
-            with mp.get_context("spawn").Pool(workers) as pool:
-                for row in pool.imap_unordered(_point_task, tasks):
-                    rows.append(row)
-                    bar.update(note=row["mode"] + " " + row["profile"])
-    finally:
-        bar.close()
+    rows = run_all(_point_task, tasks, workers, "experiment network", lambda r: f"{r['mode']} {r['profile']}", progress)
     rows.sort(key=lambda r: (r["mode"], -r["bandwidth_bps"], r["latency_ms"], r["loss"]))
     meta = {
         "seed": seed,

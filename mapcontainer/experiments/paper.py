@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing as mp
 import platform
 import time
 from collections import defaultdict
@@ -50,7 +49,7 @@ import numpy as np
 
 from ..metrics import anees_band
 from ..pipeline import WARM_START_SIGMA, View, run_pipeline
-from .progress import Progress
+from .runner import run_all
 from .scoring import horizontal_sq_error, obstacle_errors, relative_target_errors, rmse_sq, vehicle_pose
 
 __all__ = [
@@ -312,24 +311,6 @@ def _tasks(s: PaperSettings) -> list[tuple[str, str, str, int, dict]]:
         tasks.append(("sim", "suburban", SIM_SCENARIOS["suburban"], s.seed + i, cfg))
         tasks.append(("sim", "urban", SIM_SCENARIOS["urban"], s.seed + i, cfg))
     return tasks
-
-
-def _execute(tasks: list, workers: int, progress: bool) -> list[dict]:
-    bar = Progress(len(tasks), "experiment paper", enabled=progress)
-    out = []
-    try:
-        if workers == 1:
-            for task in tasks:
-                out.append(run_task(task))
-                bar.update(note=f"{task[1]} seed {task[3]}")
-        else:
-            with mp.get_context("spawn").Pool(workers) as pool:
-                for r in pool.imap_unordered(run_task, tasks):
-                    out.append(r)
-                    bar.update(note=f"{r['key']} seed {r['seed']}")
-    finally:
-        bar.close()
-    return out
 
 
 # ------------------------------------------------------------------------------------ aggregation
@@ -1097,7 +1078,9 @@ def run_paper_experiment(out_dir: str | Path, settings: PaperSettings | None = N
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    results = _execute(_tasks(s), s.workers, progress)
+    results = run_all(
+        run_task, _tasks(s), s.workers, "experiment paper", lambda r: f"{r['key']} seed {r['seed']}", progress
+    )
     res = _aggregate(results, s, time.perf_counter() - t0)
     (out / "results.json").write_text(json.dumps(_finite_or_null(res), indent=2, allow_nan=False) + "\n")
     (out / "runs.csv").write_text(_runs_csv(results))
