@@ -116,8 +116,7 @@ def bench_fusion(
     errors, nees, veh_err = [], [], []
     last_match: dict[int, int] = {}
     switches = 0
-    timed = ticks - window
-    snap_at = set(window + (np.arange(batch_samples) * timed) // max(batch_samples, 1)) if batch_samples else set()
+    snap_at = {window + i * (ticks - window) // batch_samples for i in range(batch_samples)}
     snapshots = []
     for k in range(ticks):
         t = k * dt
