@@ -191,15 +191,13 @@ class Camera:
         keep = (np.abs(pa) < lim).all(axis=1) & (np.abs(pb) < lim).all(axis=1)
         for p, q, t in zip(pa[keep], pb[keep], thick[keep], strict=True):
             cv2.line(mask, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 255, int(t), cv2.LINE_8, 2)
-        # Actors hide the road behind them.
-        for other in others:
-            if np.linalg.norm(other.p_map[:2] - cam_c[:2]) > c.lane_range_m + 5:
-                continue
-            uv, zc = geo.project_points(self.intr, T_cam_map, box_corners(other))
-            if np.any(zc < 0.2):
-                continue
-            hull = cv2.convexHull(np.rint(uv).astype(np.int32))
-            cv2.fillConvexPoly(mask, hull, 0)
+        # Actors hide the road behind them (one projection of every near actor's 8 box corners).
+        near = [o for o in others if np.linalg.norm(o.p_map[:2] - cam_c[:2]) <= c.lane_range_m + 5]
+        if near:
+            uv, zc = geo.project_points(self.intr, T_cam_map, np.vstack([box_corners(o) for o in near]))
+            for uv_o, z_o in zip(uv.reshape(-1, 8, 2), zc.reshape(-1, 8), strict=True):
+                if not np.any(z_o < 0.2):
+                    cv2.fillConvexPoly(mask, cv2.convexHull(np.rint(uv_o).astype(np.int32)), 0)
         return mask
 
 
