@@ -217,8 +217,6 @@ def run_network_sweep(
     bandwidths_bps: Sequence[float] | None = None,
 ) -> list[dict]:
     """Run the grid (``quick``: 2 x 2 x 2 points, 2.5 s runs) in both modes and write the outputs."""
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
     grid = QUICK_GRID if quick else {"latencies_ms": LATENCIES_MS, "losses": LOSSES, "bandwidths_bps": BANDWIDTHS_BPS}
     lats = tuple(latencies_ms if latencies_ms is not None else grid["latencies_ms"])
     loss = tuple(losses if losses is not None else grid["losses"])
