@@ -45,7 +45,10 @@ Start-up (and after :meth:`Localizer.reset`), in this order:
    basins are tracked as hypotheses (prediction, local match, accumulated score, distinct
    landmarks counted) until one is well constrained and beats the others by a margin. While a
    lone hypothesis has not won, the search runs again on every frame and its new basins join as
-   rivals (a weakly supported wrong basin would otherwise hold the start for good).
+   rivals (a weakly supported wrong basin would otherwise hold the start for good). The first
+   search waits for a frame that could decide (:meth:`.PoseSearch.can_accept`: enough landmark
+   detections for the search's rules, were all of them inliers): the basins of a frame with one
+   pole are mostly wrong, and searching such frames cost 0.2-0.6 s of CPU each.
 
 Until then the result is the GNSS fix with a yaw variance of pi^2 / 3 (uniform), ``initialized``
 False, mode "fallback". Whenever the prediction is too wide for one local solve (horizontal
@@ -584,6 +587,9 @@ class Localizer:
                 return None, f"searching: {len(self._hyps)} hypotheses", y_pred, P_pred
         if frame is None or frame.is_empty():
             return None, "no features", y_pred, P_pred
+        if not self.search.can_accept(frame):
+            self._count("too few features to search")
+            return None, "too few features to search", y_pred, P_pred
         self._count("search")
         try:
             out = self._search(frame, y_pred[:6], P_pred[:6, :6])
@@ -892,6 +898,9 @@ class Localizer:
             self._init_state(gnss, centre, max(spread, p.init_yaw_sigma_rad))
             return True
         if frame is None or frame.is_empty():
+            return False
+        if not self.search.can_accept(frame):
+            self._count("initialising: too few features to search")
             return False
         try:
             y0, P0, out = self._gnss_search(frame, gnss, yaws, radius)

@@ -138,6 +138,14 @@ class PoseSearch:
 
     # ------------------------------------------------------------------ internals
 
+    def can_accept(self, frame: CameraFrame) -> bool:
+        """Whether a search of this frame could accept a solution: enough landmark detections for
+        ``min_landmarks`` and, were every one an inlier and the lanes matched too, for ``min_constraints``.
+        A frame that fails this cannot decide a start alone (cheap: counts only)."""
+        p = self.params
+        n_points, n_poles = np.size(frame.points_uv) // 2, np.size(frame.poles_uv) // 4
+        return n_points + n_poles >= p.min_landmarks and 2 * n_points + n_poles + 2 >= p.min_constraints
+
     def distinct(self, a, b) -> bool:
         """Poses a, b lie in different basins (farther apart than distinct_m or distinct_rad)."""
         return bool(
