@@ -518,6 +518,21 @@ def test_search_does_not_guess_from_one_landmark():
     assert out.reason  # too few features or ambiguous: said, not guessed
 
 
+@pytest.mark.parametrize(
+    ("n_points", "n_poles", "decidable"),
+    [(0, 2, False), (1, 0, False), (2, 0, True), (1, 1, True), (0, 3, True)],
+)
+def test_search_knows_which_frames_cannot_decide(n_points, n_poles, decidable):
+    """min_constraints 5 (2 per point, 1 per pole, 2 for the lanes) and min_landmarks 2: a frame that cannot
+    meet them even were every detection an inlier is not worth a start-up search."""
+    rng = np.random.default_rng(7)
+    truth = pose_on(30.0)
+    frame, _ = synth_frame(truth, rng)
+    pts, poles = np.zeros((n_points, 2)), np.tile([[600.0, 500.0, 600.0, 300.0]], (n_poles, 1))
+    some = CameraFrame(frame.intr, frame.T_body_cam, pts, np.zeros(n_points, int), poles, frame.lane_mask)
+    assert PoseSearch(MapMatcher(HDMAP)).can_accept(some) is decidable
+
+
 @pytest.mark.parametrize(("seed", "s0", "min_matched"), [(11, 170.0, 30), (12, 190.0, 30), (13, 55.0, 0)])
 def test_cold_start_is_never_confidently_wrong(seed, s0, min_matched):
     """No heading, GNSS metres off: until the camera settles it the result says fallback (honestly); after,
