@@ -136,8 +136,6 @@ class PoseSearch:
             return SearchOutcome(None, f"ambiguous: {runner - best_score:.1f} < margin {p.margin}", **out)
         return SearchOutcome(replace(best, reason=""), "", **out)
 
-    # ------------------------------------------------------------------ internals
-
     def can_accept(self, frame: CameraFrame) -> bool:
         """Whether a search of this frame could accept a solution: enough landmark detections for
         ``min_landmarks`` and, were every one an inlier and the lanes matched too, for ``min_constraints``.
@@ -152,6 +150,8 @@ class PoseSearch:
             np.hypot(a[0] - b[0], a[1] - b[1]) > self.params.distinct_m
             or abs(wrap_angle(a[5] - b[5])) > self.params.distinct_rad
         )
+
+    # ------------------------------------------------------------------ internals
 
     def _starts(self, scores: np.ndarray, off: np.ndarray, yaws: np.ndarray, x0) -> list[np.ndarray]:
         """The best hypotheses, each distinct from the ones before: two, and up to n_starts within
