@@ -11,12 +11,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from schemas import LocalizationQuality, Observations, RawObservations, VehiclePrior
 from schemas.arrays import cov_to_upper
 
+from . import lanemask
 from .geometry import CameraIntrinsics
 from .hdmap.model import HDMap
 from .localization import CameraFrame, LocalizationResult, Localizer, LocalizerParams
@@ -29,11 +29,7 @@ Mode = Literal["distributed", "centralized"]
 def camera_frame(obs: Observations) -> CameraFrame:
     """The matcher's view of a SensorFrame / RawObservations (decodes the lane-mask PNG)."""
     cam = obs.camera
-    mask = None
-    if obs.lane_mask_png:
-        mask = cv2.imdecode(np.frombuffer(obs.lane_mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
-        if mask is None:
-            raise ValueError("lane_mask_png does not decode as an image")
+    mask = lanemask.decode(obs.lane_mask_png) if obs.lane_mask_png else None
     return CameraFrame(
         intr=CameraIntrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height),
         T_body_cam=np.asarray(cam.T_body_cam, dtype=float),
