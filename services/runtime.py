@@ -97,9 +97,7 @@ class ZenohSettings(BaseModel):
         None, description="endpoints; None: tcp/127.0.0.1:0 (peer), tcp/0.0.0.0:7447 (router)"
     )
     connect: list[str] = Field(default_factory=list)
-    lease_ms: int = Field(
-        1500, ge=500, le=60_000, description="transport lease: a frozen peer is dropped after it"
-    )
+    lease_ms: int = Field(1500, ge=500, le=60_000, description="transport lease: a frozen peer is dropped after it")
     connect_timeout_ms: int = Field(3000, ge=0)
     exit_on_failure: bool = True
     multicast_scouting: bool = False
@@ -772,33 +770,48 @@ class Service:
         handler: Callable[[Received], None],
         maxsize: int = 16,
         name: str = "worker",
+        overflow: Callable[[Received], None] | None = None,
     ):
         """Subscribe with a bounded queue and one worker thread running ``handler`` in arrival order.
 
-        When the queue is full the new sample is dropped and counted as reject ``queue_full``. The
-        handler's run time is recorded as the processing latency.
+        When ``maxsize`` samples wait for ``handler``, a new sample is counted as reject ``queue_full``
+        and dropped; with ``overflow`` it is still counted, but passed to ``overflow`` instead, in the
+        same worker and in arrival order (a cheap partial handling: a vehicle keeps the odometry of a
+        frame it has no time to match). The handler's run time is recorded as the processing latency.
         """
-        q: queue.Queue[Received] = queue.Queue(maxsize=maxsize)
+        q: queue.SimpleQueue[tuple[Received, bool]] = queue.SimpleQueue()
+        lock = threading.Lock()
+        waiting = 0  # samples in q for ``handler``
 
         def enqueue(msg: Received) -> None:
-            try:
-                q.put_nowait(msg)
-            except queue.Full:
+            nonlocal waiting
+            with lock:
+                full = waiting >= maxsize
+                waiting += not full
+            if full:
                 self.metrics.reject("queue_full", f"{name}: {maxsize} samples waiting", self.log)
+                if overflow is None:
+                    return
+            q.put((msg, not full))
 
         def work() -> None:
+            nonlocal waiting
             while not self.stop_requested.is_set():
                 try:
-                    msg = q.get(timeout=0.2)
+                    msg, whole = q.get(timeout=0.2)
                 except queue.Empty:
                     continue
+                if whole:
+                    with lock:
+                        waiting -= 1
                 t0 = time.perf_counter()
                 try:
-                    handler(msg)
+                    (handler if whole else overflow)(msg)
                 except Exception as e:
                     self.metrics.error(f"{type(e).__name__}: {e}")
                     self.log.exception("handler %s failed on %s", name, msg.key)
-                self.metrics.latency.add(time.perf_counter() - t0)
+                if whole:
+                    self.metrics.latency.add(time.perf_counter() - t0)
 
         self.spawn(work, name)
         return self.subscribe(key, enqueue)

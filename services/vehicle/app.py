@@ -1,10 +1,14 @@
 """Vehicle service: sensors in, V2X message out.
 
 Subscribes ``mc/{fleet}/sim/{vid}/sensors``; each frame goes through a bounded queue to one worker
-thread (frames are handled in order; when the vehicle cannot keep up, new frames are dropped and
-counted as ``queue_full``) that calls ``VehicleAgent.handle(t, frame)`` and publishes the result on
+thread that calls ``VehicleAgent.handle(t, frame)`` and publishes the result on
 ``mc/{fleet}/v2x/tx/{vid}/prior`` (distributed) or ``.../raw`` (centralized). The attachment passes
 the world's clock on and adds ``t_capture_wall_ns`` (when the world published the frame).
+
+Frames are handled in order. When the vehicle cannot keep up, new frames are counted as
+``queue_full`` and not matched or sent; in distributed mode the worker still passes their odometry and
+GNSS fix to the localizer, in order (``VehicleAgent.skip``), so that no stretch of the path goes
+unmeasured.
 """
 
 from __future__ import annotations
@@ -35,8 +39,9 @@ __all__ = ["VehicleSettings", "main", "parse_args"]
 class VehicleSettings(ServiceSettings):
     scenario: str = "paper-urban"  # the HD map comes from the scenario's map spec
     mode: Literal["distributed", "centralized"] = "distributed"
-    # frames waiting before new ones are dropped: 2 (0.2 s). A vehicle that cannot keep up (a cold
-    # start's pose searches on a loaded machine) then works on fresh frames; with 8 its backlog of
+    # frames waiting before new ones are skipped (not matched or sent): 2 (0.2 s). A vehicle that
+    # cannot keep up (a cold start's pose searches on a loaded machine) then works on fresh frames;
+    # with 8 its backlog of
     # 0.8 s plus processing made its priors older than the host's 1 s window, and the host refused
     # them all as stale (fleet e2e p50 0.7-1.0 s; once no fused state after 1.5 s). Measured with 2:
     # e2e p50 0.19-0.29 s, every fused state evaluated.
@@ -51,7 +56,7 @@ def parse_args(argv: list[str] | None = None) -> VehicleSettings:
         "--queue",
         type=int,
         default=VehicleSettings.model_fields["queue"].default,
-        help="frames waiting before new ones are dropped",
+        help="frames waiting before new ones are skipped (not matched or sent; their odometry and GNSS are kept)",
     )
     add_service_args(p, "vehicle")
     a = p.parse_args(argv)
@@ -75,12 +80,16 @@ def main(s: VehicleSettings) -> int:
         kind = "prior_tx" if s.mode == "distributed" else "raw_tx"
         pub = svc.publisher(topic(kind).key(fleet=s.fleet, src=s.id))
 
-        def on_frame(msg: Received) -> None:
+        def frame_of(msg: Received) -> SensorFrame | None:
             frame = svc.decode_or_reject(msg.payload, SensorFrame)
-            if frame is None:
-                return
-            if frame.sender != s.id:
+            if frame is not None and frame.sender != s.id:
                 svc.metrics.reject("wrong_sender", f"frame from {frame.sender} on {msg.key}", log)
+                return None
+            return frame
+
+        def on_frame(msg: Received) -> None:
+            frame = frame_of(msg)
+            if frame is None:
                 return
             clock.update(msg.attachment)
             t_now = clock.now()
@@ -100,6 +109,17 @@ def main(s: VehicleSettings) -> int:
             extra["sent"] += 1
             extra["last_msg_bytes"] = float(len(payload))
 
-        svc.subscribe_queued(topic("sensors").key(fleet=s.fleet, vid=s.id), on_frame, maxsize=s.queue, name="frames")
+        def on_skipped_frame(msg: Received) -> None:
+            frame = frame_of(msg)
+            if frame is not None:
+                agent.skip(frame)
+
+        svc.subscribe_queued(
+            topic("sensors").key(fleet=s.fleet, vid=s.id),
+            on_frame,
+            maxsize=s.queue,
+            name="frames",
+            overflow=on_skipped_frame if s.mode == "distributed" else None,
+        )
         svc.wait()
     return 0

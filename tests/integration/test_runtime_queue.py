@@ -1,0 +1,41 @@
+"""``Service.subscribe_queued`` on a real Zenoh session: order, the bound, and the overflow handler."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from services.runtime import Service, ServiceSettings, ZenohSettings
+
+
+@pytest.mark.parametrize("with_overflow", [False, True])
+def test_a_full_queue_drops_new_samples_or_hands_them_to_overflow(fleet_name, wait_for, with_overflow) -> None:
+    settings = ServiceSettings(fleet=fleet_name, id="q0", zenoh=ZenohSettings(listen=["tcp/127.0.0.1:0"]))
+    calls: list[tuple[str, bytes]] = []
+    started, release = threading.Event(), threading.Event()
+
+    def handler(msg) -> None:
+        calls.append(("handler", msg.payload))
+        started.set()
+        release.wait(10.0)
+
+    def overflow(msg) -> None:
+        calls.append(("overflow", msg.payload))
+
+    with Service("vehicle", settings) as svc:
+        key = f"{fleet_name}/test/frames"
+        svc.subscribe_queued(key, handler, maxsize=2, name="frames", overflow=overflow if with_overflow else None)
+        pub = svc.publisher(key)
+        pub.put(b"0")
+        assert started.wait(10.0), "the worker never took the first sample"
+        for k in range(1, 6):  # the worker is busy with "0": "1" and "2" wait, "3"-"5" find the queue full
+            pub.put(str(k).encode())
+        wait_for(lambda: svc.metrics.rejects.get("queue_full") == 3, 10.0, "3 samples over the bound")
+        release.set()
+        expected = [("handler", b"0"), ("handler", b"1"), ("handler", b"2")]
+        if with_overflow:
+            expected += [("overflow", b"3"), ("overflow", b"4"), ("overflow", b"5")]
+        wait_for(lambda: len(calls) == len(expected), 10.0, "every sample handled")
+    assert calls == expected
+    assert svc.metrics.latency.percentiles_ms()[0] is not None  # the handler's run time is recorded
