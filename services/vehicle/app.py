@@ -41,10 +41,9 @@ class VehicleSettings(ServiceSettings):
     mode: Literal["distributed", "centralized"] = "distributed"
     # frames waiting before new ones are skipped (not matched or sent): 2 (0.2 s). A vehicle that
     # cannot keep up (a cold start's pose searches on a loaded machine) then works on fresh frames;
-    # with 8 its backlog of
-    # 0.8 s plus processing made its priors older than the host's 1 s window, and the host refused
-    # them all as stale (fleet e2e p50 0.7-1.0 s; once no fused state after 1.5 s). Measured with 2:
-    # e2e p50 0.19-0.29 s, every fused state evaluated.
+    # with 8 its backlog of 0.8 s plus processing made its priors older than the host's 1 s window,
+    # and the host refused them all as stale (fleet e2e p50 0.7-1.0 s; once no fused state after
+    # 1.5 s). Measured with 2: e2e p50 0.19-0.29 s, every fused state evaluated.
     queue: int = 2
 
 
