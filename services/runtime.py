@@ -789,7 +789,8 @@ class Service:
                 full = waiting >= maxsize
                 waiting += not full
             if full:
-                self.metrics.reject("queue_full", f"{name}: {maxsize} samples waiting", self.log)
+                what = "dropped" if overflow is None else "passed to the overflow handler"
+                self.metrics.reject("queue_full", f"{name}: {maxsize} samples waiting, {what}", self.log)
                 if overflow is None:
                     return
             q.put((msg, not full))
