@@ -247,8 +247,7 @@ def project_points_jac(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_m
     pi_P(p_map, pose): p_body = R^T (p_map - t), p_cam = R_body_cam^T (p_body - t_body_cam),
     u = fx X/Z + cx, v = fy Y/Z + cy.
 
-    Returns ``uv`` (N, 2), ``z_cam`` (N,), ``J_pose`` (N, 2, 6) = d uv / d pose and
-    ``J_point`` (N, 2, 3) = d uv / d p_map.
+    Returns ``uv`` (N, 2), ``z_cam`` (N,) and ``J_pose`` (N, 2, 6) = d uv / d pose.
     """
     pose = np.asarray(pose, dtype=float)
     p_map = np.asarray(p_map, dtype=float).reshape(-1, 3)
@@ -274,9 +273,7 @@ def project_points_jac(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_m
     dpb[:, :, 4] = d @ dR_pitch
     dpb[:, :, 5] = d @ dR_yaw
     J_cam = R_cb @ dpb  # (N, 3, 6)
-    J_pose = J_proj @ J_cam
-    J_point = J_proj @ (R_cb @ R.T)
-    return uv, Z, J_pose, J_point
+    return uv, Z, J_proj @ J_cam
 
 
 def project_points_grid(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, offsets, yaws, p_map):
@@ -309,7 +306,7 @@ def project_line(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, P1, P2):
 
     Both endpoints must be in front of the camera (check the returned depths).
     """
-    uv, z, J_pose, _ = project_points_jac(intr, pose, T_body_cam, np.stack([P1, P2]))
+    uv, z, J_pose = project_points_jac(intr, pose, T_body_cam, np.stack([P1, P2]))
     return uv.reshape(4), z, J_pose.reshape(4, 6)
 
 

@@ -563,7 +563,7 @@ class MapMatcher:
         pts = self._lane_ahead(x)[::4]
         if len(pts) == 0:
             return None
-        uv, z, _, _ = project_points_jac(intr, x, T_bc, pts)
+        uv, z, _ = project_points_jac(intr, x, T_bc, pts)
         v = uv[z > p.min_depth_m, 1]
         if len(v) == 0:
             return None
@@ -681,7 +681,7 @@ class MapMatcher:
                 lane_pts + 0.5 * lane_tan,
             ]
         )
-        uv, z, J, _ = project_points_jac(fd.intr, x, fd.T_bc, batch)
+        uv, z, J = project_points_jac(fd.intr, x, fd.T_bc, batch)
 
         # Points (D_P): Mahalanobis distance, same class only, Hungarian.
         vis = z[:nP] > near_z
@@ -713,7 +713,7 @@ class MapMatcher:
                 ca = clip & (za <= p.min_depth_m)
                 cb = clip & (zb <= p.min_depth_m)
                 A[ca], B[cb] = P_clip[ca[clip]], P_clip[cb[clip]]
-                uvc, _, Jc, _ = project_points_jac(fd.intr, x, fd.T_bc, P_clip)
+                uvc, _, Jc = project_points_jac(fd.intr, x, fd.T_bc, P_clip)
                 m1[ca], JA[ca] = uvc[ca[clip]], Jc[ca[clip]]
                 m2[cb], JB[cb] = uvc[cb[clip]], Jc[cb[clip]]
             near, A, B, m1, m2, JA, JB = (v[keep] for v in (near_pl, A, B, m1, m2, JA, JB))
@@ -828,7 +828,7 @@ class MapMatcher:
         out: dict[str, Any] = {}
         nP, nL, nS = len(rd.pt_xyz), len(rd.pole_A), len(rd.lane_xyz)
         if len(rd.xyz):
-            uv, z, J, _ = project_points_jac(fd.intr, x, fd.T_bc, rd.xyz)
+            uv, z, J = project_points_jac(fd.intr, x, fd.T_bc, rd.xyz)
         else:
             uv, z, J = np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2, 6))
         # D_P

@@ -196,7 +196,7 @@ def test_residual_jacobians_match_numerical(matcher, block):
     Jn = numerical_jacobian(lambda q: matcher.residual_blocks(q, fd, rd)[block][0], x)
     if block == "lanes":
         # The bilinear distance transform is piecewise smooth: compare away from cell borders and the cap.
-        uv, z, _, _ = geo.project_points_jac(fd.intr, x, fd.T_bc, rd.lane_xyz)
+        uv, z, _ = geo.project_points_jac(fd.intr, x, fd.T_bc, rd.lane_xyz)
         frac = uv - np.floor(uv)
         smooth = np.all((frac > 0.01) & (frac < 0.99), axis=1) & matcher.residual_blocks(x, fd, rd)["lanes_under_cap"]
         assert smooth.sum() >= 10
@@ -213,7 +213,7 @@ def test_pole_residual_is_the_papers_line_distance(matcher):
     assert len(rd.pole_A) >= 1
     x = truth + np.array([0.1, 0.1, 0.0, 0.0, 0.0, 0.01])
     e, _ = matcher.residual_blocks(x, fd, rd)["poles"]
-    uv, _, _, _ = geo.project_points_jac(fd.intr, x, fd.T_bc, np.vstack([rd.pole_A, rd.pole_B]))
+    uv, _, _ = geo.project_points_jac(fd.intr, x, fd.T_bc, np.vstack([rd.pole_A, rd.pole_B]))
     K = len(rd.pole_A)
     for k in range(K):
         M1, M2 = fd.pole_M1[rd.pole_det[k]], fd.pole_M2[rd.pole_det[k]]
