@@ -57,9 +57,8 @@ def ring_line(spec: MapSpec, offset: float, spacing: float = 1.0, z: float = 0.0
     pts = []
     # Start at the middle of the bottom straight, heading +x (east).
     corners = [(hx, -hy, -np.pi / 2), (hx, hy, 0.0), (-hx, hy, np.pi / 2), (-hx, -hy, np.pi)]
-    straights = [((0.0, -hy - r), (hx, -hy - r)), None, None, None]
     prev_end = np.array([0.0, -hy - r])
-    for k, (cx, cy, a0) in enumerate(corners):
+    for cx, cy, a0 in corners:
         start = np.array([cx + r * np.cos(a0), cy + r * np.sin(a0)])
         n = max(int(np.linalg.norm(start - prev_end) / spacing), 1)
         pts.extend(prev_end + (start - prev_end) * t for t in np.arange(n) / n)
@@ -67,7 +66,6 @@ def ring_line(spec: MapSpec, offset: float, spacing: float = 1.0, z: float = 0.0
         for a in a0 + np.arange(n_arc) / n_arc * np.pi / 2:
             pts.append(np.array([cx + r * np.cos(a), cy + r * np.sin(a)]))
         prev_end = np.array([cx + r * np.cos(a0 + np.pi / 2), cy + r * np.sin(a0 + np.pi / 2)])
-    del straights
     end = np.array([0.0, -hy - r])
     n = max(int(np.linalg.norm(end - prev_end) / spacing), 1)
     pts.extend(prev_end + (end - prev_end) * t for t in np.arange(n) / n)
@@ -132,8 +130,12 @@ def generate_map(spec: MapSpec) -> HDMap:
         half = 2.0
         path = np.stack([c - nrm * side_off, c + nrm * side_off])
         poly = np.array(
-            [(c - nrm * side_off + t * half)[:2], (c + nrm * side_off + t * half)[:2],
-             (c + nrm * side_off - t * half)[:2], (c - nrm * side_off - t * half)[:2]]
+            [
+                (c - nrm * side_off + t * half)[:2],
+                (c + nrm * side_off + t * half)[:2],
+                (c + nrm * side_off - t * half)[:2],
+                (c - nrm * side_off - t * half)[:2],
+            ]
         )
         hd.walkable.append(WalkableArea(next(fid), "crossing", poly, path, closed=False))
 

@@ -57,8 +57,8 @@ def render_birdseye(
         color = "tab:red" if is_cv else _CLS_COLOR.get(st.cls, "k")
         ax.plot(xy[:, 0], xy[:, 1], "-", lw=2.0 if is_cv else 0.8, color=color, alpha=0.8)
         c, s = np.cos(st.yaw), np.sin(st.yaw)
-        l, w = st.size[0], st.size[1]
-        box = np.array([[l, w], [l, -w], [-l, -w], [-l, w], [l, w]]) / 2
+        length, w = st.size[0], st.size[1]
+        box = np.array([[length, w], [length, -w], [-length, -w], [-length, w], [length, w]]) / 2
         ax.plot(
             st.p_map[0] + c * box[:, 0] - s * box[:, 1],
             st.p_map[1] + s * box[:, 0] + c * box[:, 1],
