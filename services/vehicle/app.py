@@ -73,7 +73,7 @@ def main(s: VehicleSettings) -> int:
     agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode)
     clock = SimClock()
     figures_fn = getattr(agent, "figures", None) or getattr(agent, "stats", None)
-    extra = {"sent": 0.0, "last_msg_bytes": 0.0}
+    extra = {"sent": 0.0, "last_msg_bytes": 0.0, "skipped": 0.0}  # skipped: frames given to agent.skip
 
     with Service("vehicle", s, figures=lambda: {**(figures_fn() if figures_fn else {}), **extra}) as svc:
         kind = "prior_tx" if s.mode == "distributed" else "raw_tx"
@@ -112,6 +112,7 @@ def main(s: VehicleSettings) -> int:
             frame = frame_of(msg)
             if frame is not None:
                 agent.skip(frame)
+                extra["skipped"] += 1
 
         svc.subscribe_queued(
             topic("sensors").key(fleet=s.fleet, vid=s.id),

@@ -139,6 +139,48 @@ def test_sensor_frames_become_priors_behind_the_channel(rendezvous, fleet_name, 
     assert channel.figures["offered_msgs"] >= 3 and channel.figures["delivered_fraction"] == 1.0
 
 
+def test_a_vehicle_that_falls_behind_skips_frames_but_keeps_their_odometry(
+    rendezvous, fleet_name, spawn, watch_liveliness
+):
+    """A burst of frames: the vehicle matches and sends the first and the 2 that wait; it hands the rest
+    to the localizer without their camera (the ``skipped`` figure), each counted as ``queue_full``."""
+    from mapcontainer.sim import World, load_scenario
+
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    spawn("services.vehicle", "--fleet", fleet_name, "--connect", endpoint, "--id", "cv1")
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="vehicle", id="cv1"), timeout=60)
+    world = World(load_scenario("paper-urban"), seed=0, fleet=fleet_name)
+    payloads = [encode(tick.frames["cv1"]) for tick in world.run(2.0)]
+    got = []
+    sub = session.declare_subscriber(
+        topic("prior_tx").key(fleet=fleet_name, src="cv1"),
+        lambda s: got.append(decode(s.payload.to_bytes(), VehiclePrior)),
+    )
+    pub = session.declare_publisher(topic("sensors").key(fleet=fleet_name, vid="cv1"))
+    time.sleep(0.5)  # the vehicle's subscriber learns of this publisher
+    for payload in payloads:
+        pub.put(payload)
+
+    def figures():
+        views = {(v.role, v.id): v for v in fleet_health(session, fleet_name, timeout_s=2.0)}
+        return views[("vehicle", "cv1")].status
+
+    deadline = time.monotonic() + 60
+    status = figures()
+    while status.figures.get("sent", 0) + status.figures.get("skipped", 0) < len(payloads):
+        assert time.monotonic() < deadline, status
+        time.sleep(0.2)
+        status = figures()
+    sub.undeclare()
+    pub.undeclare()
+    sent, skipped = status.figures["sent"], status.figures["skipped"]
+    assert skipped > 0 and sent + skipped == len(payloads)
+    assert status.rejects.get("queue_full") == skipped
+    assert len(got) == sent and all(p.sender == "cv1" for p in got)
+    assert [p.t_meas for p in got] == sorted(p.t_meas for p in got)
+
+
 def test_host_says_why_it_fuses_nothing_and_recovers(rendezvous, fleet_name, spawn, wait_for, watch_liveliness):
     """Priors that arrive but are all older than the window: the host reports "degraded" with the
     rejections by reason instead of going silent, and returns to "ok" once fresh priors fuse."""
