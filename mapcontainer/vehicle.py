@@ -84,8 +84,7 @@ class VehicleAgent:
 
     def handle(self, t: float, frame: Observations) -> VehiclePrior | RawObservations:
         """The V2X message for one sensor frame, sent at time t."""
-        if frame.sender != self.vehicle_id:
-            raise ValueError(f"agent {self.vehicle_id} was given a frame from {frame.sender}")
+        self._check_sender(frame)
         if self.mode == "distributed":
             return self.localize(t, frame)
         return RawObservations(
@@ -104,9 +103,12 @@ class VehicleAgent:
         turning at 35 degrees/s, that averaged a yaw rate of 35 and 0 degrees/s into a heading 11
         degrees off, which the following matches confirmed until GNSS reset the vehicle.
         """
+        self._check_sender(frame)
+        self.localizer.step(frame.t_meas, None, frame.odometry, frame.gnss)
+
+    def _check_sender(self, frame: Observations) -> None:
         if frame.sender != self.vehicle_id:
             raise ValueError(f"agent {self.vehicle_id} was given a frame from {frame.sender}")
-        self.localizer.step(frame.t_meas, None, frame.odometry, frame.gnss)
 
     def _next_seq(self) -> int:
         self._seq += 1
