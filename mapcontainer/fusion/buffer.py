@@ -4,8 +4,9 @@ Messages arrive in any order (channel latency, jitter, loss). The buffer keeps t
 by ``(t_meas, sender, seq)``; :meth:`ReorderBuffer.pop_until` hands out everything measured at or
 before a time, oldest first. What can no longer help is refused with a reason and counted:
 
-* ``duplicate`` — the same ``(sender, seq)``, or a second message of a sender for the same ``t_meas``
-  (to 1 ms), within the window;
+* ``duplicate`` — a second message of a sender for the same ``t_meas`` (to 1 ms), within the window.
+  Not the same ``(sender, seq)`` alone: a sender that restarts counts its ``seq`` from 0 again, and its
+  new messages must not be refused for sharing numbers with old ones (a replay carries its instant);
 * ``stale`` — ``t_meas`` older than the window: before ``t_recv - window_s`` or before
   ``horizon - window_s``, where the horizon is the latest time already fused;
 * ``future`` — ``t_meas`` more than ``future_tolerance_s`` after ``t_recv`` (a broken clock would
@@ -45,8 +46,7 @@ class ReorderBuffer:
         self.horizon = float("-inf")  # latest time handed out by pop_until
         self._heap: list[tuple[float, str, int, int, Timestamped]] = []
         self._tie = 0
-        self._seen: dict[tuple[str, int], float] = {}  # (sender, seq) -> t_meas
-        self._seen_t: dict[tuple[str, int], float] = {}  # (sender, time_key) -> t_meas
+        self._seen: dict[tuple[str, int], float] = {}  # (sender, time_key) -> t_meas
         self.rejected: Counter[str] = Counter()
         self.accepted = 0
 
@@ -60,7 +60,7 @@ class ReorderBuffer:
             return "future"
         if t < t_recv - self.window_s or t < self.horizon - self.window_s:
             return "stale"
-        if (msg.sender, msg.seq) in self._seen or (msg.sender, time_key(t)) in self._seen_t:
+        if (msg.sender, time_key(t)) in self._seen:
             return "duplicate"
         if len(self._heap) >= self.max_pending:
             return "overflow"
@@ -73,8 +73,7 @@ class ReorderBuffer:
             self.rejected[reason] += 1
             return reason
         t = float(msg.t_meas)
-        self._seen[(msg.sender, msg.seq)] = t
-        self._seen_t[(msg.sender, time_key(t))] = t
+        self._seen[(msg.sender, time_key(t))] = t
         heapq.heappush(self._heap, (t, msg.sender, msg.seq, self._tie, msg))
         self._tie += 1
         self.accepted += 1
@@ -94,4 +93,3 @@ class ReorderBuffer:
         """Drop duplicate-detection entries older than the window (they are refused as stale anyway)."""
         if len(self._seen) > 4 * max(len(self._heap), 256):
             self._seen = {k: v for k, v in self._seen.items() if v >= t_min}
-            self._seen_t = {k: v for k, v in self._seen_t.items() if v >= t_min}

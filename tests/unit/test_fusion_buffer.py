@@ -26,7 +26,7 @@ def test_pops_in_measurement_time_order_up_to_t():
     assert buf.accepted == 5 and not buf.rejected
 
 
-def test_duplicates_same_seq_or_same_instant_are_refused():
+def test_a_second_message_of_a_sender_for_one_instant_is_a_duplicate():
     buf = ReorderBuffer(window_s=1.0)
     assert buf.push(Msg("a", 7, 0.5), 0.5) is None
     assert buf.push(Msg("a", 7, 0.5), 0.6) == "duplicate"  # replayed
@@ -35,6 +35,17 @@ def test_duplicates_same_seq_or_same_instant_are_refused():
     buf.pop_until(0.5)
     assert buf.push(Msg("a", 7, 0.5), 0.7) == "duplicate"  # still remembered after fusing
     assert buf.rejected == {"duplicate": 3}
+
+
+def test_a_restarted_sender_reusing_sequence_numbers_is_accepted():
+    buf = ReorderBuffer(window_s=1.0)
+    for k in range(100):  # 10 s of a sender, then it restarts and counts from 0 again
+        assert buf.push(Msg("a", k, 0.1 * k), 0.1 * k) is None
+        buf.pop_until(0.1 * k)
+    for k in range(10):
+        assert buf.push(Msg("a", k, 10.0 + 0.1 * k), 10.0 + 0.1 * k) is None
+    assert buf.push(Msg("a", 3, 10.3), 10.95) == "duplicate"  # a replay of the new one still is one
+    assert buf.accepted == 110 and buf.rejected == {"duplicate": 1}
 
 
 def test_stale_relative_to_receive_time_and_to_what_was_fused():
