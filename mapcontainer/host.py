@@ -7,17 +7,19 @@
 
 from __future__ import annotations
 
-from schemas import RawObservations, Rejection, VehiclePrior, decode
+from schemas import RawObservations, Rejection, VehiclePrior
 
 from .fusion import Container, FusionParams
 from .hdmap.model import HDMap
 from .vehicle import Mode, VehicleAgent
 
-__all__ = ["CentralizedDecoder", "make_host"]
+__all__ = ["HostLocalizer", "make_host"]
 
 
-class CentralizedDecoder:
-    """RawObservations bytes -> host-side self-localization -> VehiclePrior (or a Rejection).
+class HostLocalizer:
+    """RawObservations -> host-side self-localization -> VehiclePrior (or a Rejection): the
+    centralized mode's ``localize`` for :class:`~mapcontainer.fusion.Container`, which screens the
+    frames first (fleet, known senders, time, duplicates).
 
     Each sender's localizer must see its frames in time order: a frame older than the last one
     localized for that sender is rejected as ``out_of_order`` (the channel's jitter can reorder).
@@ -29,12 +31,7 @@ class CentralizedDecoder:
         self.agents: dict[str, VehicleAgent] = {}
         self._last_t: dict[str, float] = {}
 
-    def __call__(self, payload: bytes) -> VehiclePrior | Rejection:
-        raw = decode(payload, RawObservations)
-        if isinstance(raw, Rejection):
-            return raw
-        if raw.fleet != self.fleet:
-            return Rejection("fleet", f"fleet {raw.fleet!r}")
+    def __call__(self, raw: RawObservations) -> VehiclePrior | Rejection:
         last = self._last_t.get(raw.sender)
         if last is not None and raw.t_meas <= last:
             return Rejection("out_of_order", f"t_meas {raw.t_meas} <= {last} already localized for {raw.sender}")
@@ -60,5 +57,5 @@ def make_host(
     if mode == "distributed":
         return Container(params, fleet, host_id, known_senders)
     if mode == "centralized":
-        return Container(params, fleet, host_id, known_senders, decoder=CentralizedDecoder(hdmap, fleet))
+        return Container(params, fleet, host_id, known_senders, localize=HostLocalizer(hdmap, fleet))
     raise ValueError(f"mode must be 'distributed' or 'centralized', got {mode!r}")

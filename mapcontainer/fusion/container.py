@@ -5,9 +5,12 @@ The live host service and ``pipeline.py`` feed it bytes with :meth:`Container.in
 fused driving environment with :meth:`Container.fuse`.
 
 Where vehicle priors come from is pluggable: ``ingest`` decodes ``VehiclePrior`` by default (the
-distributed mode), a ``decoder`` given to the constructor can turn other payloads into priors (e.g. the
-centralized mode: RawObservations -> host-side map matcher -> VehiclePrior), and ``ingest_prior``
-takes an already-decoded prior.
+distributed mode); with a ``localize`` function given to the constructor it decodes RawObservations
+and turns them into priors with it (the centralized mode: a host-side map matcher). A raw frame is
+screened like a prior first (fleet, sender, time, duplicates), so that nothing refused reaches the
+map matcher: a frame from the far future would otherwise move a sender's localizer ahead and lock
+its later frames out, and an unknown sender would cost a full localization before its refusal.
+``ingest_prior`` takes an already-decoded prior.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import FusedState, Rejection, VehiclePrior, decode
+from schemas import FusedState, RawObservations, Rejection, VehiclePrior, decode
 from schemas.models import MAX_OBJECTS
 
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
@@ -31,7 +34,7 @@ from .poses import pose_cov_from_tangent, sym_from_upper, upper_from_sym, vector
 
 __all__ = ["Container", "FusionParams", "IngestResult"]
 
-Decoder = Callable[[bytes], "VehiclePrior | Rejection"]
+Localize = Callable[[RawObservations], "VehiclePrior | Rejection"]
 
 
 @dataclass(frozen=True)
@@ -41,10 +44,6 @@ class IngestResult:
 
     accepted: bool
     reason: str | None = None
-
-
-def _decode_prior(payload: bytes) -> VehiclePrior | Rejection:
-    return decode(payload, VehiclePrior)
 
 
 def _make_pd(C: np.ndarray) -> np.ndarray:
@@ -67,13 +66,13 @@ class Container:
         fleet: str,
         host_id: str,
         known_senders: set[str] | None = None,
-        decoder: Decoder | None = None,
+        localize: Localize | None = None,
     ):
         self.params = params
         self.fleet = fleet
         self.host_id = host_id
         self.known_senders = None if known_senders is None else set(known_senders)
-        self._decode = decoder or _decode_prior
+        self._localize = localize
         self.buffer = ReorderBuffer(params.window_s, params.future_tolerance_s, params.max_pending)
         self.graph = FusionGraph(params)
         self.tracker = Tracker(params)
@@ -89,11 +88,18 @@ class Container:
     def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
         """Decode and buffer one payload received at scenario time ``t_recv``. Never raises on bad input."""
         self._counts["received"] += 1
-        msg = self._decode(payload)
+        if self._localize is None:
+            msg = decode(payload, VehiclePrior)
+        else:
+            raw = decode(payload, RawObservations)
+            if isinstance(raw, Rejection):
+                return self._reject(raw.reason)
+            reason = self._sender_refused(raw) or self.buffer.check(raw, float(t_recv))
+            if reason is not None:
+                return self._reject(reason)
+            msg = self._localize(raw)
         if isinstance(msg, Rejection):
             return self._reject(msg.reason)
-        if not isinstance(msg, VehiclePrior):
-            return self._reject("invalid")
         return self._take(msg, t_recv)
 
     def ingest_prior(self, prior: VehiclePrior, t_recv: float) -> IngestResult:
@@ -104,15 +110,18 @@ class Container:
         return self._take(prior, t_recv)
 
     def _take(self, msg: VehiclePrior, t_recv: float) -> IngestResult:
-        if msg.fleet != self.fleet:
-            return self._reject("fleet")
-        if self.known_senders is not None and msg.sender not in self.known_senders:
-            return self._reject("unknown_sender")
-        reason = self.buffer.push(msg, float(t_recv))
+        reason = self._sender_refused(msg) or self.buffer.push(msg, float(t_recv))
         if reason is not None:
             return self._reject(reason)
         self._counts["accepted"] += 1
         return IngestResult(True)
+
+    def _sender_refused(self, msg: VehiclePrior | RawObservations) -> str | None:
+        if msg.fleet != self.fleet:
+            return "fleet"
+        if self.known_senders is not None and msg.sender not in self.known_senders:
+            return "unknown_sender"
+        return None
 
     def _reject(self, reason: str) -> IngestResult:
         self._rejected[reason] += 1

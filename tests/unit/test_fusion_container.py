@@ -10,7 +10,16 @@ from mapcontainer.fusion import Container, FusionParams
 from mapcontainer.fusion.bench import _detector_cov
 from mapcontainer.fusion.poses import sym_from_upper, upper_from_sym
 from mapcontainer.metrics import anees_band
-from schemas import FusedState, LocalizationQuality, ObjectObservations, VehiclePrior, decode, encode
+from schemas import (
+    CameraInfo,
+    FusedState,
+    LocalizationQuality,
+    ObjectObservations,
+    RawObservations,
+    VehiclePrior,
+    decode,
+    encode,
+)
 from schemas.codec import tag_map
 
 POSE_COV = np.diag([0.1, 0.1, 0.05, *np.radians([0.3, 0.3, 0.3])]) ** 2
@@ -106,15 +115,33 @@ def test_ingest_prior_takes_models_only():
         box.ingest_prior(b"bytes", 0.0)
 
 
-def test_custom_decoder_is_the_prior_source():
+def test_raw_frames_are_screened_before_the_host_side_localizer_sees_them():
+    """Centralized mode: what the container would refuse never reaches ``localize`` (a far-future frame
+    would move the sender's localizer ahead and lock its later frames out)."""
     seen = []
 
-    def decoder(payload: bytes):
-        seen.append(payload)
-        return decode(payload, VehiclePrior)
+    def localize(raw: RawObservations):
+        seen.append(raw.t_meas)
+        return prior(raw.sender, raw.seq, raw.t_meas)
 
-    box = Container(FusionParams(), "f", "host", decoder=decoder)
-    assert box.ingest(encode(prior()), 0.0).accepted and len(seen) == 1
+    def raw(sender="cv0", seq=0, t=0.0, fleet="f"):
+        cam = CameraInfo(fx=500, fy=500, cx=320, cy=240, width=640, height=480, T_body_cam=np.eye(4))
+        return encode(RawObservations(fleet=fleet, sender=sender, seq=seq, t_meas=t, t_sent=t, camera=cam))
+
+    box = Container(FusionParams(), "f", "host", known_senders={"cv0"}, localize=localize)
+    refused = {
+        raw(t=1e6): "future",
+        raw(sender="intruder"): "unknown_sender",
+        raw(fleet="other"): "fleet",
+        encode(prior()): "invalid",  # a VehiclePrior is not a RawObservations
+    }
+    for payload, reason in refused.items():
+        assert box.ingest(payload, 0.0).reason == reason
+    assert seen == []
+    assert box.ingest(raw(seq=0, t=0.0), 0.0).accepted
+    assert box.ingest(raw(seq=0, t=0.0), 0.05).reason == "duplicate"
+    assert box.ingest(raw(seq=1, t=0.1), 0.1).accepted  # the far-future frame locked nothing out
+    assert seen == [0.0, 0.1]
 
 
 def _two_vehicle_stream(n=30):
