@@ -52,8 +52,13 @@ def encode(mask: np.ndarray) -> bytes:
     return _SIGNATURE + _chunk(b"IHDR", ihdr) + b"".join(chunks) + _IEND
 
 
-def decode(png: bytes) -> np.ndarray:
-    """A PNG as a 2-D uint8 grayscale mask (0 / 255 for a 1-bit PNG). Raises ValueError if it is not one."""
+def decode(png: bytes, max_pixels: int = _MAX_PIXELS) -> np.ndarray:
+    """A PNG as a 2-D uint8 grayscale mask (0 / 255 for a 1-bit PNG). Raises ValueError if it is not one,
+    or if its header says it has more than ``max_pixels`` pixels (checked before anything is inflated)."""
+    if png[12:16] == b"IHDR" and len(png) >= 24:
+        w, h = struct.unpack_from(">II", png, 16)
+        if w * h > max_pixels:
+            raise ValueError(f"lane mask of {w}x{h} pixels: more than {max_pixels}")
     mask = _decode_bilevel(png)
     if mask is None:
         try:

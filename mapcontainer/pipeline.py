@@ -27,7 +27,7 @@ from typing import Literal
 
 import numpy as np
 
-from schemas import FusedState, GroundTruth, encode
+from schemas import FusedState, GroundTruth, Rejection, encode
 from schemas.arrays import cov_from_upper
 
 from . import geometry as geo
@@ -171,6 +171,8 @@ def run_pipeline(
         rec = TickRecord(t, tick.truth, {}, {}, {}, {})
         for vid, frame in tick.frames.items():
             msg = agents[vid].handle(t, frame)
+            if isinstance(msg, Rejection):  # the simulator's own frames: a bug, not bad input
+                raise RuntimeError(f"{vid} refused its frame at {t:.2f} s: {msg.reason}: {msg.detail}")
             payload = encode(msg)
             rec.gnss[vid] = np.asarray(frame.gnss.p_map, dtype=float)
             if mode == "distributed":

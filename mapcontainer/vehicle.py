@@ -5,6 +5,11 @@ V2X link: a :class:`~schemas.VehiclePrior` in distributed mode (self-localizatio
 matching, plus this frame's object detections in the body frame with covariance — not filtered
 tracks: the host treats each message as independent evidence), or a
 :class:`~schemas.RawObservations` in centralized mode (the host localizes the vehicle itself).
+
+A frame the agent cannot use comes back as a :class:`~schemas.Rejection` and changes nothing:
+``future`` (measured more than ``FUTURE_TOLERANCE_S`` after the time it is handled: a broken clock,
+which would otherwise move the localizer's time ahead and make every later frame look old) and
+``bad_input`` (the localizer refused it: time going backwards, non-finite odometry or GNSS).
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 
-from schemas import LocalizationQuality, Observations, RawObservations, VehiclePrior
+from schemas import LocalizationQuality, Observations, RawObservations, Rejection, VehiclePrior
 from schemas.arrays import cov_to_upper
 
 from . import lanemask
@@ -21,15 +26,17 @@ from .geometry import CameraIntrinsics
 from .hdmap.model import HDMap
 from .localization import CameraFrame, LocalizationResult, Localizer, LocalizerParams
 
-__all__ = ["Mode", "VehicleAgent", "camera_frame"]
+__all__ = ["FUTURE_TOLERANCE_S", "Mode", "VehicleAgent", "camera_frame"]
 
 Mode = Literal["distributed", "centralized"]
+FUTURE_TOLERANCE_S = 1.0  # as the host's (FusionParams.future_tolerance_s)
 
 
 def camera_frame(obs: Observations) -> CameraFrame:
     """The matcher's view of a SensorFrame / RawObservations (decodes the lane-mask PNG)."""
     cam = obs.camera
-    mask = lanemask.decode(obs.lane_mask_png) if obs.lane_mask_png else None
+    # a mask larger than the image is refused before it is inflated (a few kB of PNG can hold gigabytes)
+    mask = lanemask.decode(obs.lane_mask_png, cam.width * cam.height) if obs.lane_mask_png else None
     return CameraFrame(
         intr=CameraIntrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height),
         T_body_cam=np.asarray(cam.T_body_cam, dtype=float),
@@ -64,9 +71,15 @@ class VehicleAgent:
         self.last: VehiclePrior | None = None
         self.last_result: LocalizationResult | None = None  # the localizer's, with its filtered estimate
 
-    def localize(self, t: float, obs: Observations) -> VehiclePrior:
+    def localize(self, t: float, obs: Observations) -> VehiclePrior | Rejection:
         """Self-localization of this frame as a VehiclePrior (also used by the host in centralized mode)."""
-        res = self.last_result = self.localizer.step(obs.t_meas, camera_frame(obs), obs.odometry, obs.gnss)
+        late = self._future(t, obs)
+        if late is not None:
+            return late
+        res = self.localizer.step(obs.t_meas, camera_frame(obs), obs.odometry, obs.gnss)
+        if res.bad_input:
+            return Rejection("bad_input", res.reason)
+        self.last_result = res
         prior = VehiclePrior(
             fleet=self.fleet,
             sender=self.vehicle_id,
@@ -82,11 +95,14 @@ class VehicleAgent:
         self.last = prior
         return prior
 
-    def handle(self, t: float, frame: Observations) -> VehiclePrior | RawObservations:
-        """The V2X message for one sensor frame, sent at time t."""
+    def handle(self, t: float, frame: Observations) -> VehiclePrior | RawObservations | Rejection:
+        """The V2X message for one sensor frame, sent at time t (a Rejection if the frame is refused)."""
         self._check_sender(frame)
         if self.mode == "distributed":
             return self.localize(t, frame)
+        late = self._future(t, frame)
+        if late is not None:
+            return late
         return RawObservations(
             **frame.model_dump(exclude={"fleet", "sender", "seq", "t_sent"}),
             fleet=self.fleet,
@@ -95,16 +111,27 @@ class VehicleAgent:
             t_sent=t,
         )
 
-    def skip(self, frame: Observations) -> None:
+    def skip(self, t: float, frame: Observations) -> Rejection | None:
         """Keep what a frame the vehicle has no time to match still says: its odometry and GNSS fix.
 
         The localizer steps to the frame's time without its camera. Without this, the next frame's
         prediction spans the gap with only the odometry at its two ends: over 1.1 s dropped while
         turning at 35 degrees/s, that averaged a yaw rate of 35 and 0 degrees/s into a heading 11
         degrees off, which the following matches confirmed until GNSS reset the vehicle.
+        Returns None, or the Rejection of a frame refused as :meth:`handle` refuses it.
         """
         self._check_sender(frame)
-        self.localizer.step(frame.t_meas, None, frame.odometry, frame.gnss)
+        refused = self._future(t, frame)
+        if refused is None:
+            res = self.localizer.step(frame.t_meas, None, frame.odometry, frame.gnss)
+            refused = Rejection("bad_input", res.reason) if res.bad_input else None
+        return refused
+
+    @staticmethod
+    def _future(t: float, frame: Observations) -> Rejection | None:
+        if frame.t_meas > t + FUTURE_TOLERANCE_S:
+            return Rejection("future", f"frame measured at {frame.t_meas:.3f} s handled at {t:.3f} s")
+        return None
 
     def _check_sender(self, frame: Observations) -> None:
         if frame.sender != self.vehicle_id:

@@ -114,7 +114,7 @@ class GnssMeasurement:
 class LocalizerParams(BaseModel):
     """Parameters of :class:`Localizer` (SI units; random walks per square root of a second)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     matcher: MatcherParams = Field(default_factory=MatcherParams)
     search: PoseSearchParams = Field(default_factory=PoseSearchParams)
@@ -239,6 +239,7 @@ class LocalizationResult:
     cov_filtered: np.ndarray | None = None
     pose_frame: np.ndarray | None = None
     cov_frame: np.ndarray | None = None
+    bad_input: bool = False  # the step's input was refused (``reason`` says why): the state did not move
 
     def quality(self) -> dict[str, Any]:
         """The fields of schemas.LocalizationQuality."""
@@ -485,11 +486,12 @@ class Localizer:
         return ""
 
     def _bad_input(self, t, reason: str) -> LocalizationResult:
-        """Bad input is data: count it, log it once, return the last result with the reason."""
+        """Bad input is data: count it, log it once, return the last result with the reason and
+        ``bad_input`` set (it is not an estimate at ``t``)."""
         self._count(reason.split(":")[0])
         if self._last is not None:
-            return replace(self._last, reason=reason)
-        return self._uninitialised(float(t) if np.isfinite(t) else 0.0, None, reason)
+            return replace(self._last, reason=reason, bad_input=True)
+        return replace(self._uninitialised(float(t) if np.isfinite(t) else 0.0, None, reason), bad_input=True)
 
     def _count(self, key: str) -> None:
         if key not in self.stats:

@@ -19,7 +19,7 @@ from typing import Literal
 
 from mapcontainer.hdmap.generator import generate_map
 from mapcontainer.sim.config import load_scenario
-from schemas import RawObservations, SensorFrame, VehiclePrior, encode
+from schemas import Rejection, SensorFrame, encode
 from schemas.topics import topic
 
 from ..runtime import (
@@ -93,8 +93,8 @@ def main(s: VehicleSettings) -> int:
             clock.update(msg.attachment)
             t_now = clock.now()
             out = agent.handle(frame.t_meas if t_now is None else t_now, frame)
-            if not isinstance(out, VehiclePrior | RawObservations):
-                svc.metrics.reject(getattr(out, "reason", "no_output"), str(out)[:200], log)
+            if isinstance(out, Rejection):
+                svc.metrics.reject(out.reason, out.detail[:200], log)
                 return
             payload = encode(out)
             pub.put(
@@ -110,9 +110,15 @@ def main(s: VehicleSettings) -> int:
 
         def on_skipped_frame(msg: Received) -> None:
             frame = frame_of(msg)
-            if frame is not None:
-                agent.skip(frame)
-                extra["skipped"] += 1
+            if frame is None:
+                return
+            clock.update(msg.attachment)
+            t_now = clock.now()
+            refused = agent.skip(frame.t_meas if t_now is None else t_now, frame)
+            if refused is not None:
+                svc.metrics.reject(refused.reason, refused.detail[:200], log)
+                return
+            extra["skipped"] += 1
 
         svc.subscribe_queued(
             topic("sensors").key(fleet=s.fleet, vid=s.id),

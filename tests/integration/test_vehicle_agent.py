@@ -84,7 +84,7 @@ def test_frames_without_time_to_match_still_carry_the_heading_through_a_turn():
     for tick in world.run(10.5):
         frame, truth = tick.frames["cv2"], tick.states["cv2"]
         if 8.25 < tick.t < 9.25:
-            agent.skip(frame)
+            assert agent.skip(tick.t, frame) is None
             turning.append(abs(truth.yaw_rate))
             continue
         prior = agent.handle(tick.t, frame)
@@ -96,4 +96,31 @@ def test_frames_without_time_to_match_still_carry_the_heading_through_a_turn():
     assert max(err) < 0.3 and max(yaw) < np.radians(1.0)
     assert mode.count("map_matching") >= 0.8 * len(mode)
     with pytest.raises(ValueError, match="frame from cv1"):
-        agent.skip(tick.frames["cv1"])
+        agent.skip(tick.t, tick.frames["cv1"])
+
+
+def test_a_frame_from_the_future_or_with_bad_odometry_is_refused_and_changes_nothing():
+    """A broken clock once moved the localizer 1e6 s ahead: every later frame went "backwards", and the
+    vehicle kept sending its frozen pose with fresh times (46 m off after 8 s). Refused frames now send
+    nothing and leave the localizer where it was."""
+    world = World(load_scenario("paper-urban"), seed=0)
+    agent = VehicleAgent(world.hdmap, "cv0", world.fleet)
+    out = []
+    for k, tick in enumerate(world.run(6.0)):
+        frame = tick.frames["cv0"]
+        if k == 25:
+            out.append(agent.handle(tick.t, frame.model_copy(update={"t_meas": frame.t_meas + 1e6})))
+            assert agent.skip(tick.t, frame.model_copy(update={"t_meas": frame.t_meas + 1e6})).reason == "future"
+        if k == 35:
+            bad = frame.model_copy(update={"odometry": frame.odometry.model_copy(update={"speed": float("inf")})})
+            out.append(agent.handle(tick.t, bad))
+        out.append(agent.handle(tick.t, frame))
+        truth = tick.states["cv0"].pose
+    refused = [m for m in out if not isinstance(m, VehiclePrior)]
+    assert [(r.reason, r.detail.split(":")[0]) for r in refused] == [
+        ("future", "frame measured at 1000002.500 s handled at 2.500 s"),
+        ("bad_input", "odometry not finite"),
+    ]
+    priors = [m for m in out if isinstance(m, VehiclePrior)]
+    assert len(priors) == 60 and priors[-1].quality.mode == "map_matching"
+    assert np.hypot(*(np.asarray(priors[-1].pose[:2], float) - truth[:2])) < 0.3

@@ -98,3 +98,14 @@ def test_encode_takes_a_2d_uint8_mask_only():
     for bad in (np.zeros((4, 4), np.float32), np.zeros((4, 4, 3), np.uint8), np.zeros((0, 5), np.uint8)):
         with pytest.raises(ValueError, match="2-D uint8"):
             lanemask.encode(bad)
+
+
+def test_a_mask_larger_than_the_camera_is_refused_before_it_is_inflated():
+    """A blank 1-bit PNG compresses about 9000 to 1: a few kB on the wire would inflate to gigabytes at
+    the decoder's own limit. The vehicle passes the camera's size, and the header is checked first."""
+    big = lanemask.encode(np.zeros((4000, 8000), np.uint8))
+    assert len(big) < 20_000
+    with pytest.raises(ValueError, match="4000 pixels: more than 307200"):
+        lanemask.decode(big, max_pixels=640 * 480)
+    small = lanemask.encode(np.full((480, 640), 255, np.uint8))
+    assert lanemask.decode(small, max_pixels=640 * 480).shape == (480, 640)
