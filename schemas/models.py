@@ -51,6 +51,14 @@ MAX_LANDMARKS = 4096
 MAX_MASK_BYTES = 4 * 1024 * 1024
 NAME_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 
+# Physical limits: finite values beyond these are a broken sensor or sender, not a measurement. One
+# vehicle prior with v_map = 1e6 m/s put the fused vehicle and an object kilometres off for over a
+# second; odometry of -1e308 m/s overflowed the host-side localizer.
+MAX_TIME_S = 1e10  # seconds, either sign: scenario time, or Unix time in HealthStatus (the year 2286)
+MAX_COORD_M = 1e6  # map-frame coordinates, either sign (the map is a local frame)
+MAX_SPEED_MPS = 100.0  # any road user's speed, either sign
+MAX_YAW_RATE_RADPS = 10.0
+
 
 class ObjectClass(IntEnum):
     """Class codes of detected objects (uint8 on the wire)."""
@@ -79,8 +87,16 @@ def _check_pd(name: str, upper: np.ndarray) -> None:
         raise ValueError(f"{name} is not positive definite") from None
 
 
+def _check_bound(name: str, values: np.ndarray, bound: float) -> None:
+    """Raise ValueError unless every value lies within [-bound, bound]."""
+    worst = float(np.max(np.abs(values), initial=0.0))
+    if worst > bound:
+        raise ValueError(f"{name} beyond the physical limit of {bound:g} ({worst:g})")
+
+
 class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False, ser_json_bytes="base64")
+    # strict: a wrong scalar type is invalid, never converted ("1.5" or true for a time, 7.0 for a seq)
+    model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False, ser_json_bytes="base64", strict=True)
 
 
 class Envelope(_Model):
@@ -90,8 +106,10 @@ class Envelope(_Model):
     fleet: str = Field(pattern=NAME_PATTERN, description="name of the run; every key is namespaced by it")
     sender: str = Field(pattern=NAME_PATTERN, description="id of the producing vehicle or service")
     seq: int = Field(ge=0, lt=2**63, description="per-sender sequence number, +1 per message")
-    t_meas: float = Field(description="scenario time the content is valid for (s)")
-    t_sent: float = Field(description="scenario time the sender published the message (s)")
+    t_meas: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description="scenario time the content is valid for (s)")
+    t_sent: float = Field(
+        ge=-MAX_TIME_S, le=MAX_TIME_S, description="scenario time the sender published the message (s)"
+    )
 
 
 # --------------------------------------------------------------------------------- parts
@@ -116,12 +134,17 @@ class GnssFix(_Model):
     sigma_h_m: float = Field(gt=0, description="receiver-reported horizontal 1-sigma (m)")
     sigma_v_m: float = Field(gt=0, description="receiver-reported vertical 1-sigma (m)")
 
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_bound("p_map", self.p_map, MAX_COORD_M)
+        return self
+
 
 class Odometry(_Model):
     """Wheel odometry and gyro."""
 
-    speed: float = Field(description="forward speed (m/s)")
-    yaw_rate: float = Field(description="yaw rate about body z (rad/s)")
+    speed: float = Field(ge=-MAX_SPEED_MPS, le=MAX_SPEED_MPS, description="forward speed (m/s)")
+    yaw_rate: float = Field(ge=-MAX_YAW_RATE_RADPS, le=MAX_YAW_RATE_RADPS, description="yaw rate about body z (rad/s)")
 
 
 class ObjectObservations(_Model):
@@ -236,6 +259,13 @@ class VehiclePrior(Envelope):
     quality: LocalizationQuality
     objects: ObjectObservations = Field(default_factory=ObjectObservations)
     # pose_cov is positive definite: checked by its type (Cov, schemas.arrays.CovSpec)
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_bound("pose position", self.pose[:3], MAX_COORD_M)
+        _check_bound("pose angles", self.pose[3:], 2 * np.pi)
+        _check_bound("v_map", self.v_map, MAX_SPEED_MPS)
+        return self
 
 
 class FusedState(Envelope):

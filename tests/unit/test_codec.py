@@ -497,6 +497,39 @@ def test_non_finite_float_field(bad: float) -> None:
     assert_rejected(with_changes(health(True), (("figures", "fused_objects"), bad)), HealthStatus, "non_finite")
 
 
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        (("t_meas",), "1.5"),  # a number as text
+        (("t_meas",), True),
+        (("seq",), 7.0),
+        (("seq",), "7"),
+        (("seq",), False),
+    ],
+)
+def test_a_scalar_of_the_wrong_type_is_invalid_not_converted(path: tuple[str, ...], value: Any) -> None:
+    assert_rejected(with_changes(vehicle_prior(True), (path, value)), VehiclePrior, "invalid")
+
+
+def test_physically_impossible_values_are_invalid() -> None:
+    """Finite but impossible: one prior with v_map = 1e6 m/s put the fused picture kilometres off, and
+    odometry of -1e308 m/s overflowed the host-side localizer."""
+    prior = vehicle_prior(True)
+    for name, bad in [
+        ("v_map", [1e6, 0, 0]),
+        ("pose", [1.0, 2e6, 0.0, 0.0, 0.0, 0.0]),
+        ("pose", [1.0, 2.0, 0.0, 0.0, 0.0, 1e30]),
+    ]:
+        out = assert_rejected(with_changes(prior, ((name,), np.array(bad, "<f4").tobytes())), VehiclePrior, "invalid")
+        assert "physical limit" in out.detail
+    assert_rejected(with_changes(prior, (("t_meas",), 1e306)), VehiclePrior, "invalid")
+    frame = observations(SensorFrame, True)
+    assert_rejected(with_changes(frame, (("odometry", "speed"), -1e308)), SensorFrame, "invalid")
+    assert_rejected(with_changes(frame, (("odometry", "yaw_rate"), 50.0)), SensorFrame, "invalid")
+    far = np.array([3e6, 0, 0], "<f4").tobytes()
+    assert_rejected(with_changes(frame, (("gnss", "p_map"), far)), SensorFrame, "invalid")
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_non_finite_array(bad: float) -> None:
     pose = np.array([1, 2, 3, 0, 0, bad], "<f4").tobytes()
