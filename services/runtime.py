@@ -90,7 +90,7 @@ class ZenohSettings(BaseModel):
     endpoint over a TLS client file.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     mode: Literal["peer", "client", "router"] | None = Field(None, description="None: the file's, else peer")
     listen: list[str] | None = Field(
@@ -108,7 +108,7 @@ class ZenohSettings(BaseModel):
 class ServiceSettings(BaseModel):
     """What every service takes: fleet namespace, its id, Zenoh and health settings."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     fleet: str = Field("mc", pattern=r"^[A-Za-z0-9_\-]{1,64}$")
     id: str = Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")
@@ -267,7 +267,9 @@ def read_attachment(sample_or_bytes) -> dict[str, Any]:
         obj = msgpack.unpackb(raw, raw=False)
     except Exception:  # instrumentation only: a bad attachment is ignored, never fatal
         return {}
-    return obj if isinstance(obj, dict) else {}
+    if not isinstance(obj, dict):
+        return {}
+    return {k: v for k, v in obj.items() if isinstance(k, str)}  # names only: fields are passed on as keywords
 
 
 class SimClock:

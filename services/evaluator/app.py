@@ -102,7 +102,8 @@ def main(s: EvaluatorSettings) -> int:
                 fused = svc.decode_or_reject(msg.payload, FusedState)
                 if fused is not None:
                     clock.update(msg.attachment)
-                    pub_ns = msg.attachment.get("t_wall_ns") or msg.t_recv_wall_ns
+                    pub_ns = msg.attachment.get("t_wall_ns")
+                    pub_ns = pub_ns if isinstance(pub_ns, int) and pub_ns > 0 else msg.t_recv_wall_ns
                     ev.on_fused(fused, pub_ns, clock.wall_ns(fused.t_meas), now)
             elif kind == "tx":
                 ev.on_tx(msg.key.split("/")[-2], _seq(msg.payload), len(msg.payload), now)
@@ -120,6 +121,8 @@ def main(s: EvaluatorSettings) -> int:
                     svc.metrics.latency.add(time.perf_counter() - t0)
                 except queue.Empty:
                     pass
+                except Exception as exc:  # one message the evaluator cannot score must not end the run
+                    svc.metrics.reject("unscorable", f"{kind} on {msg.key}: {type(exc).__name__}: {exc}", log)
                 if time.monotonic() >= next_pub:
                     next_pub += 1.0
                     m = ev.snapshot(time.time())

@@ -156,7 +156,12 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
             if item[0] == "stop":
                 return
             t0 = time.perf_counter()
-            r = core.ingest(item[1], item[2])
+            try:
+                r = core.ingest(item[1], item[2])
+            except Exception:  # a defect, not bad input (ingest refuses that): report it, keep fusing
+                outbox.put(("error", traceback.format_exc()))
+                results.append((False, "ingest_error", time.perf_counter() - t0))
+                continue
             accepted = bool(getattr(r, "accepted", r))
             if accepted:
                 head = _envelope(peek, item[1])

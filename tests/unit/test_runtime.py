@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import msgpack
 import pytest
 
 from schemas import HealthStatus, decode, encode
@@ -222,3 +223,10 @@ def test_attachment_round_trip_and_garbage() -> None:
     assert read_attachment(b"\xc1\xff") == {}
     assert read_attachment(None) == {}
     assert read_attachment(make_attachment()) == {}
+    # keys that are not names (bytes) are dropped: the channel passes the fields on as keywords
+    odd = msgpack.packb({b"k": 1, "t_wall_ns": 5}, use_bin_type=True)
+    assert read_attachment(odd) == {"t_wall_ns": 5}
+    assert read_attachment(make_attachment(**read_attachment(odd), link_latency_s=0.02)) == {
+        "t_wall_ns": 5,
+        "link_latency_s": 0.02,
+    }

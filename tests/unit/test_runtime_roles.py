@@ -327,3 +327,39 @@ def test_ellipse_params() -> None:
     w, h, ang = ellipse_params(np.diag([4.0, 1.0]), n_sigma=2.0)
     assert (w, h) == pytest.approx((8.0, 4.0))
     assert abs(ang) % 180 == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_fusion_loop_survives_a_payload_that_breaks_the_core(monkeypatch) -> None:
+    """ingest refuses bad input itself; should a defect make it raise, the loop reports the error,
+    counts the payload as ``ingest_error`` and keeps fusing (it used to die with the first one)."""
+    import queue
+
+    from mapcontainer.fusion import Container
+    from schemas import encode
+    from services.host.worker import fusion_loop
+    from unit.test_fusion_container import prior
+
+    real = Container.ingest
+
+    def ingest(self, payload, t_recv):
+        if payload == b"boom":
+            raise OverflowError("a defect")
+        return real(self, payload, t_recv)
+
+    monkeypatch.setattr(Container, "ingest", ingest)
+    spec = dict(scenario="overlap", mode="distributed", fleet="f", host_id="host", known_senders=["cv0"])
+    inbox, outbox = queue.Queue(), queue.Queue()
+    th = threading.Thread(target=fusion_loop, args=(spec, inbox, outbox), daemon=True)
+    th.start()
+    assert outbox.get(timeout=60)[0] == "ready"
+    inbox.put(("ingest", b"boom", 0.0))
+    error = outbox.get(timeout=30)
+    fused = []
+    for k in range(3):
+        inbox.put(("ingest", encode(prior(seq=k, t=0.1 * k)), 0.1 * k))
+        fused.append(outbox.get(timeout=30))
+    inbox.put(("stop",))
+    th.join(timeout=10)
+    assert error[0] == "error" and "OverflowError: a defect" in error[1]
+    assert [(item[0], round(item[2], 1)) for item in fused] == [("fused", 0.0), ("fused", 0.1), ("fused", 0.2)]
+    assert [r[:2] for r in fused[0][-1]] == [(False, "ingest_error"), (True, None)] and not th.is_alive()
