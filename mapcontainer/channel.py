@@ -41,7 +41,7 @@ _QUEUE_EPS_BYTES = 1e-6  # float slack in the backlog comparison (backlog is der
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class GilbertElliott(_Strict):

@@ -16,7 +16,7 @@ class FusionParams(BaseModel):
     association.py.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     # ---- time
     window_s: float = Field(1.0, gt=0, description="sliding window: states older than fuse time - window_s are dropped")

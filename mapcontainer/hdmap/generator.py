@@ -24,7 +24,7 @@ __all__ = ["MapSpec", "generate_map", "ring_line"]
 class MapSpec(BaseModel):
     """Parameters of a generated ring-road map (metres unless named otherwise)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = "ring"
     length_m: float = Field(160.0, gt=20, description="extent of the reference line along x")

@@ -67,7 +67,7 @@ class MatcherParams(BaseModel):
     lambda_roll_pitch = 1 / sigma_roll_pitch_rad, lambda_height = 1 / sigma_height_m.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     # Measurement noise.
     point_sigma_px: float = Field(2.0, gt=0, description="1-sigma of a point detection incl. map error (px)")

@@ -32,7 +32,7 @@ Probability = Annotated[float, Field(ge=0, le=1)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class CameraConfig(_Strict):
@@ -185,8 +185,13 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
             raise ConfigError(f"unknown scenario {name_or_path!r}; presets: {', '.join(list_scenarios())}")
     data = read_yaml(path)
     profile = data.pop("sensor_profile", "default")
+    if not isinstance(profile, str):
+        raise ConfigError(f"{path}: sensor_profile must be the name of a sensor profile, got {profile!r}")
     sensors = read_yaml(config_dir() / "sensors" / f"{profile}.yaml")
-    data["sensors"] = deep_merge(sensors, data.get("sensors") or {})
+    own = data.get("sensors") or {}
+    if not isinstance(own, dict):
+        raise ConfigError(f"{path}: sensors must be a mapping of overrides, got {type(own).__name__}")
+    data["sensors"] = deep_merge(sensors, own)
     if overrides:
         data = deep_merge(data, overrides)
     return validate_model(ScenarioConfig, data, path)

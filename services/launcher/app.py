@@ -43,7 +43,7 @@ log = logging.getLogger("mapc.launcher")
 
 
 class LauncherSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     params: FleetParams
     manifest: str | None = None

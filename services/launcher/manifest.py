@@ -38,7 +38,7 @@ NAME = r"^[A-Za-z0-9_\-]{1,64}$"
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class RestartPolicy(_Strict):

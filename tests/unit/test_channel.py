@@ -285,6 +285,8 @@ def test_dsrc_profile_values():
         ("name: bad\nloss: 0.1\nburst: {p_good_to_bad: 0.1, p_bad_to_good: 0.2}\n", "loss"),
         ("name: bad\nshared_medium: true\n", "bandwidth_bps"),
         ("name: bad\nqueue_bytes: 0\n", "queue_bytes"),
+        ("name: bad\nlatency_ms: .inf\n", "latency_ms"),  # the link would never deliver
+        ("name: bad\njitter_ms: .nan\n", "jitter_ms"),
     ],
 )
 def test_bad_profile_file_names_the_field(tmp_path, text, field):

@@ -228,6 +228,18 @@ def test_bad_scenario_file_is_a_clear_error(tmp_path):
         load_scenario(bad)
     with pytest.raises(ConfigError, match="unknown scenario"):
         load_scenario("no-such-scenario")
+    bad.write_text("name: bad\nduration_s: .inf\n")
+    with pytest.raises(ConfigError, match="duration_s"):
+        load_scenario(bad)
+    bad.write_text("name: bad\nsensors: [1, 2]\n")
+    with pytest.raises(ConfigError, match="sensors must be a mapping"):
+        load_scenario(bad)
+    bad.write_bytes(b"name: b\xe9d\n")
+    with pytest.raises(ConfigError, match="not UTF-8"):
+        load_scenario(bad)
+    bad.write_text("name: bad\nx: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(ConfigError, match="nested too deeply"):
+        load_scenario(bad)
 
 
 def test_a_world_runs_forward_only():
