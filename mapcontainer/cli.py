@@ -153,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("scenario", help="preset name (mapc scenario list) or a scenario YAML file")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
-    sim.add_argument("--out", required=True, help="output directory")
+    sim.add_argument("--out", required=True, type=output_dir, help="output directory")
     sim.add_argument("--fleet", default="sim", help="fleet name written into the messages")
     sim.set_defaults(func=_cmd_sim)
 
@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ep = exp.add_parser("paper", help="reproduce the paper's results (figure exp_sim, Tables res1/res2)")
     ep.add_argument("--runs", type=_positive_int, default=200, help="Monte Carlo runs per simulated scenario")
-    ep.add_argument("--out", required=True, help="output directory")
+    ep.add_argument("--out", required=True, type=output_dir, help="output directory")
     ep.add_argument("--seed", type=int, default=0, help="run i uses seed S + i")
     ep.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
     ep.add_argument(
@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     ep.set_defaults(func=_cmd_experiment_paper)
 
     en = exp.add_parser("network", help="latency x loss x bandwidth sweep in both modes (in-process)")
-    en.add_argument("--out", required=True, help="output directory")
+    en.add_argument("--out", required=True, type=output_dir, help="output directory")
     en.add_argument("--quick", action="store_true", help="a 2 x 2 x 2 grid of short runs (for tests)")
     en.add_argument("--seed", type=int, default=0)
     en.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
@@ -221,6 +221,15 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--check", action="store_true", help="only report stale files; exit 1 if any")
     ex.set_defaults(func=_cmd_schemas_export)
     return p
+
+
+def output_dir(value: str) -> Path:
+    """An ``--out`` directory, absolute (fleets run elsewhere write into it), checked before any work
+    is done: a file of that name used to fail only after the whole run, losing it."""
+    path = Path(value).expanduser().resolve()
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{value} exists and is not a directory")
+    return path
 
 
 def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:

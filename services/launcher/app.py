@@ -29,6 +29,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from mapcontainer.config import validate_model
 from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
@@ -121,7 +122,7 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "zenoh_config": a.zenoh_config,
     }
     params = manifest.defaults.model_copy(update={k: v for k, v in over.items() if v is not None})
-    params = FleetParams.model_validate(params.model_dump())
+    params = validate_model(FleetParams, params.model_dump(), "the command line")  # ConfigError, not a traceback
     kw: dict[str, Any] = {
         "params": params,
         "manifest": a.manifest,

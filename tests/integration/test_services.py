@@ -282,3 +282,13 @@ def test_dry_run_prints_the_plan_and_starts_nothing(tmp_path, mapc):
     assert plan["params"]["mode"] == "centralized"
     assert [p["name"] for p in plan["processes"]].count("vehicle-cv2") == 1
     assert not any(tmp_path.iterdir())
+
+
+def test_bad_command_line_values_are_configuration_errors_before_any_work(tmp_path, mapc):
+    """A user's mistake gets one line and exit 2, not a traceback, and not after a whole run."""
+    proc = mapc("fleet", "up", "--dry-run", "--duration", "-5", "--runs-dir", str(tmp_path))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "configuration error" in proc.stderr and "duration_s" in proc.stderr
+    (tmp_path / "afile").write_text("")
+    proc = mapc("experiment", "network", "--quick", "--out", str(tmp_path / "afile"))
+    assert proc.returncode == 2 and "exists and is not a directory" in proc.stderr
