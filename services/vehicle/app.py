@@ -79,22 +79,31 @@ def main(s: VehicleSettings) -> int:
         kind = "prior_tx" if s.mode == "distributed" else "raw_tx"
         pub = svc.publisher(topic(kind).key(fleet=s.fleet, src=s.id))
 
-        def frame_of(msg: Received) -> SensorFrame | None:
+        def frame_of(msg: Received) -> tuple[SensorFrame, float] | None:
+            """The sample's frame and the time to handle it at (the world's clock now; the frame's own
+            time until that clock is known), or None if it was refused."""
             frame = svc.decode_or_reject(msg.payload, SensorFrame)
-            if frame is not None and frame.sender != s.id:
+            if frame is None:
+                return None
+            if frame.sender != s.id:
                 svc.metrics.reject("wrong_sender", f"frame from {frame.sender} on {msg.key}", log)
                 return None
-            return frame
-
-        def on_frame(msg: Received) -> None:
-            frame = frame_of(msg)
-            if frame is None:
-                return
             clock.update(msg.attachment)
             t_now = clock.now()
-            out = agent.handle(frame.t_meas if t_now is None else t_now, frame)
+            return frame, frame.t_meas if t_now is None else t_now
+
+        def refused(out: object) -> bool:
             if isinstance(out, Rejection):
                 svc.metrics.reject(out.reason, out.detail[:200], log)
+                return True
+            return False
+
+        def on_frame(msg: Received) -> None:
+            got = frame_of(msg)
+            if got is None:
+                return
+            out = agent.handle(got[1], got[0])
+            if refused(out):
                 return
             payload = encode(out)
             pub.put(
@@ -109,16 +118,9 @@ def main(s: VehicleSettings) -> int:
             extra["last_msg_bytes"] = float(len(payload))
 
         def on_skipped_frame(msg: Received) -> None:
-            frame = frame_of(msg)
-            if frame is None:
-                return
-            clock.update(msg.attachment)
-            t_now = clock.now()
-            refused = agent.skip(frame.t_meas if t_now is None else t_now, frame)
-            if refused is not None:
-                svc.metrics.reject(refused.reason, refused.detail[:200], log)
-                return
-            extra["skipped"] += 1
+            got = frame_of(msg)
+            if got is not None and not refused(agent.skip(got[1], got[0])):
+                extra["skipped"] += 1
 
         svc.subscribe_queued(
             topic("sensors").key(fleet=s.fleet, vid=s.id),
