@@ -84,7 +84,7 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     """The ``fleet up`` options (shared by ``mapc fleet up`` and ``python -m services.launcher``)."""
     d = defaults or FleetParams()
     p.add_argument("--scenario", default=None, help=f"scenario preset (default {d.scenario})")
-    p.add_argument("--vehicles", type=int, default=None, help=f"connected vehicles (default {d.vehicles})")
+    p.add_argument("--vehicles", type=int, default=None, help="connected vehicles (default: as many as the scenario defines)")
     p.add_argument("--network", default=None, help=f"network profile (default {d.network})")
     p.add_argument("--duration", type=float, default=None, help="scenario seconds (default: until stopped)")
     p.add_argument("--fleet", default=None, help=f"fleet name, the key namespace (default {d.fleet})")

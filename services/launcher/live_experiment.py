@@ -213,7 +213,7 @@ def write_comparison(rows: list[dict], out_dir: str | Path, meta: dict) -> dict[
         "# Live fleet vs in-process pipeline",
         "",
         f"Scenario {meta.get('scenario')}, seed {meta.get('seed')}, {meta.get('duration_s')} s per point "
-        f"(live: `mapc fleet up`, {meta.get('vehicles') or 'the manifest default number of'} vehicles; in process: "
+        f"(live: `mapc fleet up`, {meta.get('vehicles') or 'as many as the scenario defines'} vehicles; in process: "
         "`run_network_point` with the same preset). Live RMSEs are the evaluator's whole-run figures "
         "(warm-up included, every matched object); in-process RMSEs skip the warm-up and keep objects within "
         "50 m of the ego. Bytes/s per vehicle leave the ego's on-board messages out in both.",

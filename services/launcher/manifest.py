@@ -73,7 +73,7 @@ class FleetParams(_Strict):
 
     fleet: str = Field("local", pattern=NAME)
     scenario: str = "paper-urban"
-    vehicles: int | None = Field(4, ge=1, description="None: as many as the scenario defines")
+    vehicles: int | None = Field(None, ge=1, description="None: as many as the scenario defines")
     network: str = "dsrc"
     mode: Literal["distributed", "centralized"] = "distributed"
     duration_s: float | None = Field(None, gt=0, description="scenario seconds; None: until stopped")

@@ -70,6 +70,19 @@ def test_default_manifest_resolves() -> None:
     assert with_duration[-1].argv[with_duration[-1].argv.index("--duration") + 1] == "12.0"
 
 
+def test_a_fleet_runs_as_many_vehicles_as_its_scenario_unless_told() -> None:
+    m = load_manifest()
+    for scenario, n in [("overlap", 2), ("blindspot-beyond", 2), ("paper-urban", 4)]:
+        params = m.defaults.model_copy(update={"scenario": scenario})
+        specs = resolve(m, params, "/tmp/run", "tcp/x:1")
+        assert len(load_scenario(scenario).connected) == n
+        assert sorted(s.id for s in specs if s.role == "vehicle") == [f"cv{i}" for i in range(n)]
+        world = next(s for s in specs if s.role == "world")
+        assert "--vehicles" not in world.argv  # the world keeps the scenario's own vehicles
+    told = resolve(m, m.defaults.model_copy(update={"scenario": "overlap", "vehicles": 3}), "/r", "tcp/x:1")
+    assert len([s for s in told if s.role == "vehicle"]) == 3
+
+
 def test_manifest_errors_name_the_problem() -> None:
     base = {
         "name": "m",
