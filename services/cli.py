@@ -23,10 +23,6 @@ from mapcontainer.cli import build_parser, run
 __all__ = ["add_live_commands", "main"]
 
 
-def _runs_dir(args: argparse.Namespace) -> str:
-    return args.runs_dir or os.environ.get("MAPC_RUNS_DIR", "runs")
-
-
 # ------------------------------------------------------------------------------ fleet
 
 
@@ -59,11 +55,8 @@ def _cmd_fleet_up(args: argparse.Namespace) -> int:
                 f"fleet {s.params.fleet} is up: rendezvous {', '.join(info.get('endpoints', []))}; "
                 f"run dir {info['run_dir']}; launcher pid {info['launcher_pid']}"
             )
-        else:
-            print(
-                f"mapc: fleet {s.params.fleet} did not come up; see {info['run_dir']}/launcher.out and logs/",
-                file=sys.stderr,
-            )
+        if rc != 0:
+            print(f"mapc: {info['error']}", file=sys.stderr)
         return rc
     return run_fleet(s)
 
@@ -71,7 +64,7 @@ def _cmd_fleet_up(args: argparse.Namespace) -> int:
 def _cmd_fleet_status(args: argparse.Namespace) -> int:
     from .launcher.control import active_fleets
 
-    fleets = [f for f in active_fleets(_runs_dir(args)) if args.fleet is None or f["fleet"] == args.fleet]
+    fleets = [f for f in active_fleets() if args.fleet is None or f["fleet"] == args.fleet]
     if args.json:
         print(json.dumps(fleets, indent=2))
         return 0 if any(f["launcher_alive"] for f in fleets) else 1
@@ -79,8 +72,13 @@ def _cmd_fleet_status(args: argparse.Namespace) -> int:
         print("no fleet is running")
         return 1
     for f in fleets:
-        alive = "running" if f["launcher_alive"] else "STALE (launcher gone: `mapc fleet down` cleans up)"
-        print(f"fleet {f['fleet']}: {f['status']} / {alive}; launcher pid {f['launcher_pid']}")
+        if f["launcher_alive"]:
+            print(f"fleet {f['fleet']}: {f['status']}; launcher pid {f['launcher_pid']}")
+        else:
+            print(
+                f"fleet {f['fleet']}: launcher {f['launcher_pid']} is gone (its last status: {f['status']}); "
+                "`mapc fleet down` stops what is left and clears the entry"
+            )
         print(f"  connect: {', '.join(f['endpoints'])}   (e.g. mapc health --fleet {f['fleet']})")
         print(f"  run dir: {f['run_dir']}")
         for p in f["processes"]:
@@ -95,7 +93,7 @@ def _cmd_fleet_status(args: argparse.Namespace) -> int:
 def _cmd_fleet_down(args: argparse.Namespace) -> int:
     from .launcher.control import down
 
-    rc, results = down(_runs_dir(args), args.fleet, timeout_s=args.timeout)
+    rc, results = down(args.fleet, timeout_s=args.timeout)
     if args.json:
         print(json.dumps(results))
     elif not results:
@@ -118,7 +116,7 @@ def _cmd_health(args: argparse.Namespace) -> int:
     fleet, connect, expected = args.fleet, list(args.connect or []), []
     if not connect and os.environ.get("MAPC_ZENOH_CONNECT"):
         connect = os.environ["MAPC_ZENOH_CONNECT"].split(",")
-    running = [f for f in active_fleets(_runs_dir(args)) if f["launcher_alive"]]
+    running = [f for f in active_fleets() if f["launcher_alive"]]
     match = [f for f in running if fleet is None or f["fleet"] == fleet]
     if fleet is None and len(match) == 1:
         fleet = match[0]["fleet"]
@@ -129,14 +127,18 @@ def _cmd_health(args: argparse.Namespace) -> int:
         if not connect:
             connect = [e for e in own["endpoints"] if "127.0.0.1" in e] or own["endpoints"]
     if not connect:
+        if args.json:
+            print("[]")  # a JSON consumer gets an empty list, not empty input
         print(
-            f"mapc: no running fleet {fleet!r} found under {_runs_dir(args)}; give --connect ENDPOINT",
+            f"mapc: no running fleet {fleet!r} (`mapc fleet status` lists them); give --connect ENDPOINT",
             file=sys.stderr,
         )
         return 2
     try:
         session = open_session(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000))
     except Exception as e:  # zenoh raises ZError when nothing listens at the endpoint
+        if args.json:
+            print("[]")
         print(f"mapc: cannot reach {', '.join(connect)}: {e}", file=sys.stderr)
         return 2
     try:
@@ -207,10 +209,15 @@ def _add_live_network_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--vehicles", type=int, default=None, help="connected vehicles (default: the fleet's)")
     g.add_argument("--no-inprocess", action="store_true", help="skip the in-process side-by-side")
 
+    live_only = {"profiles": "--profiles", "mode": "--mode", "vehicles": "--vehicles", "no_inprocess": "--no-inprocess"}
+
     def dispatch(args: argparse.Namespace) -> int:
-        if args.live:
-            return _cmd_experiment_network_live(args)
-        return core(args)
+        given = [flag for dest, flag in live_only.items() if getattr(args, dest) != en.get_default(dest)]
+        if args.live and args.quick:
+            en.error("--quick is a grid of the in-process sweep; with --live, choose --profiles and --duration")
+        if not args.live and given:
+            en.error(f"{', '.join(given)}: for the live fleet only (add --live)")
+        return _cmd_experiment_network_live(args) if args.live else core(args)
 
     en.set_defaults(func=dispatch)
 
@@ -239,12 +246,10 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     st = fleet.add_parser("status", help="running fleets: processes and the Zenoh endpoints to connect to")
     st.add_argument("--json", action="store_true")
     st.add_argument("--fleet", default=None)
-    st.add_argument("--runs-dir", default=None)
     st.set_defaults(func=_cmd_fleet_status)
 
     dn = fleet.add_parser("down", help="stop a fleet (default: every running one) leaving no process behind")
     dn.add_argument("--fleet", default=None)
-    dn.add_argument("--runs-dir", default=None)
     dn.add_argument("--timeout", type=float, default=90.0, help="seconds to wait for the launcher")
     dn.add_argument("--json", action="store_true")
     dn.set_defaults(func=_cmd_fleet_down)
@@ -257,7 +262,6 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     h.add_argument("--json", action="store_true", help="a JSON list of services")
     h.add_argument("--watch", action="store_true", help="refresh every second until Ctrl-C")
     h.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for answers")
-    h.add_argument("--runs-dir", default=None)
     h.set_defaults(func=_cmd_health)
 
     _add_live_network_args(parser)

@@ -10,8 +10,9 @@ SIGTERM or ``mapc fleet down``), stops everything in reverse order and writes th
 Run directory ``runs/<fleet>-<timestamp>/``: ``config.json`` (resolved manifest and parameters),
 ``state.json`` (live process table, endpoints, launcher pid), ``events.jsonl``, ``metrics.jsonl``
 (the evaluator's metrics, one line a second), ``logs/<process>.log``, and at the end
-``report.json`` plus the evaluator's ``birdseye.png`` and ``eval_summary.json``. While it runs,
-``runs/active/<fleet>.json`` points at the run directory (``mapc fleet status/down`` read it).
+``report.json`` plus the evaluator's ``birdseye.png`` and ``eval_summary.json``. While it runs, a
+pointer to the run directory, ``<fleet>.json``, is in the user's fleet registry (:func:`registry_dir`),
+so that ``mapc fleet status/down`` and ``mapc health`` find the fleet from any directory.
 """
 
 from __future__ import annotations
@@ -36,9 +37,18 @@ from schemas.topics import topic
 from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json
 from .manifest import FleetParams, ProcessSpec, load_manifest, resolve
-from .supervisor import Supervisor
+from .supervisor import Supervisor, is_ours
 
-__all__ = ["LauncherSettings", "active_dir", "main", "new_run_dir", "parse_args", "plan", "run"]
+__all__ = [
+    "LauncherSettings",
+    "main",
+    "new_run_dir",
+    "parse_args",
+    "plan",
+    "registry_dir",
+    "run",
+    "running_launcher",
+]
 
 log = logging.getLogger("mapc.launcher")
 
@@ -57,8 +67,37 @@ class LauncherSettings(BaseModel):
     drain_s: float = 2.0
 
 
-def active_dir(runs_dir: str | Path) -> Path:
-    return Path(runs_dir) / "active"
+def registry_dir() -> Path:
+    """The user's running fleets, one pointer file ``<fleet>.json`` each, whichever directory they run in.
+
+    ``$MAPC_STATE_DIR/fleets``, else ``$XDG_STATE_HOME/mapcontainer/fleets`` (by default
+    ``~/.local/state/mapcontainer/fleets``).
+    """
+    if os.environ.get("MAPC_STATE_DIR"):
+        return Path(os.environ["MAPC_STATE_DIR"]) / "fleets"
+    state = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
+    return Path(state) / "mapcontainer" / "fleets"
+
+
+def running_launcher(fleet: str) -> dict[str, Any] | None:
+    """The registry's pointer of ``fleet`` if its launcher is alive (a stale pointer does not count)."""
+    try:
+        ptr = json.loads((registry_dir() / f"{fleet}.json").read_text())
+    except (OSError, ValueError):
+        return None
+    pid = ptr.get("launcher_pid") if isinstance(ptr, dict) else None
+    return ptr if isinstance(pid, int) and is_ours(pid) else None
+
+
+def already_running(fleet: str) -> str | None:
+    """Why ``fleet`` cannot start (another launcher runs it), or None."""
+    other = running_launcher(fleet)
+    if other is None:
+        return None
+    return (
+        f"fleet {fleet!r} is already running (launcher pid {other['launcher_pid']}, {other.get('run_dir')}); "
+        "use another --fleet or `mapc fleet down`"
+    )
 
 
 def new_run_dir(runs_dir: str | Path, fleet: str) -> Path:
@@ -84,7 +123,7 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     """The ``fleet up`` options (shared by ``mapc fleet up`` and ``python -m services.launcher``)."""
     d = defaults or FleetParams()
     p.add_argument("--scenario", default=None, help=f"scenario preset (default {d.scenario})")
-    p.add_argument("--vehicles", type=int, default=None, help="connected vehicles (default: as many as the scenario defines)")
+    p.add_argument("--vehicles", type=int, default=None, help="connected vehicles (default: the scenario's)")
     p.add_argument("--network", default=None, help=f"network profile (default {d.network})")
     p.add_argument("--duration", type=float, default=None, help="scenario seconds (default: until stopped)")
     p.add_argument("--fleet", default=None, help=f"fleet name, the key namespace (default {d.fleet})")
@@ -174,6 +213,7 @@ class _Run:
         self.lock = threading.RLock()  # events are written from inside supervisor calls made under it
         self.latest_metrics: dict | None = None
         self.stop = threading.Event()
+        self.interrupted = False  # Ctrl-C (SIGINT): the run is cut short, exit 130 after the report
         self.t0 = time.monotonic()
         self.started_wall = time.time()
         self.endpoints: list[str] = []
@@ -223,11 +263,16 @@ class _Run:
         write_json(self.run_dir / "state.json", self.state())
 
 
-def _install_signals(stop: threading.Event) -> dict:
+def _install_signals(r: _Run) -> dict:
     old = {}
+
+    def on_signal(signum: int, _frame) -> None:
+        r.interrupted = r.interrupted or signum == signal.SIGINT
+        r.stop.set()
+
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            old[sig] = signal.signal(sig, lambda *_: stop.set())
+            old[sig] = signal.signal(sig, on_signal)
     return old
 
 
@@ -235,23 +280,12 @@ def run(s: LauncherSettings) -> int:
     """Bring the fleet up, supervise it until the end, stop it and write the report. Exit code."""
     fleet = s.params.fleet
     plan(s, "<run_dir>", "<connect>")  # configuration errors before anything starts
-    act = active_dir(s.runs_dir)
-    act.mkdir(parents=True, exist_ok=True)
-    pointer = act / f"{fleet}.json"
-    if pointer.exists():
-        try:
-            other = json.loads(pointer.read_text())
-        except ValueError:
-            other = {}
-        from .supervisor import pid_alive
-
-        if other.get("launcher_pid") and pid_alive(int(other["launcher_pid"])):
-            print(
-                f"mapc: fleet {fleet!r} is already running (launcher pid {other['launcher_pid']}, "
-                f"{other.get('run_dir')}); use another --fleet or `mapc fleet down`",
-                file=sys.stderr,
-            )
-            return 2
+    refused = already_running(fleet)
+    if refused:
+        print(f"mapc: {refused}", file=sys.stderr)
+        return 2
+    pointer = registry_dir() / f"{fleet}.json"
+    pointer.parent.mkdir(parents=True, exist_ok=True)
     run_dir = Path(s.run_dir) if s.run_dir else new_run_dir(s.runs_dir, fleet)
     run_dir.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(
@@ -261,7 +295,7 @@ def run(s: LauncherSettings) -> int:
         force=True,
     )
     r = _Run(s, run_dir)
-    old_handlers = _install_signals(r.stop)
+    old_handlers = _install_signals(r)
     session = None
     rc = 0
     try:
@@ -396,7 +430,7 @@ def run(s: LauncherSettings) -> int:
             pass
         for sig, h in old_handlers.items():
             signal.signal(sig, h)
-    return rc
+    return 130 if rc == 0 and r.interrupted else rc
 
 
 def _tail(path: Path, n: int) -> str:

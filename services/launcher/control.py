@@ -1,4 +1,4 @@
-"""``mapc fleet up --detach`` / ``status`` / ``down``: find running fleets by their run directories."""
+"""``mapc fleet up --detach`` / ``status`` / ``down``: running fleets, found through the user's fleet registry."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .app import LauncherSettings, active_dir, new_run_dir
-from .supervisor import kill_group, pid_alive
+from .app import LauncherSettings, already_running, new_run_dir, registry_dir
+from .supervisor import is_ours, kill_group, pid_alive
 
 __all__ = ["active_fleets", "detach", "down", "launcher_argv"]
 
@@ -24,30 +24,45 @@ def _read(path: Path) -> dict[str, Any] | None:
         return None
 
 
-def active_fleets(runs_dir: str | Path) -> list[dict[str, Any]]:
-    """Every fleet with a pointer in runs/active/: pointer + state.json + whether its launcher lives."""
+def active_fleets() -> list[dict[str, Any]]:
+    """Every registered fleet: its pointer, its state.json and whether its launcher lives.
+
+    When the launcher is gone, state.json is its last word: each process is checked again and one
+    that has exited is shown as ``gone``.
+    """
     out = []
-    d = active_dir(runs_dir)
+    d = registry_dir()
     for ptr in sorted(d.glob("*.json")) if d.is_dir() else []:
         p = _read(ptr)
         if not p:
             continue
         state = _read(Path(p.get("run_dir", "")) / "state.json") or {}
         pid = p.get("launcher_pid")
+        launcher_alive = isinstance(pid, int) and is_ours(pid)
+        procs = state.get("processes", [])
+        if not launcher_alive:
+            procs = [_recheck(q) for q in procs]
         out.append(
             {
                 "fleet": p.get("fleet", ptr.stem),
                 "pointer": str(ptr),
                 "run_dir": p.get("run_dir"),
                 "launcher_pid": pid,
-                "launcher_alive": bool(pid) and pid_alive(int(pid)),
+                "launcher_alive": launcher_alive,
                 "endpoints": state.get("endpoints") or p.get("endpoints") or [],
                 "status": state.get("status"),
-                "processes": state.get("processes", []),
+                "processes": procs,
                 "params": state.get("params", {}),
             }
         )
     return out
+
+
+def _recheck(proc: dict[str, Any]) -> dict[str, Any]:
+    """A process row of an orphaned state.json, with ``alive`` as it is now."""
+    pid = proc.get("pid")
+    alive = isinstance(pid, int) and is_ours(pid)
+    return {**proc, "alive": alive, "state": proc.get("state") if alive else "gone", "uptime_s": None}
 
 
 def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
@@ -91,7 +106,14 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
 
 
 def detach(s: LauncherSettings, timeout_s: float = 180.0) -> tuple[int, dict[str, Any]]:
-    """Start the launcher in the background and wait until the fleet is running (or failed)."""
+    """Start the launcher in the background and wait until the fleet is running (or failed).
+
+    (0, the fleet's state) when it runs; (1, with ``error``: the end of launcher.out) when it did not
+    come up; (2, with ``error``) when a fleet of that name is running already (nothing is started).
+    """
+    refused = already_running(s.params.fleet)
+    if refused:
+        return 2, {"error": refused}
     run_dir = Path(s.run_dir) if s.run_dir else new_run_dir(s.runs_dir, s.params.fleet)
     run_dir.mkdir(parents=True, exist_ok=True)
     with open(run_dir / "launcher.out", "ab") as out:
@@ -112,26 +134,28 @@ def detach(s: LauncherSettings, timeout_s: float = 180.0) -> tuple[int, dict[str
         if proc.poll() is not None:
             break
         time.sleep(0.2)  # polling another process's file: nothing to wait on
-    return 1, {"run_dir": str(run_dir), "launcher_pid": proc.pid, "returncode": proc.poll(), **state}
-
-
-def _is_ours(pid: int) -> bool:
-    """A process of this project (guards against a recycled pid)."""
     try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\x00", b" ")
+        tail = "\n".join((run_dir / "launcher.out").read_text(errors="replace").splitlines()[-15:])
     except OSError:
-        return False
-    return b"services." in cmd or b"mapc" in cmd or b"multiprocessing" in cmd
+        tail = ""
+    why = f"fleet {s.params.fleet} did not come up (launcher output in {run_dir / 'launcher.out'})"
+    return 1, {
+        "run_dir": str(run_dir),
+        "launcher_pid": proc.pid,
+        "returncode": proc.poll(),
+        **state,
+        "error": f"{why}:\n{tail}" if tail else why,
+    }
 
 
-def down(runs_dir: str | Path, fleet: str | None = None, timeout_s: float = 90.0) -> tuple[int, list[dict]]:
+def down(fleet: str | None = None, timeout_s: float = 90.0) -> tuple[int, list[dict]]:
     """Stop the named fleet (or every active one): SIGTERM its launcher, wait, then sweep leftovers.
 
     The launcher stops its services (SIGINT, then SIGKILL) and writes the report. Whatever is still
     alive afterwards (a launcher that hung or was killed) is killed by process group from state.json.
     Returns (0 if nothing is left, 1 otherwise; what was done per fleet).
     """
-    fleets = [f for f in active_fleets(runs_dir) if fleet is None or f["fleet"] == fleet]
+    fleets = [f for f in active_fleets() if fleet is None or f["fleet"] == fleet]
     results = []
     rc = 0
     for f in fleets:
@@ -153,7 +177,7 @@ def down(runs_dir: str | Path, fleet: str | None = None, timeout_s: float = 90.0
         swept = []
         for p in state.get("processes", []):
             ppid = p.get("pid")
-            if ppid and pid_alive(int(ppid)) and _is_ours(int(ppid)):
+            if isinstance(ppid, int) and is_ours(ppid):
                 kill_group(int(ppid), signal.SIGKILL)
                 swept.append(p.get("name"))
         deadline = time.monotonic() + 2.0

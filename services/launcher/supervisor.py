@@ -21,7 +21,7 @@ from typing import Any
 
 from .manifest import ProcessSpec
 
-__all__ = ["ManagedProcess", "Supervisor", "kill_group", "pid_alive"]
+__all__ = ["ManagedProcess", "Supervisor", "is_ours", "kill_group", "pid_alive"]
 
 log = logging.getLogger("mapc.launcher")
 
@@ -39,6 +39,15 @@ def pid_alive(pid: int) -> bool:
             return f.read().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return True
+
+
+def is_ours(pid: int) -> bool:
+    """``pid`` is alive and a process of this project (guards against a recycled pid)."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\x00", b" ")
+    except OSError:
+        return False
+    return pid_alive(pid) and (b"services." in cmd or b"mapc" in cmd or b"multiprocessing" in cmd)
 
 
 def kill_group(pgid: int, sig: int) -> bool:

@@ -139,15 +139,17 @@ def spawn(tmp_path):
             os.kill(pid, signal.SIGKILL)
 
 
-def mapc(*args: str, timeout: float = 120.0, env: dict | None = None) -> subprocess.CompletedProcess:
+def mapc(
+    *args: str, timeout: float = 120.0, env: dict | None = None, cwd: str | Path = REPO
+) -> subprocess.CompletedProcess:
     """Run the ``mapc`` CLI (as ``python -m services.cli``) and capture its output."""
     return subprocess.run(
         [sys.executable, "-m", "services.cli", *args],
         capture_output=True,
         text=True,
         timeout=timeout,
-        cwd=REPO,
-        env={**os.environ, **(env or {})},
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})},
     )
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from schemas.topics import topic
+from services.launcher.app import registry_dir, running_launcher
 from services.runtime import ZenohSettings, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -56,14 +57,21 @@ def test_fleet_up_health_kill_restart_and_down(
         assert names == {"evaluator", "host", "channel", "vehicle-cv0", "vehicle-cv1", "world"}
         pgids = {p["pgid"] for p in state["processes"]} | {info["launcher_pid"]}
 
-        status = mapc("fleet", "status", "--json", "--runs-dir", str(runs))
+        elsewhere = tmp_path / "elsewhere"
+        elsewhere.mkdir()
+        status = mapc("fleet", "status", "--json", "--fleet", fleet_name, cwd=elsewhere)  # from any directory
         assert status.returncode == 0
         fleets = json.loads(status.stdout)
         assert [f["fleet"] for f in fleets] == [fleet_name] and fleets[0]["endpoints"]
 
+        # the same fleet again: refused with the reason, before anything starts
+        again = mapc("fleet", "up", "--detach", "--fleet", fleet_name, "--runs-dir", str(tmp_path / "again"))
+        assert again.returncode == 2 and "already running" in again.stderr, again.stderr
+        assert not (tmp_path / "again").exists()
+
         # every expected service answers and is healthy (after the first frames have flowed)
         def healthy():
-            h = mapc("health", "--fleet", fleet_name, "--runs-dir", str(runs), "--json")
+            h = mapc("health", "--fleet", fleet_name, "--json", cwd=elsewhere)
             rows = json.loads(h.stdout) if h.stdout.strip() else []
             return rows if h.returncode == 0 and len(rows) == 6 else None
 
@@ -117,17 +125,17 @@ def test_fleet_up_health_kill_restart_and_down(
         assert vehicle["restarts"] == 1 and vehicle["pid"] != victim["pid"]
         pgids.add(vehicle["pgid"])
     finally:
-        down = mapc("fleet", "down", "--fleet", fleet_name, "--runs-dir", str(runs), timeout=180)
+        down = mapc("fleet", "down", "--fleet", fleet_name, timeout=180, cwd=tmp_path)
     assert down.returncode == 0, down.stdout + down.stderr
     assert "no process left" in down.stdout
     assert process_groups_alive(pgids) == []
-    assert not (runs / "active" / f"{fleet_name}.json").exists()
+    assert not (registry_dir() / f"{fleet_name}.json").exists()
     assert _state(run_dir)["status"] == "stopped"
     report = json.loads((run_dir / "report.json").read_text())
     assert report["summary"]["restarts"] == 1
     assert {p["name"]: p["state"] for p in report["processes"]}["world"] == "stopped"
     assert (run_dir / "logs" / "vehicle-cv1.log").read_text().count("start:") == 2
-    assert mapc("fleet", "status", "--runs-dir", str(runs)).returncode == 1
+    assert mapc("fleet", "status", "--fleet", fleet_name).returncode == 1
 
 
 @pytest.mark.parametrize(("mode", "network"), [("distributed", "dsrc"), ("centralized", "ideal")])
@@ -182,4 +190,28 @@ def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, m
     assert len(metrics) >= 3 and metrics[-1]["fleet"] == fleet_name
     report = json.loads((run_dir / "report.json").read_text())
     assert all(p["exit_codes"] and p["exit_codes"][-1] == 0 for p in report["processes"]), report["processes"]
-    assert not (runs / "active" / f"{fleet_name}.json").exists()
+    assert not (registry_dir() / f"{fleet_name}.json").exists()
+
+
+def test_ctrl_c_stops_the_fleet_writes_the_report_and_exits_130(
+    tmp_path, fleet_name, spawn, wait_for, process_groups_alive
+):
+    fleet = spawn(
+        "services.cli",
+        *("fleet", "up", "--fleet", fleet_name, "--vehicles", "1", "--network", "ideal"),
+        *("--runs-dir", str(tmp_path / "runs")),
+        name="fleet",
+    )
+
+    def running():
+        ptr = running_launcher(fleet_name)
+        state = ptr and json.loads((Path(ptr["run_dir"]) / "state.json").read_text() or "{}")
+        return state if state and state.get("status") == "running" else None
+
+    state = wait_for(running, timeout=180, what="the fleet running", every=0.5)
+    fleet.send_signal(signal.SIGINT)
+    assert fleet.wait(timeout=120) == 130  # not 0: the run was cut short
+    run_dir = Path(state["run_dir"])
+    assert json.loads((run_dir / "report.json").read_text())["summary"]["fleet"] == fleet_name
+    assert process_groups_alive({p["pgid"] for p in state["processes"]}) == []
+    assert not (registry_dir() / f"{fleet_name}.json").exists()

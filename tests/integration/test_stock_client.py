@@ -42,7 +42,7 @@ def test_stock_zenoh_client_subscribes_to_fused_and_decodes_with_plain_msgpack(t
     assert up.returncode == 0, up.stdout + up.stderr
     pgid_run_dir = Path(json.loads(up.stdout)["run_dir"])
     try:
-        st = mapc("fleet", "status", "--json", "--fleet", fleet_name, "--runs-dir", str(runs))
+        st = mapc("fleet", "status", "--json", "--fleet", fleet_name)
         assert st.returncode == 0, st.stdout + st.stderr
         endpoint = next(e for e in json.loads(st.stdout)[0]["endpoints"] if "127.0.0.1" in e)
 
@@ -69,6 +69,6 @@ def test_stock_zenoh_client_subscribes_to_fused_and_decodes_with_plain_msgpack(t
         assert fused["object_p_map"].shape == (n, 3) and fused["object_cov"].shape == (n, 3, 3)
         assert fused["object_cls"].shape == (n,)
     finally:
-        down = mapc("fleet", "down", "--fleet", fleet_name, "--runs-dir", str(runs), timeout=180)
+        down = mapc("fleet", "down", "--fleet", fleet_name, timeout=180)
     assert down.returncode == 0, down.stdout + down.stderr
     assert (pgid_run_dir / "report.json").exists()

@@ -1,0 +1,88 @@
+"""The fleet registry: running fleets are found from any directory, a dead launcher's processes are
+checked again, and a fleet that runs already is refused before anything starts."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from services.launcher.app import LauncherSettings, registry_dir, run, running_launcher
+from services.launcher.control import active_fleets, detach
+from services.launcher.manifest import FleetParams
+from services.launcher.supervisor import is_ours
+
+
+@pytest.fixture
+def registry(tmp_path, monkeypatch):
+    monkeypatch.setenv("MAPC_STATE_DIR", str(tmp_path / "state"))
+    d = registry_dir()
+    d.mkdir(parents=True)
+    return d
+
+
+@pytest.fixture
+def ours():
+    """A live process that counts as one of ours (its command line names a services module)."""
+    p = subprocess.Popen([sys.executable, "-c", "import services.launcher, time; time.sleep(60)"])
+    deadline = time.monotonic() + 10
+    while not is_ours(p.pid) and time.monotonic() < deadline:
+        time.sleep(0.01)  # /proc/<pid>/cmdline shows the new command line a moment after Popen returns
+    yield p.pid
+    p.kill()
+    p.wait()
+
+
+def _dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def _register(registry, tmp_path, fleet: str, launcher_pid: int, processes: list[dict]) -> None:
+    run_dir = tmp_path / f"run-{fleet}"
+    run_dir.mkdir()
+    (run_dir / "state.json").write_text(
+        json.dumps({"status": "running", "endpoints": ["tcp/127.0.0.1:1"], "processes": processes})
+    )
+    pointer = {"fleet": fleet, "run_dir": str(run_dir), "launcher_pid": launcher_pid}
+    (registry / f"{fleet}.json").write_text(json.dumps(pointer))
+
+
+def test_the_registry_is_per_user_not_per_directory(monkeypatch, tmp_path) -> None:
+    monkeypatch.delenv("MAPC_STATE_DIR", raising=False)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    assert registry_dir() == tmp_path / "xdg" / "mapcontainer" / "fleets"
+    monkeypatch.chdir(tmp_path)
+    assert registry_dir().is_absolute()
+    monkeypatch.setenv("MAPC_STATE_DIR", str(tmp_path / "s"))
+    assert registry_dir() == tmp_path / "s" / "fleets"
+
+
+def test_a_dead_launchers_processes_are_checked_again(registry, tmp_path, ours) -> None:
+    dead = _dead_pid()
+    procs = [
+        {"name": "world", "pid": dead, "alive": True, "state": "ready", "restarts": 0, "uptime_s": 4.0},
+        {"name": "host", "pid": ours, "alive": True, "state": "ready", "restarts": 0, "uptime_s": 4.0},
+    ]
+    _register(registry, tmp_path, "orphan", dead, procs)
+    (f,) = active_fleets()
+    assert f["fleet"] == "orphan" and not f["launcher_alive"]
+    rows = {p["name"]: p for p in f["processes"]}
+    assert rows["world"]["alive"] is False and rows["world"]["state"] == "gone"
+    assert rows["host"]["alive"] is True and rows["host"]["state"] == "ready"
+    assert running_launcher("orphan") is None  # a stale pointer does not block the name
+
+
+def test_a_running_fleet_is_refused_before_anything_starts(registry, tmp_path, ours, capsys) -> None:
+    _register(registry, tmp_path, "busy", ours, [])
+    assert running_launcher("busy")["launcher_pid"] == ours
+    s = LauncherSettings(params=FleetParams(fleet="busy"), runs_dir=str(tmp_path / "runs"))
+    rc, info = detach(s)
+    assert rc == 2 and "already running" in info["error"] and str(ours) in info["error"]
+    assert run(s) == 2
+    assert "already running" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()  # no run directory left behind
