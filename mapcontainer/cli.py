@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -104,7 +105,7 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
     res = run_paper_experiment(args.out, settings, progress=not args.quiet)
     targets = {t["target"]: "PASS" if t["pass"] else "FAIL" for t in res["targets"]}
     print(json.dumps({"out": str(args.out), "wall_s": res["wall_s"], "runs": res["runs"], "targets": targets}))
-    return 0
+    return 1 if args.check and "FAIL" in targets.values() else 0
 
 
 def _cmd_experiment_network(args: argparse.Namespace) -> int:
@@ -124,6 +125,31 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     )
     print(json.dumps({"out": str(args.out), "points": len(rows)}))
     return 0
+
+
+def _finite(text: str) -> float:
+    """A number on the command line that is finite (inf or nan used to fail deep inside a run)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    value = _finite(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0 s, got {text}")
+    return value
+
+
+def _non_negative_seconds(text: str) -> float:
+    value = _finite(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0 s, got {text}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -152,7 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="simulate an episode and write it to a directory")
     sim.add_argument("scenario", help="preset name (mapc scenario list) or a scenario YAML file")
     sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
+    sim.add_argument("--duration", type=_seconds, default=None, help="seconds (default: the scenario's)")
     sim.add_argument("--out", required=True, type=output_dir, help="output directory")
     sim.add_argument("--fleet", default="sim", help="fleet name written into the messages")
     sim.set_defaults(func=_cmd_sim)
@@ -163,7 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     bl = bench.add_parser("localization", help="map-matching accuracy, consistency and speed")
     bl.add_argument("--scenario", default="paper-urban")
     bl.add_argument("--seeds", type=_positive_int, default=3, help="independent episodes")
-    bl.add_argument("--duration", type=float, default=20.0, help="seconds per episode (the first 2 are not scored)")
+    bl.add_argument("--duration", type=_seconds, default=20.0, help="seconds per episode (the first 2 are not scored)")
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
     bf.add_argument("--vehicles", type=_positive_int, default=4)
@@ -189,13 +215,15 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--seed", type=int, default=0, help="run i uses seed S + i")
     ep.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
     ep.add_argument(
-        "--duration", type=float, default=2.0, help="simulated seconds per simulation run, warm-up included"
+        "--duration", type=_seconds, default=2.0, help="simulated seconds per simulation run, warm-up included"
     )
-    ep.add_argument("--warmup", type=float, default=1.0, help="seconds at the start of every run not scored")
+    ep.add_argument(
+        "--warmup", type=_non_negative_seconds, default=1.0, help="seconds at the start of every run not scored"
+    )
     ep.add_argument(
         "--rv-runs", type=_positive_int, default=None, help="runs per real-vehicle scenario (default min(runs, 10))"
     )
-    ep.add_argument("--rv-duration", type=float, default=6.0, help="seconds per real-vehicle run, warm-up included")
+    ep.add_argument("--rv-duration", type=_seconds, default=6.0, help="seconds per real-vehicle run, warm-up included")
     ep.add_argument(
         "--start",
         choices=("warm", "cold"),
@@ -203,14 +231,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="vehicles start localized (warm: truth + stated noise, as if already driving) or from GNSS alone",
     )
     ep.add_argument("--quiet", action="store_true", help="no progress bar")
+    ep.add_argument("--check", action="store_true", help="exit 1 if a target fails (default: exit 0, see targets)")
     ep.set_defaults(func=_cmd_experiment_paper)
 
-    en = exp.add_parser("network", help="latency x loss x bandwidth sweep in both modes (in-process)")
+    en = exp.add_parser(
+        "network", help="latency x loss x bandwidth sweep in both modes (in process; --live: on the fleet)"
+    )
     en.add_argument("--out", required=True, type=output_dir, help="output directory")
     en.add_argument("--quick", action="store_true", help="a 2 x 2 x 2 grid of short runs (for tests)")
     en.add_argument("--seed", type=int, default=0)
     en.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
-    en.add_argument("--duration", type=float, default=None, help="seconds per point (default 4, quick 2.5)")
+    en.add_argument("--duration", type=_seconds, default=None, help="seconds per point (default 4, quick 2.5)")
     en.add_argument("--scenario", default="paper-urban")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)

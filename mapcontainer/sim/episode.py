@@ -23,6 +23,7 @@ from schemas import GroundTruth, Rejection, SensorFrame, decode, encode
 from schemas.topics import topic
 
 from .. import geometry as geo
+from ..config import ConfigError
 from ..hdmap.io import save_map
 from .render import render_birdseye, render_camera_view
 from .world import Tick, World
@@ -34,9 +35,11 @@ EPISODE_FILE = "episode.msgpack"
 
 def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
     """Run ``world`` for ``duration_s`` and write the episode to ``out_dir``; returns the summary."""
+    sc = world.scenario
+    if not round(duration_s / world.dt) >= 1:  # refused before anything is written
+        raise ConfigError(f"a duration of {duration_s:g} s gives no frame at {sc.sensors.rate_hz:g} Hz")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    sc = world.scenario
     truth_key = topic("truth").key(fleet=world.fleet)
     sensor_keys = {v: topic("sensors").key(fleet=world.fleet, vid=v) for v in world.vehicle_ids}
     tracks: dict[str, list[np.ndarray]] = {}
@@ -63,8 +66,7 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
             if tick.k == n_total // 2:
                 middle = tick
             last = tick
-    if last is None or middle is None:
-        raise ValueError(f"duration {duration_s} s gives no frame at {sc.sensors.rate_hz} Hz")
+    assert last is not None and middle is not None  # at least one frame, checked above
 
     save_map(world.hdmap, out_dir / "map.geojson")
     (out_dir / "scenario.json").write_text(

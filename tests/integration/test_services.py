@@ -292,3 +292,21 @@ def test_bad_command_line_values_are_configuration_errors_before_any_work(tmp_pa
     (tmp_path / "afile").write_text("")
     proc = mapc("experiment", "network", "--quick", "--out", str(tmp_path / "afile"))
     assert proc.returncode == 2 and "exists and is not a directory" in proc.stderr
+    for bad in (
+        ["sim", "paper-urban", "--duration", "inf", "--out", str(tmp_path / "s")],
+        ["sim", "paper-urban", "--duration", "0.01", "--out", str(tmp_path / "s")],  # no frame at 10 Hz
+        ["bench", "localization", "--duration", "nan"],
+        ["experiment", "paper", "--warmup", "-1", "--out", str(tmp_path / "p")],
+        ["experiment", "network", "--duration", "inf", "--out", str(tmp_path / "n")],
+        ["experiment", "network", "--mode", "centralized", "--out", str(tmp_path / "n")],  # live only
+        ["experiment", "network", "--live", "--quick", "--out", str(tmp_path / "n")],
+    ):
+        proc = mapc(*bad)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, (bad, proc.stderr)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]  # nothing written
+
+
+def test_health_json_without_a_fleet_is_an_empty_list(mapc, fleet_name):
+    proc = mapc("health", "--fleet", fleet_name, "--json")
+    assert proc.returncode == 2 and json.loads(proc.stdout) == []
+    assert "no running fleet" in proc.stderr
