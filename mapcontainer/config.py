@@ -64,5 +64,10 @@ def validate_model(model: type[M], data: dict[str, Any], source: Path | str) -> 
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        lines = [f"{'.'.join(map(str, e['loc'])) or '<root>'}: {e['msg']}" for e in exc.errors()]
-        raise ConfigError(f"{source} is not a valid {model.__name__}:\n  " + "\n  ".join(lines)) from None
+        raise config_error(exc, source) from None
+
+
+def config_error(exc: ValidationError, source: Path | str) -> ConfigError:
+    """A pydantic validation error as a ConfigError: one line per field, naming ``source``."""
+    lines = [f"{'.'.join(map(str, e['loc'])) or '<root>'}: {e['msg']}" for e in exc.errors()]
+    return ConfigError(f"{source} is not a valid {exc.title}:\n  " + "\n  ".join(lines))

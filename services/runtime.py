@@ -28,9 +28,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import queue
 import signal
+import sys
 import threading
 import time
 from collections import defaultdict, deque
@@ -63,6 +65,7 @@ __all__ = [
     "make_attachment",
     "open_session",
     "read_attachment",
+    "service_main",
     "service_settings_from_args",
     "setup_logging",
 ]
@@ -219,6 +222,26 @@ def add_service_args(p: argparse.ArgumentParser, role: str, default_id: str | No
     z.add_argument("--zenoh-config", default=None, help="a Zenoh JSON5 configuration file to start from")
 
 
+def service_main(parse_args: Callable[[], Any], main: Callable[[Any], int]) -> int:
+    """A service's ``__main__``: ``main(parse_args())``, where settings that do not validate (a bad flag
+    value, config file, scenario or network name) are one line naming the problem and exit 2, not a
+    traceback."""
+    from pydantic import ValidationError
+
+    from mapcontainer.config import ConfigError, config_error
+
+    prog = f"python -m {main.__module__.rsplit('.', 1)[0]}"
+    try:
+        try:
+            settings = parse_args()
+        except ValidationError as exc:
+            raise config_error(exc, "the command line") from None
+        return main(settings)  # which loads its scenario, network profile, ...: ConfigError too
+    except ConfigError as exc:
+        print(f"{prog}: configuration error: {exc}", file=sys.stderr)
+        return 2
+
+
 def service_settings_from_args(args: argparse.Namespace) -> ServiceSettings:
     connect = args.connect
     if connect is None and os.environ.get("MAPC_ZENOH_CONNECT"):
@@ -285,7 +308,7 @@ class SimClock:
 
     def update(self, att: Mapping[str, Any]) -> bool:
         e, s = att.get("epoch_wall_ns"), att.get("time_scale")
-        if isinstance(e, int) and isinstance(s, int | float) and s > 0:
+        if type(e) is int and type(s) in (int, float) and math.isfinite(s) and s > 0:  # not bool, inf, nan
             self.epoch_wall_ns, self.time_scale = e, float(s)
             return True
         return False

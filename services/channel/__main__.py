@@ -2,7 +2,8 @@
 
 import sys
 
+from ..runtime import service_main
 from .app import main, parse_args
 
 if __name__ == "__main__":
-    sys.exit(main(parse_args()))
+    sys.exit(service_main(parse_args, main))

@@ -28,7 +28,7 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from mapcontainer.config import read_yaml
+from mapcontainer.config import read_yaml, validate_model
 from schemas.topics import topic
 
 from ..runtime import (
@@ -57,6 +57,18 @@ class HostSettings(ServiceSettings):
     inbox: int = 2000
 
 
+def _fusion_params(path: str | None) -> dict[str, Any] | None:
+    """The ``--params`` file's FusionParams fields, checked here: a bad file is a configuration error
+    at start, not a traceback in the fusion worker."""
+    from mapcontainer.fusion import FusionParams  # the solver's imports stay out of the host's main process
+
+    if path is None:
+        return None
+    data = read_yaml(Path(path))
+    validate_model(FusionParams, data, path)
+    return data
+
+
 def parse_args(argv: list[str] | None = None) -> HostSettings:
     p = argparse.ArgumentParser(prog="python -m services.host", description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="paper-urban", help="scenario whose HD map the host carries")
@@ -75,7 +87,7 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
         max_wait_s=a.max_wait,
         known_senders=[x for x in a.known_senders.split(",") if x] if a.known_senders else None,
         local=a.local,
-        params=read_yaml(Path(a.params)) if a.params else None,
+        params=_fusion_params(a.params),
         inline=a.inline,
     )
 

@@ -300,6 +300,7 @@ def test_bad_command_line_values_are_configuration_errors_before_any_work(tmp_pa
         ["experiment", "network", "--duration", "inf", "--out", str(tmp_path / "n")],
         ["experiment", "network", "--mode", "centralized", "--out", str(tmp_path / "n")],  # live only
         ["experiment", "network", "--live", "--quick", "--out", str(tmp_path / "n")],
+        ["fleet", "up", "--dry-run", "--zenoh-config", str(tmp_path / "nope.json5")],
     ):
         proc = mapc(*bad)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, (bad, proc.stderr)
@@ -310,3 +311,18 @@ def test_health_json_without_a_fleet_is_an_empty_list(mapc, fleet_name):
     proc = mapc("health", "--fleet", fleet_name, "--json")
     assert proc.returncode == 2 and json.loads(proc.stdout) == []
     assert "no running fleet" in proc.stderr
+
+
+def test_a_service_with_bad_settings_says_why_and_exits_2(tmp_path, spawn):
+    """What the launcher shows from a service's log when it does not come up: one line, not a traceback."""
+    bad = tmp_path / "params.yaml"
+    bad.write_text("track_lag_s: -1\n")
+    for module, args, why in [
+        ("services.host", ["--params", str(bad)], "track_lag_s"),
+        ("services.channel", ["--network", "nosuch"], "unknown network profile 'nosuch'"),
+        ("services.world", ["--time-scale", "0"], "time_scale"),
+    ]:
+        p = spawn(module, "--fleet", "x", *args)
+        assert p.wait(timeout=60) == 2
+        log = p.log_path.read_text()
+        assert "configuration error" in log and why in log and "Traceback" not in log, log
