@@ -30,7 +30,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapcontainer.config import validate_model
+from mapcontainer.config import ConfigError, validate_model
 from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
@@ -116,6 +116,9 @@ def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[Process
 
     load_scenario(s.params.scenario)
     load_profile(s.params.network)
+    zc = s.params.zenoh_config
+    if zc is not None and not Path(zc).is_file():
+        raise ConfigError(f"the Zenoh configuration file {zc} does not exist")
     return resolve(load_manifest(s.manifest), s.params, run_dir, connect)
 
 
@@ -359,6 +362,9 @@ def run(s: LauncherSettings) -> int:
                     # restarting it will not help, so the launch fails with its log
                     crashed = [p for p in group if p.exit_codes and p.state != "ready"]
                 if ready:
+                    if s.summary:
+                        names = ", ".join(p.spec.name for p in group)
+                        print(f"{time.monotonic() - r.t0:6.1f}s ready: {names}", flush=True)
                     break
                 if crashed or time.monotonic() > deadline:
                     missing = [p.spec.name for p in group if not (p.state == "ready" and p.alive)]
