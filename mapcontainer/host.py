@@ -23,11 +23,15 @@ class HostLocalizer:
 
     Each sender's localizer must see its frames in time order: a frame older than the last one
     localized for that sender is rejected as ``out_of_order`` (the channel's jitter can reorder).
+    A sender silent for ``idle_s`` of scenario time loses its localizer (a host without a list of
+    known senders would otherwise keep one for every name it ever saw); if it comes back, it starts
+    afresh.
     """
 
-    def __init__(self, hdmap: HDMap, fleet: str):
+    def __init__(self, hdmap: HDMap, fleet: str, idle_s: float = 30.0):
         self.hdmap = hdmap
         self.fleet = fleet
+        self.idle_s = idle_s
         self.agents: dict[str, VehicleAgent] = {}
         self._last_t: dict[str, float] = {}
 
@@ -35,6 +39,8 @@ class HostLocalizer:
         last = self._last_t.get(raw.sender)
         if last is not None and raw.t_meas <= last:
             return Rejection("out_of_order", f"t_meas {raw.t_meas} <= {last} already localized for {raw.sender}")
+        for sender in [s for s, t in self._last_t.items() if t < raw.t_meas - self.idle_s]:
+            del self._last_t[sender], self.agents[sender]
         agent = self.agents.get(raw.sender)
         if agent is None:
             agent = self.agents[raw.sender] = VehicleAgent(self.hdmap, raw.sender, self.fleet)

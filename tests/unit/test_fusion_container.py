@@ -9,7 +9,10 @@ from mapcontainer import geometry as geo
 from mapcontainer.fusion import Container, FusionParams
 from mapcontainer.fusion.bench import _detector_cov
 from mapcontainer.fusion.poses import sym_from_upper, upper_from_sym
+from mapcontainer.hdmap.generator import generate_map
+from mapcontainer.host import HostLocalizer
 from mapcontainer.metrics import anees_band
+from mapcontainer.sim.config import load_scenario
 from schemas import (
     CameraInfo,
     FusedState,
@@ -142,6 +145,17 @@ def test_raw_frames_are_screened_before_the_host_side_localizer_sees_them():
     assert box.ingest(raw(seq=0, t=0.0), 0.05).reason == "duplicate"
     assert box.ingest(raw(seq=1, t=0.1), 0.1).accepted  # the far-future frame locked nothing out
     assert seen == [0.0, 0.1]
+
+
+def test_the_host_side_localizer_forgets_senders_that_went_silent():
+    """Without a list of known senders, a localizer per name ever seen would pile up."""
+    cam = CameraInfo(fx=500, fy=500, cx=320, cy=240, width=640, height=480, T_body_cam=np.eye(4))
+    loc = HostLocalizer(generate_map(load_scenario("overlap").map), "f", idle_s=5.0)
+    for i in range(3):
+        loc(RawObservations(fleet="f", sender=f"x{i}", seq=0, t_meas=float(i), t_sent=float(i), camera=cam))
+    assert set(loc.agents) == {"x0", "x1", "x2"}
+    loc(RawObservations(fleet="f", sender="x2", seq=1, t_meas=6.5, t_sent=6.5, camera=cam))
+    assert set(loc.agents) == {"x2"}  # x0 and x1: silent for more than 5 s
 
 
 def _two_vehicle_stream(n=30):
