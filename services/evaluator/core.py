@@ -160,6 +160,9 @@ class Evaluator:
         self.last_truth = truth  # the truth at the last fused state's t_meas (for the picture)
         for i, vid in enumerate(fused.vehicle_ids):
             self.tracks_fused.setdefault(vid, []).append(tuple(float(x) for x in fused.vehicle_pose[i][:2]))
+        for vid, pts in self.tracks_fused.items():  # absent from this state: the drawn line breaks here
+            if vid not in fused.vehicle_ids and not np.isnan(pts[-1][0]):
+                pts.append((np.nan, np.nan))
         if len(p_f):
             self.fused_objects.extend((float(x), float(y)) for x, y in p_f[:, :2])
             del self.fused_objects[:-20000]

@@ -314,6 +314,20 @@ def test_evaluator_rmse_latency_and_bandwidth() -> None:
     assert len(ev.ellipses()) == 1 + 3
 
 
+def test_a_vehicles_fused_track_breaks_where_it_was_absent() -> None:
+    """The picture does not draw a chord across a gap in a vehicle's fused poses."""
+    ev = Evaluator("f")
+    empty = _fused(0.1, (0, 0), []).model_copy(
+        update={"vehicle_ids": [], "vehicle_pose": np.zeros((0, 6)), "vehicle_pose_cov": np.zeros((0, 21))}
+    )
+    for k, fused in enumerate([_fused(0.0, (0, 0), []), empty, empty, _fused(0.3, (9, 0), [])]):
+        ev.on_truth(_truth(0.1 * k, (0, 0), []))
+        ev.on_fused(fused, None, None, now_wall=10.0 + k)
+    ev.snapshot(20.0)
+    xy = np.array(ev.tracks_fused["cv0"])
+    assert xy.shape == (3, 2) and np.isnan(xy[1]).all() and xy[2, 0] == 9  # one break, then on
+
+
 def test_evaluator_waits_for_truth_then_gives_up() -> None:
     ev = Evaluator("f")
     ev.on_fused(_fused(1.0, (0, 0), []), None, None, now_wall=10.0)
