@@ -195,7 +195,10 @@ def summary_line(t_run: float, up: int, expected: int, metrics: dict | None) -> 
 
     parts = [f"{t_run:6.1f}s", f"up {up}/{expected}"]
     m = metrics or {}
-    parts.append(f"RMSE veh {f(m.get('vehicle_rmse_m'), '.2f', ' m')} obj {f(m.get('object_rmse_m'), '.2f', ' m')}")
+    window = f" last {m['window_s']:g}s" if m.get("window_s") else ""  # the final report's are whole-run
+    parts.append(
+        f"RMSE{window} veh {f(m.get('vehicle_rmse_m'), '.2f', ' m')} obj {f(m.get('object_rmse_m'), '.2f', ' m')}"
+    )
     bps = m.get("tx_bytes_per_s") or {}
     if bps:
         parts.append("kB/s " + " ".join(f"{k} {v / 1e3:.1f}" for k, v in bps.items()))

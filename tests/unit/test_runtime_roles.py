@@ -152,8 +152,10 @@ def test_summary_line() -> None:
             "object_rmse_m": None,
             "tx_bytes_per_s": {"cv0": 3700.0},
             "delivered_fraction": 0.98,
+            "window_s": 5.0,
         },
     )
+    assert "RMSE last 5s veh 0.12 m" in line  # a windowed figure, unlike the final report's
     assert "up 7/8" in line and "veh 0.12 m" in line and "obj -" in line and "cv0 3.7" in line
     assert "delivered 0.980" in line
     assert "up 0/0" in summary_line(0, 0, 0, None)
