@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
+from . import jsonout
 from .config import ConfigError
 
 __all__ = ["main"]
@@ -28,7 +28,7 @@ def _cmd_scenario_list(args: argparse.Namespace) -> int:
             }
         )
     if args.json:
-        print(json.dumps(rows))
+        print(jsonout.dumps(rows))
     else:
         width = max(len(r["name"]) for r in rows)
         for r in rows:
@@ -44,7 +44,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     world = World(sc, seed=args.seed, fleet=args.fleet)
     summary = record_episode(world, args.duration if args.duration is not None else sc.duration_s, Path(args.out))
-    print(json.dumps(summary))
+    print(jsonout.dumps(summary))
     return 0
 
 
@@ -54,10 +54,10 @@ def _cmd_schemas_export(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else export.DEFAULT_DIR
     if args.check:
         stale = export.stale(out)
-        print(json.dumps({"dir": str(out), "stale": stale}))
+        print(jsonout.dumps({"dir": str(out), "stale": stale}))
         return 1 if stale else 0
     written = export.export(out)
-    print(json.dumps({"dir": str(out), "written": [p.name for p in written]}))
+    print(jsonout.dumps({"dir": str(out), "written": [p.name for p in written]}))
     return 0
 
 
@@ -66,7 +66,7 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
 
     if not args.duration > WARMUP_S:
         raise ConfigError(f"--duration must be longer than the {WARMUP_S:g} s warm-up, got {args.duration:g}")
-    print(json.dumps(bench_localization(args.scenario, args.seeds, args.duration)))
+    print(jsonout.dumps(bench_localization(args.scenario, args.seeds, args.duration)))
     return 0
 
 
@@ -81,7 +81,7 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
         ticks=args.ticks,
         batch_samples=args.batch_samples,
     )
-    print(json.dumps(result))
+    print(jsonout.dumps(result))
     return 0
 
 
@@ -104,7 +104,7 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
         return 2
     res = run_paper_experiment(args.out, settings, progress=not args.quiet)
     targets = {t["target"]: "PASS" if t["pass"] else "FAIL" for t in res["targets"]}
-    print(json.dumps({"out": str(args.out), "wall_s": res["wall_s"], "runs": res["runs"], "targets": targets}))
+    print(jsonout.dumps({"out": str(args.out), "wall_s": res["wall_s"], "runs": res["runs"], "targets": targets}))
     return 1 if args.check and "FAIL" in targets.values() else 0
 
 
@@ -123,47 +123,32 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
         scenario=args.scenario,
         progress=not args.quiet,
     )
-    print(json.dumps({"out": str(args.out), "points": len(rows)}))
+    print(jsonout.dumps({"out": str(args.out), "points": len(rows)}))
     return 0
 
 
-def _finite(text: str) -> float:
-    """A number on the command line that is finite (inf or nan used to fail deep inside a run)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-    return value
+def _bounded(parse: type, low: float, strict: bool, unit: str = ""):
+    """An argparse type: ``parse(text)``, finite (inf or nan used to fail deep inside a run) and
+    above ``low`` (``strict``) or at least ``low``."""
+
+    def check(text: str):
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not {'an integer' if parse is int else 'a number'}: {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+        if value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {low:g}{unit}, got {text}")
+        return value
+
+    return check
 
 
-def _seconds(text: str) -> float:
-    value = _finite(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0 s, got {text}")
-    return value
-
-
-def _non_negative_seconds(text: str) -> float:
-    value = _finite(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0 s, got {text}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+_seconds = _bounded(float, 0, strict=True, unit=" s")
+_non_negative_seconds = _bounded(float, 0, strict=False, unit=" s")
+_positive_int = _bounded(int, 1, strict=False)
+_non_negative_int = _bounded(int, 0, strict=False)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -177,7 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("sim", help="simulate an episode and write it to a directory")
     sim.add_argument("scenario", help="preset name (mapc scenario list) or a scenario YAML file")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--seed", type=_non_negative_int, default=0)
     sim.add_argument("--duration", type=_seconds, default=None, help="seconds (default: the scenario's)")
     sim.add_argument("--out", required=True, type=output_dir, help="output directory")
     sim.add_argument("--fleet", default="sim", help="fleet name written into the messages")
@@ -193,10 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
     bf.add_argument("--vehicles", type=_positive_int, default=4)
-    bf.add_argument("--objects", type=int, default=14)
+    bf.add_argument("--objects", type=_non_negative_int, default=14)
     bf.add_argument("--window", type=_positive_int, default=10, help="frames in the sliding window")
     bf.add_argument("--ticks", type=_positive_int, default=100, help="frames to run (timings skip the first window)")
-    bf.add_argument("--seed", type=int, default=0)
+    bf.add_argument("--seed", type=_non_negative_int, default=0)
     bf.add_argument(
         "--batch-samples",
         type=_non_negative_int,
@@ -212,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     ep = exp.add_parser("paper", help="reproduce the paper's results (figure exp_sim, Tables res1/res2)")
     ep.add_argument("--runs", type=_positive_int, default=200, help="Monte Carlo runs per simulated scenario")
     ep.add_argument("--out", required=True, type=output_dir, help="output directory")
-    ep.add_argument("--seed", type=int, default=0, help="run i uses seed S + i")
+    ep.add_argument("--seed", type=_non_negative_int, default=0, help="run i uses seed S + i")
     ep.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
     ep.add_argument(
         "--duration", type=_seconds, default=2.0, help="simulated seconds per simulation run, warm-up included"
@@ -239,7 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     en.add_argument("--out", required=True, type=output_dir, help="output directory")
     en.add_argument("--quick", action="store_true", help="a 2 x 2 x 2 grid of short runs (for tests)")
-    en.add_argument("--seed", type=int, default=0)
+    en.add_argument("--seed", type=_non_negative_int, default=0)
     en.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
     en.add_argument("--duration", type=_seconds, default=None, help="seconds per point (default 4, quick 2.5)")
     en.add_argument("--scenario", default="paper-urban")

@@ -45,6 +45,7 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mapcontainer import jsonout
 from schemas import HealthStatus, decode, encode
 from schemas.topics import topic
 
@@ -865,5 +866,5 @@ def write_json(path: Path, data: Any) -> None:
     """Write JSON atomically (write to a temporary file, then rename)."""
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=str))
+    tmp.write_text(jsonout.dumps(data, indent=2, default=str))
     os.replace(tmp, path)

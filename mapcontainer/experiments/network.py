@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import csv
 import itertools
-import json
 import math
 import time
 from collections.abc import Iterable, Sequence
@@ -44,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import jsonout
 from ..channel import NetworkProfile
 from ..pipeline import View, run_pipeline
 from .runner import run_all
@@ -267,16 +267,6 @@ def _bw_label(bps: float) -> str:
     return f"{bps / 1e6:g} Mbit/s" if bps >= 1e6 else f"{bps / 1e3:g} kbit/s"
 
 
-def _finite_or_null(o):
-    if isinstance(o, dict):
-        return {k: _finite_or_null(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite_or_null(v) for v in o]
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return o
-
-
 def _summary(rows: list[dict]) -> list[str]:
     """The key comparison at the lowest bandwidth, on the best link otherwise (lowest latency and loss)."""
     if not rows:
@@ -393,7 +383,7 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         for r in rows:
             w.writerow([_cell(r.get(c)) for c in cols])
     paths["json"].write_text(
-        json.dumps(_finite_or_null({"meta": meta or {}, "columns": cols, "rows": rows}), indent=1, allow_nan=False)
+        jsonout.dumps({"meta": meta or {}, "columns": cols, "rows": rows}, indent=1)
         + "\n"
     )
     short = [

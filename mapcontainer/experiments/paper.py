@@ -36,7 +36,6 @@ frames with t >= warmup_s are scored.
 
 from __future__ import annotations
 
-import json
 import math
 import platform
 import time
@@ -47,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import jsonout
 from ..metrics import anees_band
 from ..pipeline import WARM_START_SIGMA, View, run_pipeline
 from .runner import run_all
@@ -1082,22 +1082,9 @@ def run_paper_experiment(out_dir: str | Path, settings: PaperSettings | None = N
         run_task, _tasks(s), s.workers, "experiment paper", lambda r: f"{r['key']} seed {r['seed']}", progress
     )
     res = _aggregate(results, s, time.perf_counter() - t0)
-    (out / "results.json").write_text(json.dumps(_finite_or_null(res), indent=2, allow_nan=False) + "\n")
+    (out / "results.json").write_text(jsonout.dumps(res, indent=2) + "\n")
     (out / "runs.csv").write_text(_runs_csv(results))
     files = _plots(res, results, out)
     (out / "report.md").write_text(_report(res))
     res["files"] = [str(p) for p in [out / "results.json", out / "report.md", out / "runs.csv", *files]]
     return res
-
-
-def _finite_or_null(o):
-    """JSON without NaN/inf (strict parsers reject them): non-finite floats become null."""
-    if isinstance(o, dict):
-        return {str(k): _finite_or_null(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite_or_null(v) for v in o]
-    if isinstance(o, np.generic):
-        o = o.item()
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return o
