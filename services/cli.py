@@ -18,9 +18,11 @@ import os
 import sys
 import time
 
-from mapcontainer.cli import build_parser, run
+from mapcontainer.cli import build_parser, positive_int, run, seconds
 
 __all__ = ["add_live_commands", "main"]
+
+PROFILES = "ideal,dsrc,lossy,degraded"  # experiment network --live: the default profiles
 
 
 # ------------------------------------------------------------------------------ fleet
@@ -69,14 +71,15 @@ def _cmd_fleet_status(args: argparse.Namespace) -> int:
         print(json.dumps(fleets, indent=2))
         return 0 if any(f["launcher_alive"] for f in fleets) else 1
     if not fleets:
-        print("no fleet is running")
+        print("no fleet is running" if args.fleet is None else f"fleet {args.fleet} is not running")
         return 1
     for f in fleets:
+        name = f"{f['fleet']}" + (f" ({f['manifest']})" if f.get("manifest") not in (None, "local") else "")
         if f["launcher_alive"]:
-            print(f"fleet {f['fleet']}: {f['status']}; launcher pid {f['launcher_pid']}")
+            print(f"fleet {name}: {f['status']}; launcher pid {f['launcher_pid']}")
         else:
             print(
-                f"fleet {f['fleet']}: launcher {f['launcher_pid']} is gone (its last status: {f['status']}); "
+                f"fleet {name}: launcher {f['launcher_pid']} is gone (its last status: {f['status']}); "
                 "`mapc fleet down` stops what is left and clears the entry"
             )
         print(f"  connect: {', '.join(f['endpoints'])}   (e.g. mapc health --fleet {f['fleet']})")
@@ -111,35 +114,36 @@ def _cmd_fleet_down(args: argparse.Namespace) -> int:
 def _cmd_health(args: argparse.Namespace) -> int:
     from .health import exit_code, fleet_health, format_table
     from .launcher.control import active_fleets
-    from .runtime import ZenohSettings, open_session
+    from .runtime import ZenohSettings, open_session, zenoh_error_text
 
     fleet, connect, expected = args.fleet, list(args.connect or []), []
     if not connect and os.environ.get("MAPC_ZENOH_CONNECT"):
         connect = os.environ["MAPC_ZENOH_CONNECT"].split(",")
     running = [f for f in active_fleets() if f["launcher_alive"]]
-    match = [f for f in running if fleet is None or f["fleet"] == fleet]
-    if fleet is None and len(match) == 1:
-        fleet = match[0]["fleet"]
-    fleet = fleet or "local"
-    own = next((f for f in match if f["fleet"] == fleet), None)
-    if own is not None:
-        expected = [(p["role"], p["id"]) for p in own["processes"]]
+    names = sorted({f["fleet"] for f in running})
+    if fleet is None and len(names) == 1:
+        fleet = names[0]
+    own = [f for f in running if f["fleet"] == fleet]  # a fleet split over manifests has several launchers
+    if own:
+        expected = [(p["role"], p["id"]) for f in own for p in f["processes"]]
         if not connect:
-            connect = [e for e in own["endpoints"] if "127.0.0.1" in e] or own["endpoints"]
+            connect = [e for e in own[0]["endpoints"] if "127.0.0.1" in e] or own[0]["endpoints"]
     if not connect:
         if args.json:
             print("[]")  # a JSON consumer gets an empty list, not empty input
-        print(
-            f"mapc: no running fleet {fleet!r} (`mapc fleet status` lists them); give --connect ENDPOINT",
-            file=sys.stderr,
-        )
+        if fleet is None:
+            why = "no fleet is running" if not names else f"several fleets run ({', '.join(names)}): give --fleet"
+        else:
+            why = f"no running fleet {fleet!r} (`mapc fleet status` lists them)"
+        print(f"mapc: {why}; or give --connect ENDPOINT", file=sys.stderr)
         return 2
+    fleet = fleet or "local"  # --connect without --fleet
     try:
         session = open_session(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000))
     except Exception as e:  # zenoh raises ZError when nothing listens at the endpoint
         if args.json:
             print("[]")
-        print(f"mapc: cannot reach {', '.join(connect)}: {e}", file=sys.stderr)
+        print(f"mapc: cannot reach {', '.join(connect)}: {zenoh_error_text(e)}", file=sys.stderr)
         return 2
     try:
         while True:
@@ -166,8 +170,8 @@ def _cmd_health(args: argparse.Namespace) -> int:
 def _cmd_experiment_network_live(args: argparse.Namespace) -> int:
     from .launcher.live_experiment import MODES, run_live_network
 
-    profiles = [p.strip() for p in args.profiles.split(",") if p.strip()]
-    modes = list(MODES) if args.mode == "both" else [args.mode]
+    profiles = [p.strip() for p in (args.profiles or PROFILES).split(",") if p.strip()]
+    modes = list(MODES) if args.mode in (None, "both") else [args.mode]
     duration = 20.0 if args.duration is None else args.duration
     try:
         res = run_live_network(
@@ -202,17 +206,16 @@ def _add_live_network_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--live", action="store_true", help="run network profiles on the live multi-process fleet (mapc fleet up)"
     )
-    g.add_argument(
-        "--profiles", default="ideal,dsrc,lossy,degraded", help="comma-separated presets from configs/network/"
-    )
-    g.add_argument("--mode", choices=["distributed", "centralized", "both"], default="both")
-    g.add_argument("--vehicles", type=int, default=None, help="connected vehicles (default: the fleet's)")
-    g.add_argument("--no-inprocess", action="store_true", help="skip the in-process side-by-side")
+    # defaults None: a live-only option given without --live is refused even when it names the default
+    g.add_argument("--profiles", default=None, help=f"comma-separated presets from configs/network/ ({PROFILES})")
+    g.add_argument("--mode", choices=["distributed", "centralized", "both"], default=None, help="default both")
+    g.add_argument("--vehicles", type=positive_int, default=None, help="connected vehicles (default: the scenario's)")
+    g.add_argument("--no-inprocess", action="store_true", default=None, help="skip the in-process side-by-side")
 
     live_only = {"profiles": "--profiles", "mode": "--mode", "vehicles": "--vehicles", "no_inprocess": "--no-inprocess"}
 
     def dispatch(args: argparse.Namespace) -> int:
-        given = [flag for dest, flag in live_only.items() if getattr(args, dest) != en.get_default(dest)]
+        given = [flag for dest, flag in live_only.items() if getattr(args, dest) is not None]
         if args.live and args.quick:
             en.error("--quick is a grid of the in-process sweep; with --live, choose --profiles and --duration")
         if not args.live and given:
@@ -250,7 +253,7 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
 
     dn = fleet.add_parser("down", help="stop a fleet (default: every running one) leaving no process behind")
     dn.add_argument("--fleet", default=None)
-    dn.add_argument("--timeout", type=float, default=90.0, help="seconds to wait for the launcher")
+    dn.add_argument("--timeout", type=seconds, default=90.0, help="seconds to wait for the launcher")
     dn.add_argument("--json", action="store_true")
     dn.set_defaults(func=_cmd_fleet_down)
 
@@ -261,7 +264,7 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     h.add_argument("--connect", action="append", default=None, help="a Zenoh endpoint of the fleet")
     h.add_argument("--json", action="store_true", help="a JSON list of services")
     h.add_argument("--watch", action="store_true", help="refresh every second until Ctrl-C")
-    h.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for answers")
+    h.add_argument("--timeout", type=seconds, default=1.0, help="seconds to wait for answers")
     h.set_defaults(func=_cmd_health)
 
     _add_live_network_args(parser)

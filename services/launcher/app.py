@@ -11,7 +11,7 @@ Run directory ``runs/<fleet>-<timestamp>/``: ``config.json`` (resolved manifest 
 ``state.json`` (live process table, endpoints, launcher pid), ``events.jsonl``, ``metrics.jsonl``
 (the evaluator's metrics, one line a second), ``logs/<process>.log``, and at the end
 ``report.json`` plus the evaluator's ``birdseye.png`` and ``eval_summary.json``. While it runs, a
-pointer to the run directory, ``<fleet>.json``, is in the user's fleet registry (:func:`registry_dir`),
+pointer to the run directory is in the user's fleet registry (:func:`registry_dir`),
 so that ``mapc fleet status/down`` and ``mapc health`` find the fleet from any directory.
 """
 
@@ -35,16 +35,18 @@ from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
 from ..health import split_key
-from ..runtime import ZenohSettings, listening_locators, open_session, write_json
+from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
 from .manifest import FleetParams, ProcessSpec, load_manifest, resolve
 from .supervisor import Supervisor, is_ours
 
 __all__ = [
     "LauncherSettings",
     "main",
+    "make_run_dir",
     "new_run_dir",
     "parse_args",
     "plan",
+    "pointer_path",
     "registry_dir",
     "run",
     "running_launcher",
@@ -62,15 +64,14 @@ class LauncherSettings(BaseModel):
     run_dir: str | None = None
     listen: str = "tcp/127.0.0.1:0"
     join: str | None = Field(None, description="join this router as a client instead of being the rendezvous")
-    summary: bool = True
+    summary: bool = Field(True, description="the live line each second")
     frozen_kill_s: float = 5.0
     drain_s: float = 2.0
 
 
 def registry_dir() -> Path:
-    """The user's running fleets, one pointer file ``<fleet>.json`` each, whichever directory they run in.
-
-    ``$MAPC_STATE_DIR/fleets``, else ``$XDG_STATE_HOME/mapcontainer/fleets`` (by default
+    """The user's running fleets, one pointer file each (:func:`pointer_path`), whichever directory
+    they run in: ``$MAPC_STATE_DIR/fleets``, else ``$XDG_STATE_HOME/mapcontainer/fleets`` (by default
     ``~/.local/state/mapcontainer/fleets``).
     """
     if os.environ.get("MAPC_STATE_DIR"):
@@ -79,25 +80,46 @@ def registry_dir() -> Path:
     return Path(state) / "mapcontainer" / "fleets"
 
 
-def running_launcher(fleet: str) -> dict[str, Any] | None:
-    """The registry's pointer of ``fleet`` if its launcher is alive (a stale pointer does not count)."""
+def pointer_path(fleet: str, part: str) -> Path:
+    """The registry entry of one launcher: fleet ``fleet`` run from the manifest named ``part``.
+
+    A fleet split over machines has one launcher per manifest (deploy/fleet-host-a.yaml and -b);
+    run on one machine, both parts are registered side by side and ``fleet down`` stops both.
+    """
+    return registry_dir() / f"{fleet}@{part}.json"
+
+
+def running_launcher(fleet: str, part: str) -> dict[str, Any] | None:
+    """The registry's pointer of that launcher if it is alive (a stale pointer does not count)."""
     try:
-        ptr = json.loads((registry_dir() / f"{fleet}.json").read_text())
+        ptr = json.loads(pointer_path(fleet, part).read_text())
     except (OSError, ValueError):
         return None
     pid = ptr.get("launcher_pid") if isinstance(ptr, dict) else None
     return ptr if isinstance(pid, int) and is_ours(pid) else None
 
 
-def already_running(fleet: str) -> str | None:
-    """Why ``fleet`` cannot start (another launcher runs it), or None."""
-    other = running_launcher(fleet)
+def already_running(s: LauncherSettings) -> str | None:
+    """Why the fleet of ``s`` cannot start (a launcher runs it from the same manifest), or None."""
+    fleet = s.params.fleet
+    other = running_launcher(fleet, load_manifest(s.manifest).name)
     if other is None:
         return None
     return (
         f"fleet {fleet!r} is already running (launcher pid {other['launcher_pid']}, {other.get('run_dir')}); "
         "use another --fleet or `mapc fleet down`"
     )
+
+
+def make_run_dir(s: LauncherSettings) -> Path:
+    """The run's directory (``--run-dir``, else a new one under ``--runs-dir``), made and absolute;
+    ConfigError when it cannot be made."""
+    run_dir = Path(s.run_dir) if s.run_dir else new_run_dir(s.runs_dir, s.params.fleet)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot make the run directory {run_dir}: {exc.strerror}") from None
+    return run_dir.resolve()
 
 
 def new_run_dir(runs_dir: str | Path, fleet: str) -> Path:
@@ -119,6 +141,10 @@ def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[Process
     zc = s.params.zenoh_config
     if zc is not None and not Path(zc).is_file():
         raise ConfigError(f"the Zenoh configuration file {zc} does not exist")
+    if s.join:  # the launcher's own session, as run() opens it: Zenoh's objections now, not later
+        zenoh_config(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
+    else:
+        zenoh_config(ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc))
     return resolve(load_manifest(s.manifest), s.params, run_dir, connect)
 
 
@@ -147,7 +173,7 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         default=None,
         help="Zenoh JSON5 file for the launcher and every service ({zenoh_config} in the manifest)",
     )
-    p.add_argument("--no-summary", action="store_true", help="no live summary line")
+    p.add_argument("--no-summary", action="store_true", help="no live line (start, ready and final lines stay)")
 
 
 def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
@@ -286,14 +312,14 @@ def run(s: LauncherSettings) -> int:
     """Bring the fleet up, supervise it until the end, stop it and write the report. Exit code."""
     fleet = s.params.fleet
     plan(s, "<run_dir>", "<connect>")  # configuration errors before anything starts
-    refused = already_running(fleet)
+    refused = already_running(s)
     if refused:
         print(f"mapc: {refused}", file=sys.stderr)
         return 2
-    pointer = registry_dir() / f"{fleet}.json"
+    part = load_manifest(s.manifest).name
+    pointer = pointer_path(fleet, part)
     pointer.parent.mkdir(parents=True, exist_ok=True)
-    run_dir = Path(s.run_dir) if s.run_dir else new_run_dir(s.runs_dir, fleet)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = make_run_dir(s)
     logging.basicConfig(
         level=logging.INFO,
         format="%(asctime)s %(levelname)-7s launcher %(message)s",
@@ -331,6 +357,7 @@ def run(s: LauncherSettings) -> int:
             pointer,
             {
                 "fleet": fleet,
+                "manifest": part,
                 "run_dir": str(run_dir.resolve()),
                 "launcher_pid": os.getpid(),
                 "endpoints": r.endpoints,
@@ -349,8 +376,7 @@ def run(s: LauncherSettings) -> int:
         keep.append(
             session.declare_subscriber(topic("metrics").key(fleet=fleet), r.on_metrics)
         )  # until session.close()
-        if s.summary:
-            print(f"fleet {fleet}: {len(specs)} processes, rendezvous {connect}, run dir {run_dir}", flush=True)
+        print(f"fleet {fleet}: {len(specs)} processes, rendezvous {connect}, run dir {run_dir}", flush=True)
 
         # start, group by group
         for order in sup.orders():
@@ -365,9 +391,8 @@ def run(s: LauncherSettings) -> int:
                     # restarting it will not help, so the launch fails with its log
                     crashed = [p for p in group if p.exit_codes and p.state != "ready"]
                 if ready:
-                    if s.summary:
-                        names = ", ".join(p.spec.name for p in group)
-                        print(f"{time.monotonic() - r.t0:6.1f}s ready: {names}", flush=True)
+                    names = ", ".join(p.spec.name for p in group)
+                    print(f"{time.monotonic() - r.t0:6.1f}s ready: {names}", flush=True)
                     break
                 if crashed or time.monotonic() > deadline:
                     missing = [p.spec.name for p in group if not (p.state == "ready" and p.alive)]
@@ -413,14 +438,13 @@ def run(s: LauncherSettings) -> int:
             r.stop.wait(0.2)
     except Exception as e:
         log.exception("launcher failed")
-        print(f"mapc: launcher failed: {e}", file=sys.stderr)
+        print(f"mapc: launcher failed: {zenoh_error_text(e)}", file=sys.stderr)
         rc = 1
     finally:
         r.status = "stopping"
         if r.sup is not None:
             r.write_state()
-            if s.summary:
-                print("stopping ...", flush=True)
+            print("stopping ...", flush=True)
             r.sup.stop_all()
         r.status = "stopped"
         if session is not None:
@@ -428,8 +452,7 @@ def run(s: LauncherSettings) -> int:
         if r.sup is not None:
             report = write_report(r)
             r.write_state()
-            if s.summary:
-                print(json.dumps(report.get("summary", {})), flush=True)
+            print(json.dumps(report.get("summary", {})), flush=True)
         r.events_f.close()
         r.metrics_f.close()
         try:

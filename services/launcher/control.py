@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .app import LauncherSettings, already_running, new_run_dir, registry_dir
+from .app import LauncherSettings, already_running, make_run_dir, registry_dir
 from .supervisor import is_ours, kill_group, pid_alive
 
 __all__ = ["active_fleets", "detach", "down", "launcher_argv"]
@@ -34,9 +34,10 @@ def active_fleets() -> list[dict[str, Any]]:
     d = registry_dir()
     for ptr in sorted(d.glob("*.json")) if d.is_dir() else []:
         p = _read(ptr)
-        if not p:
-            continue
-        state = _read(Path(p.get("run_dir", "")) / "state.json") or {}
+        if not isinstance(p, dict) or not isinstance(p.get("run_dir"), str):
+            continue  # not one of our entries
+        state = _read(Path(p["run_dir"]) / "state.json")
+        state = state if isinstance(state, dict) else {}
         pid = p.get("launcher_pid")
         launcher_alive = isinstance(pid, int) and is_ours(pid)
         procs = state.get("processes", [])
@@ -45,6 +46,7 @@ def active_fleets() -> list[dict[str, Any]]:
         out.append(
             {
                 "fleet": p.get("fleet", ptr.stem),
+                "manifest": p.get("manifest"),
                 "pointer": str(ptr),
                 "run_dir": p.get("run_dir"),
                 "launcher_pid": pid,
@@ -111,11 +113,10 @@ def detach(s: LauncherSettings, timeout_s: float = 180.0) -> tuple[int, dict[str
     (0, the fleet's state) when it runs; (1, with ``error``: the end of launcher.out) when it did not
     come up; (2, with ``error``) when a fleet of that name is running already (nothing is started).
     """
-    refused = already_running(s.params.fleet)
+    refused = already_running(s)
     if refused:
         return 2, {"error": refused}
-    run_dir = Path(s.run_dir) if s.run_dir else new_run_dir(s.runs_dir, s.params.fleet)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = make_run_dir(s)
     with open(run_dir / "launcher.out", "ab") as out:
         proc = subprocess.Popen(
             launcher_argv(s, run_dir),
@@ -173,7 +174,8 @@ def down(fleet: str | None = None, timeout_s: float = 90.0) -> tuple[int, list[d
             if pid_alive(int(pid)):
                 os.kill(int(pid), signal.SIGKILL)
                 res["launcher_killed"] = True
-        state = _read(Path(f["run_dir"] or "") / "state.json") or {"processes": f["processes"]}
+        state = _read(Path(f["run_dir"]) / "state.json")
+        state = state if isinstance(state, dict) else {"processes": f["processes"]}
         swept = []
         for p in state.get("processes", []):
             ppid = p.get("pid")

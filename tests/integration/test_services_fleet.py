@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from schemas.topics import topic
-from services.launcher.app import registry_dir, running_launcher
+from services.launcher.app import pointer_path, running_launcher
 from services.runtime import ZenohSettings, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -129,7 +129,7 @@ def test_fleet_up_health_kill_restart_and_down(
     assert down.returncode == 0, down.stdout + down.stderr
     assert "no process left" in down.stdout
     assert process_groups_alive(pgids) == []
-    assert not (registry_dir() / f"{fleet_name}.json").exists()
+    assert not (pointer_path(fleet_name, "local")).exists()
     assert _state(run_dir)["status"] == "stopped"
     report = json.loads((run_dir / "report.json").read_text())
     assert report["summary"]["restarts"] == 1
@@ -190,7 +190,7 @@ def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, m
     assert len(metrics) >= 3 and metrics[-1]["fleet"] == fleet_name
     report = json.loads((run_dir / "report.json").read_text())
     assert all(p["exit_codes"] and p["exit_codes"][-1] == 0 for p in report["processes"]), report["processes"]
-    assert not (registry_dir() / f"{fleet_name}.json").exists()
+    assert not (pointer_path(fleet_name, "local")).exists()
 
 
 def test_ctrl_c_stops_the_fleet_writes_the_report_and_exits_130(
@@ -199,12 +199,12 @@ def test_ctrl_c_stops_the_fleet_writes_the_report_and_exits_130(
     fleet = spawn(
         "services.cli",
         *("fleet", "up", "--fleet", fleet_name, "--vehicles", "1", "--network", "ideal"),
-        *("--runs-dir", str(tmp_path / "runs")),
+        *("--runs-dir", str(tmp_path / "runs"), "--no-summary"),
         name="fleet",
     )
 
     def running():
-        ptr = running_launcher(fleet_name)
+        ptr = running_launcher(fleet_name, "local")
         state = ptr and json.loads((Path(ptr["run_dir"]) / "state.json").read_text() or "{}")
         return state if state and state.get("status") == "running" else None
 
@@ -213,5 +213,7 @@ def test_ctrl_c_stops_the_fleet_writes_the_report_and_exits_130(
     assert fleet.wait(timeout=120) == 130  # not 0: the run was cut short
     run_dir = Path(state["run_dir"])
     assert json.loads((run_dir / "report.json").read_text())["summary"]["fleet"] == fleet_name
+    out = fleet.log_path.read_text().splitlines()  # --no-summary: no live line, but the start and the end
+    assert any("ready: world" in line for line in out) and json.loads(out[-1])["fleet"] == fleet_name
     assert process_groups_alive({p["pgid"] for p in state["processes"]}) == []
-    assert not (registry_dir() / f"{fleet_name}.json").exists()
+    assert not (pointer_path(fleet_name, "local")).exists()

@@ -7,13 +7,24 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
-from services.launcher.app import LauncherSettings, registry_dir, run, running_launcher
+from services.launcher.app import (
+    LauncherSettings,
+    already_running,
+    pointer_path,
+    registry_dir,
+    run,
+    running_launcher,
+)
 from services.launcher.control import active_fleets, detach
 from services.launcher.manifest import FleetParams
 from services.launcher.supervisor import is_ours
+
+REPO = Path(__file__).resolve().parents[2]
+MANIFESTS = ("fleet-host-a.yaml", "fleet-host-b.yaml")
 
 
 @pytest.fixture
@@ -42,14 +53,14 @@ def _dead_pid() -> int:
     return p.pid
 
 
-def _register(registry, tmp_path, fleet: str, launcher_pid: int, processes: list[dict]) -> None:
+def _register(registry, tmp_path, fleet: str, launcher_pid: int, processes: list[dict], part: str = "local") -> None:
     run_dir = tmp_path / f"run-{fleet}"
     run_dir.mkdir()
     (run_dir / "state.json").write_text(
         json.dumps({"status": "running", "endpoints": ["tcp/127.0.0.1:1"], "processes": processes})
     )
-    pointer = {"fleet": fleet, "run_dir": str(run_dir), "launcher_pid": launcher_pid}
-    (registry / f"{fleet}.json").write_text(json.dumps(pointer))
+    pointer = {"fleet": fleet, "manifest": part, "run_dir": str(run_dir), "launcher_pid": launcher_pid}
+    pointer_path(fleet, part).write_text(json.dumps(pointer))
 
 
 def test_the_registry_is_per_user_not_per_directory(monkeypatch, tmp_path) -> None:
@@ -74,15 +85,33 @@ def test_a_dead_launchers_processes_are_checked_again(registry, tmp_path, ours) 
     rows = {p["name"]: p for p in f["processes"]}
     assert rows["world"]["alive"] is False and rows["world"]["state"] == "gone"
     assert rows["host"]["alive"] is True and rows["host"]["state"] == "ready"
-    assert running_launcher("orphan") is None  # a stale pointer does not block the name
+    assert running_launcher("orphan", "local") is None  # a stale pointer does not block the name
 
 
 def test_a_running_fleet_is_refused_before_anything_starts(registry, tmp_path, ours, capsys) -> None:
     _register(registry, tmp_path, "busy", ours, [])
-    assert running_launcher("busy")["launcher_pid"] == ours
+    assert running_launcher("busy", "local")["launcher_pid"] == ours
     s = LauncherSettings(params=FleetParams(fleet="busy"), runs_dir=str(tmp_path / "runs"))
     rc, info = detach(s)
     assert rc == 2 and "already running" in info["error"] and str(ours) in info["error"]
     assert run(s) == 2
     assert "already running" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()  # no run directory left behind
+
+
+def test_the_parts_of_a_split_fleet_run_side_by_side(registry, tmp_path, ours) -> None:
+    """deploy/fleet-host-a.yaml and -b.yaml on one machine: one fleet, two launchers."""
+    _register(registry, tmp_path, "split", ours, [], part="host-b")
+    part = {
+        m: LauncherSettings(params=FleetParams(fleet="split"), manifest=str(REPO / "deploy" / m)) for m in MANIFESTS
+    }
+    assert already_running(part["fleet-host-a.yaml"]) is None
+    assert "already running" in already_running(part["fleet-host-b.yaml"])
+    assert [(f["fleet"], f["manifest"]) for f in active_fleets()] == [("split", "host-b")]
+
+
+def test_entries_that_are_not_ours_are_skipped(registry, tmp_path) -> None:
+    (registry / "list@local.json").write_text("[1, 2]")
+    (registry / "half@local.json").write_text("{")
+    (registry / "odd@local.json").write_text(json.dumps({"fleet": "odd", "run_dir": 7}))
+    assert active_fleets() == []
