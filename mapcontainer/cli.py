@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import os
 import sys
 from pathlib import Path
 
 from . import jsonout
 from .config import ConfigError
 
-__all__ = ["main"]
+__all__ = ["fleet_name", "main", "non_negative_int", "non_negative_seconds", "output_dir", "positive_int", "seconds"]
 
 
 def _cmd_scenario_list(args: argparse.Namespace) -> int:
@@ -73,6 +75,8 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
 def _cmd_bench_fusion(args: argparse.Namespace) -> int:
     from .fusion.bench import bench_fusion
 
+    if args.ticks <= args.window:
+        raise ConfigError(f"--ticks must exceed --window ({args.window}): timings skip the first window")
     result = bench_fusion(
         vehicles=args.vehicles,
         objects=args.objects,
@@ -145,10 +149,19 @@ def _bounded(parse: type, low: float, strict: bool, unit: str = ""):
     return check
 
 
-_seconds = _bounded(float, 0, strict=True, unit=" s")
-_non_negative_seconds = _bounded(float, 0, strict=False, unit=" s")
-_positive_int = _bounded(int, 1, strict=False)
-_non_negative_int = _bounded(int, 0, strict=False)
+seconds = _bounded(float, 0, strict=True, unit=" s")
+non_negative_seconds = _bounded(float, 0, strict=False, unit=" s")
+positive_int = _bounded(int, 1, strict=False)
+non_negative_int = _bounded(int, 0, strict=False)
+
+
+def fleet_name(text: str) -> str:
+    """A fleet name: one key chunk of the topics (letters, digits, '_' or '-')."""
+    from schemas.topics import is_chunk
+
+    if not is_chunk(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a fleet name (letters, digits, '_' or '-')")
+    return text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -162,10 +175,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("sim", help="simulate an episode and write it to a directory")
     sim.add_argument("scenario", help="preset name (mapc scenario list) or a scenario YAML file")
-    sim.add_argument("--seed", type=_non_negative_int, default=0)
-    sim.add_argument("--duration", type=_seconds, default=None, help="seconds (default: the scenario's)")
+    sim.add_argument("--seed", type=non_negative_int, default=0)
+    sim.add_argument("--duration", type=seconds, default=None, help="seconds (default: the scenario's)")
     sim.add_argument("--out", required=True, type=output_dir, help="output directory")
-    sim.add_argument("--fleet", default="sim", help="fleet name written into the messages")
+    sim.add_argument("--fleet", type=fleet_name, default="sim", help="fleet name written into the messages")
     sim.set_defaults(func=_cmd_sim)
 
     bench = sub.add_parser("bench", help="benchmarks that print one JSON line").add_subparsers(
@@ -173,18 +186,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bl = bench.add_parser("localization", help="map-matching accuracy, consistency and speed")
     bl.add_argument("--scenario", default="paper-urban")
-    bl.add_argument("--seeds", type=_positive_int, default=3, help="independent episodes")
-    bl.add_argument("--duration", type=_seconds, default=20.0, help="seconds per episode (the first 2 are not scored)")
+    bl.add_argument("--seeds", type=positive_int, default=3, help="independent episodes")
+    bl.add_argument("--duration", type=seconds, default=20.0, help="seconds per episode (the first 2 are not scored)")
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
-    bf.add_argument("--vehicles", type=_positive_int, default=4)
-    bf.add_argument("--objects", type=_non_negative_int, default=14)
-    bf.add_argument("--window", type=_positive_int, default=10, help="frames in the sliding window")
-    bf.add_argument("--ticks", type=_positive_int, default=100, help="frames to run (timings skip the first window)")
-    bf.add_argument("--seed", type=_non_negative_int, default=0)
+    bf.add_argument("--vehicles", type=positive_int, default=4)
+    bf.add_argument("--objects", type=non_negative_int, default=14)
+    bf.add_argument("--window", type=positive_int, default=10, help="frames in the sliding window")
+    bf.add_argument("--ticks", type=positive_int, default=100, help="frames to run (timings skip the first window)")
+    bf.add_argument("--seed", type=non_negative_int, default=0)
     bf.add_argument(
         "--batch-samples",
-        type=_non_negative_int,
+        type=non_negative_int,
         default=5,
         help="windows also solved by plain GTSAM LM + Marginals after the run, as a yardstick of the "
         "machine's speed (batch_ms_p50, cycle_over_batch); 0 skips it",
@@ -195,20 +208,20 @@ def build_parser() -> argparse.ArgumentParser:
         dest="sub", required=True
     )
     ep = exp.add_parser("paper", help="reproduce the paper's results (figure exp_sim, Tables res1/res2)")
-    ep.add_argument("--runs", type=_positive_int, default=200, help="Monte Carlo runs per simulated scenario")
+    ep.add_argument("--runs", type=positive_int, default=200, help="Monte Carlo runs per simulated scenario")
     ep.add_argument("--out", required=True, type=output_dir, help="output directory")
-    ep.add_argument("--seed", type=_non_negative_int, default=0, help="run i uses seed S + i")
-    ep.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
+    ep.add_argument("--seed", type=non_negative_int, default=0, help="run i uses seed S + i")
+    ep.add_argument("--workers", type=positive_int, default=2, help="worker processes")
     ep.add_argument(
-        "--duration", type=_seconds, default=2.0, help="simulated seconds per simulation run, warm-up included"
+        "--duration", type=seconds, default=2.0, help="simulated seconds per simulation run, warm-up included"
     )
     ep.add_argument(
-        "--warmup", type=_non_negative_seconds, default=1.0, help="seconds at the start of every run not scored"
+        "--warmup", type=non_negative_seconds, default=1.0, help="seconds at the start of every run not scored"
     )
     ep.add_argument(
-        "--rv-runs", type=_positive_int, default=None, help="runs per real-vehicle scenario (default min(runs, 10))"
+        "--rv-runs", type=positive_int, default=None, help="runs per real-vehicle scenario (default min(runs, 10))"
     )
-    ep.add_argument("--rv-duration", type=_seconds, default=6.0, help="seconds per real-vehicle run, warm-up included")
+    ep.add_argument("--rv-duration", type=seconds, default=6.0, help="seconds per real-vehicle run, warm-up included")
     ep.add_argument(
         "--start",
         choices=("warm", "cold"),
@@ -224,9 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     en.add_argument("--out", required=True, type=output_dir, help="output directory")
     en.add_argument("--quick", action="store_true", help="a 2 x 2 x 2 grid of short runs (for tests)")
-    en.add_argument("--seed", type=_non_negative_int, default=0)
-    en.add_argument("--workers", type=_positive_int, default=2, help="worker processes")
-    en.add_argument("--duration", type=_seconds, default=None, help="seconds per point (default 4, quick 2.5)")
+    en.add_argument("--seed", type=non_negative_int, default=0)
+    en.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    en.add_argument("--duration", type=seconds, default=None, help="seconds per point (default 4, quick 2.5)")
     en.add_argument("--scenario", default="paper-urban")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
@@ -241,10 +254,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 def output_dir(value: str) -> Path:
     """An ``--out`` directory, absolute (fleets run elsewhere write into it), checked before any work
-    is done: a file of that name used to fail only after the whole run, losing it."""
+    is done: a file of that name, or a place where no directory can be made, used to fail only after
+    the whole run, losing it. A directory that does not exist yet is made and removed again (a probe:
+    a command refused later leaves nothing behind)."""
     path = Path(value).expanduser().resolve()
     if path.exists() and not path.is_dir():
         raise argparse.ArgumentTypeError(f"{value} exists and is not a directory")
+    missing = [p for p in (path, *path.parents) if not p.exists()]  # deepest first
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise PermissionError(13, "Permission denied")
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(f"cannot write into {value}: {exc.strerror}") from None
+    finally:
+        for d in missing:
+            with contextlib.suppress(OSError):
+                d.rmdir()
     return path
 
 
@@ -258,6 +284,9 @@ def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `mapc ... | head`: the reader left; no traceback (recipe of the signal docs)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,7 +23,7 @@ from .models import (
     VehiclePrior,
 )
 
-__all__ = ["TOPICS", "Topic", "topic"]
+__all__ = ["TOPICS", "Topic", "is_chunk", "topic"]
 
 _CHUNK = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
@@ -46,7 +46,7 @@ class Topic:
         if missing:
             raise ValueError(f"topic {self.name!r} needs {sorted(missing)}")
         for k, v in values.items():
-            if not _CHUNK.fullmatch(str(v)):
+            if not is_chunk(v):
                 raise ValueError(f"{k}={v!r} is not a valid key chunk (letters, digits, '_' or '-')")
         return self.template.format(**values)
 
@@ -54,7 +54,7 @@ class Topic:
         """A key expression with ``*`` for every placeholder not given (for subscribers)."""
         filled = {f: values.get(f, "*") for f in self.fields}
         for k, v in values.items():
-            if not _CHUNK.fullmatch(str(v)):
+            if not is_chunk(v):
                 raise ValueError(f"{k}={v!r} is not a valid key chunk")
         return self.template.format(**filled)
 
@@ -80,6 +80,11 @@ TOPICS: tuple[Topic, ...] = (
 )
 
 _BY_NAME = {t.name: t for t in TOPICS}
+
+
+def is_chunk(value: str) -> bool:
+    """``value`` can fill a placeholder (a fleet, vehicle or host id): letters, digits, '_' or '-'."""
+    return bool(_CHUNK.fullmatch(str(value)))
 
 
 def topic(name: str) -> Topic:

@@ -31,6 +31,7 @@ import logging
 import math
 import os
 import queue
+import re
 import signal
 import sys
 import threading
@@ -46,6 +47,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapcontainer import jsonout
+from mapcontainer.config import ConfigError
 from schemas import HealthStatus, decode, encode
 from schemas.topics import topic
 
@@ -69,6 +71,8 @@ __all__ = [
     "service_main",
     "service_settings_from_args",
     "setup_logging",
+    "zenoh_config",
+    "zenoh_error_text",
 ]
 
 log = logging.getLogger("mapc.runtime")
@@ -158,6 +162,23 @@ def build_zenoh_config(s: ZenohSettings) -> dict[str, Any]:
     return conf
 
 
+def zenoh_error_text(exc: BaseException) -> str:
+    """A Zenoh error's message without the Rust source location it ends with."""
+    return re.sub(r"\s+at /\S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
+
+
+def zenoh_config(s: ZenohSettings):
+    """The ``zenoh.Config`` for ``s``; ConfigError when Zenoh refuses it (a malformed endpoint, a
+    configuration file that is missing or not JSON5), before any session is opened."""
+    import zenoh
+
+    try:
+        return _zenoh_config(s)
+    except zenoh.ZError as exc:
+        source = f"the Zenoh configuration file {s.config_file}" if s.config_file else "the Zenoh endpoints"
+        raise ConfigError(f"{source}: {zenoh_error_text(exc)}") from None
+
+
 def _zenoh_config(s: ZenohSettings):
     import zenoh
 
@@ -179,7 +200,7 @@ def open_session(s: ZenohSettings):
     """Open a Zenoh session for ``s``. Close it (``with``/``finally``) before the process exits."""
     import zenoh
 
-    return zenoh.open(_zenoh_config(s))
+    return zenoh.open(zenoh_config(s))
 
 
 def listening_locators(session, timeout_s: float = 2.0) -> list[str]:
@@ -229,7 +250,7 @@ def service_main(parse_args: Callable[[], Any], main: Callable[[Any], int]) -> i
     traceback."""
     from pydantic import ValidationError
 
-    from mapcontainer.config import ConfigError, config_error
+    from mapcontainer.config import config_error
 
     prog = f"python -m {main.__module__.rsplit('.', 1)[0]}"
     try:
