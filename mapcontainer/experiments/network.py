@@ -295,7 +295,7 @@ def _summary(rows: list[dict]) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for mode in MODES:
-        for bw in (bw_max, bw_min):
+        for bw in dict.fromkeys((bw_max, bw_min)):  # one row when every point has the same capacity
             r = pick(mode, bw)
             if r is None:
                 continue

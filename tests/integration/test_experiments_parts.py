@@ -132,7 +132,9 @@ def test_network_md_header_describes_live_presets_truthfully(tmp_path):
         for p, lat, jit in (("ideal", 0.0, 0.0), ("dsrc", 18.0, 2.0), ("lossy", 20.0, 5.0))
     ]  # fmt: skip
     write_network_outputs(rows, tmp_path, {"source": "live", "seed": 0, "duration_s": 20.0, "warmup_s": 1.0})
-    head = (tmp_path / "network.md").read_text().split("## Key comparison")[0]
+    head, key = (tmp_path / "network.md").read_text().split("## Key comparison")
+    key = key.split("## All points")[0]
+    assert key.count("| distributed |") == 1  # one capacity: one row, not the point compared with itself
     assert "dsrc: 18 ms + U[0, 4] ms jitter" in head and "lossy: 20 ms + U[0, 10] ms jitter" in head
     assert "Gilbert-Elliott" in head and "one shared medium" in head and "warm-up included" in head
     assert "ideal: 0 ms, no jitter" in head and "; no jitter" not in head
