@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["ConfigError", "config_dir", "deep_merge", "load_yaml_model", "read_yaml", "validate_model"]
+__all__ = ["ConfigError", "config_dir", "config_error", "deep_merge", "load_yaml_model", "read_yaml", "validate_model"]
 
 M = TypeVar("M", bound=BaseModel)
 

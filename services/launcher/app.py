@@ -41,6 +41,7 @@ from .supervisor import Supervisor, is_ours
 
 __all__ = [
     "LauncherSettings",
+    "already_running",
     "main",
     "make_run_dir",
     "new_run_dir",
@@ -139,8 +140,6 @@ def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[Process
     load_scenario(s.params.scenario)
     load_profile(s.params.network)
     zc = s.params.zenoh_config
-    if zc is not None and not Path(zc).is_file():
-        raise ConfigError(f"the Zenoh configuration file {zc} does not exist")
     if s.join:  # the launcher's own session, as run() opens it: Zenoh's objections now, not later
         zenoh_config(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
     else:
