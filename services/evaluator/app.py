@@ -17,6 +17,7 @@ from pathlib import Path
 
 from pydantic import Field
 
+from mapcontainer.sim.config import load_scenario
 from schemas import FusedState, GroundTruth, encode
 from schemas.codec import peek
 from schemas.topics import topic
@@ -68,6 +69,7 @@ def _seq(payload: bytes) -> int | None:
 def main(s: EvaluatorSettings) -> int:
     log = setup_logging("evaluator", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
+    scenario = load_scenario(s.scenario) if s.scenario else None  # an unknown name: ConfigError at start
     ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard={k: set(v) for k, v in s.receivers.items()})
     clock = SimClock()
     work: queue.Queue[tuple[str, Received]] = queue.Queue(maxsize=10_000)
@@ -144,11 +146,10 @@ def main(s: EvaluatorSettings) -> int:
             from .plot import render_run
 
             hdmap = None
-            if s.scenario:
+            if scenario is not None:
                 from mapcontainer.hdmap.generator import generate_map
-                from mapcontainer.sim.config import load_scenario
 
-                hdmap = generate_map(load_scenario(s.scenario).map)
+                hdmap = generate_map(scenario.map)
             render_run(out / "birdseye.png", ev, hdmap, f"fleet {s.fleet}: truth (red/grey) vs fused (blue)")
         except Exception:  # the picture is a convenience; the summary is already written
             log.exception("could not draw birdseye.png")

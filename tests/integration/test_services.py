@@ -330,6 +330,7 @@ def test_a_service_with_bad_settings_says_why_and_exits_2(tmp_path, spawn):
         ("services.host", ["--params", str(bad)], "track_lag_s"),
         ("services.channel", ["--network", "nosuch"], "unknown network profile 'nosuch'"),
         ("services.world", ["--time-scale", "0"], "time_scale"),
+        ("services.evaluator", ["--scenario", "nosuch"], "unknown scenario 'nosuch'"),  # not only at the end
     ]:
         p = spawn(module, "--fleet", "x", *args)
         assert p.wait(timeout=60) == 2
