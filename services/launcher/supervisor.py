@@ -42,12 +42,14 @@ def pid_alive(pid: int) -> bool:
 
 
 def is_ours(pid: int) -> bool:
-    """``pid`` is alive and a process of this project (guards against a recycled pid)."""
+    """``pid`` is alive and a process of this project: one of its arguments is a ``services.*`` module
+    (``python -m services.host``) or the ``mapc`` script (guards against a recycled pid)."""
     try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\x00", b" ")
+        args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\x00")
     except OSError:
         return False
-    return pid_alive(pid) and (b"services." in cmd or b"mapc" in cmd or b"multiprocessing" in cmd)
+    ours = any(a.startswith(b"services.") or os.path.basename(a) == b"mapc" for a in args)
+    return ours and pid_alive(pid)
 
 
 def kill_group(pgid: int, sig: int) -> bool:

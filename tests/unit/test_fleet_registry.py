@@ -38,7 +38,7 @@ def registry(tmp_path, monkeypatch):
 @pytest.fixture
 def ours():
     """A live process that counts as one of ours (its command line names a services module)."""
-    p = subprocess.Popen([sys.executable, "-c", "import services.launcher, time; time.sleep(60)"])
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "services.launcher"])
     deadline = time.monotonic() + 10
     while not is_ours(p.pid) and time.monotonic() < deadline:
         time.sleep(0.01)  # /proc/<pid>/cmdline shows the new command line a moment after Popen returns
@@ -115,3 +115,16 @@ def test_entries_that_are_not_ours_are_skipped(registry, tmp_path) -> None:
     (registry / "half@local.json").write_text("{")
     (registry / "odd@local.json").write_text(json.dumps({"fleet": "odd", "run_dir": 7}))
     assert active_fleets() == []
+
+
+def test_a_recycled_pid_is_not_ours() -> None:
+    """Only a command line with a services module or the mapc script counts, not any mention of it."""
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)  # services. mapc multiprocessing"])
+    try:
+        cmdline = Path(f"/proc/{p.pid}/cmdline")
+        while b"sleep(60)" not in cmdline.read_bytes():
+            time.sleep(0.01)  # the new command line shows a moment after Popen returns
+        assert not is_ours(p.pid)
+    finally:
+        p.kill()
+        p.wait()
