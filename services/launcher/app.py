@@ -42,6 +42,7 @@ from .supervisor import Supervisor, is_ours
 __all__ = [
     "LauncherSettings",
     "already_running",
+    "log_tail",
     "main",
     "make_run_dir",
     "new_run_dir",
@@ -397,7 +398,7 @@ def run(s: LauncherSettings) -> int:
                     missing = [p.spec.name for p in group if not (p.state == "ready" and p.alive)]
                     print(f"mapc: not ready: {', '.join(missing)} (see {run_dir / 'logs'})", file=sys.stderr)
                     for p in crashed:
-                        tail = _tail(run_dir / "logs" / f"{p.spec.name}.log", 15)
+                        tail = log_tail(run_dir / "logs" / f"{p.spec.name}.log", 15) or "(no log)"
                         print(
                             f"--- {p.spec.name} exited with {p.exit_codes[-1]}; its log ends:\n{tail}",
                             file=sys.stderr,
@@ -464,11 +465,12 @@ def run(s: LauncherSettings) -> int:
     return 130 if rc == 0 and r.interrupted else rc
 
 
-def _tail(path: Path, n: int) -> str:
+def log_tail(path: Path, n: int) -> str:
+    """The last ``n`` lines of a log file; empty when there is none."""
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
     except OSError:
-        return "(no log)"
+        return ""
 
 
 def write_report(r: _Run) -> dict:

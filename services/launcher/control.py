@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .app import LauncherSettings, already_running, make_run_dir, registry_dir
+from .app import LauncherSettings, already_running, log_tail, make_run_dir, registry_dir
 from .supervisor import is_ours, kill_group, pid_alive
 
 __all__ = ["active_fleets", "detach", "down", "launcher_argv"]
@@ -135,10 +135,7 @@ def detach(s: LauncherSettings, timeout_s: float = 180.0) -> tuple[int, dict[str
         if proc.poll() is not None:
             break
         time.sleep(0.2)  # polling another process's file: nothing to wait on
-    try:
-        tail = "\n".join((run_dir / "launcher.out").read_text(errors="replace").splitlines()[-15:])
-    except OSError:
-        tail = ""
+    tail = log_tail(run_dir / "launcher.out", 15)
     why = f"fleet {s.params.fleet} did not come up (launcher output in {run_dir / 'launcher.out'})"
     return 1, {
         "run_dir": str(run_dir),

@@ -215,31 +215,28 @@ def test_gnss_error_is_metres_and_odometry_is_close():
     assert float(np.sqrt(np.mean(np.square(speed_err)))) < 0.5
 
 
-def test_bad_scenario_file_is_a_clear_error(tmp_path):
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        (b"name: bad\nconnected:\n  - {lane: 9}\n", "lane 9 does not exist"),
+        (b"name: bad\nconnected: [{speed_mps: -1}]\n", "speed_mps"),
+        (b"name: [unclosed\n", "not valid YAML"),
+        (b"name: bad\nduration_s: .inf\n", "duration_s"),
+        (b"name: bad\nsensors: [1, 2]\n", "sensors must be a mapping"),
+        (b"name: b\xe9d\n", "not UTF-8"),
+        (b"name: bad\nx: " + b"[" * 5000 + b"]" * 5000 + b"\n", "nested too deeply"),
+    ],
+)
+def test_bad_scenario_file_is_a_clear_error(tmp_path, content, match):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("name: bad\nconnected:\n  - {lane: 9}\n")
-    with pytest.raises(ConfigError, match="lane 9 does not exist"):
+    bad.write_bytes(content)
+    with pytest.raises(ConfigError, match=match):
         load_scenario(bad)
-    bad.write_text("name: bad\nconnected: [{speed_mps: -1}]\n")
-    with pytest.raises(ConfigError, match="speed_mps"):
-        load_scenario(bad)
-    bad.write_text("name: [unclosed\n")
-    with pytest.raises(ConfigError, match="not valid YAML"):
-        load_scenario(bad)
+
+
+def test_unknown_scenario_names_the_presets():
     with pytest.raises(ConfigError, match="unknown scenario"):
         load_scenario("no-such-scenario")
-    bad.write_text("name: bad\nduration_s: .inf\n")
-    with pytest.raises(ConfigError, match="duration_s"):
-        load_scenario(bad)
-    bad.write_text("name: bad\nsensors: [1, 2]\n")
-    with pytest.raises(ConfigError, match="sensors must be a mapping"):
-        load_scenario(bad)
-    bad.write_bytes(b"name: b\xe9d\n")
-    with pytest.raises(ConfigError, match="not UTF-8"):
-        load_scenario(bad)
-    bad.write_text("name: bad\nx: " + "[" * 5000 + "]" * 5000 + "\n")
-    with pytest.raises(ConfigError, match="nested too deeply"):
-        load_scenario(bad)
 
 
 def test_a_world_runs_forward_only():
