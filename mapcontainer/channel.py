@@ -19,7 +19,7 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .config import ConfigError, config_dir, read_yaml, validate_model
+from .config import find_preset, list_presets, read_yaml, validate_model
 
 __all__ = [
     "DROP_CAUSES",
@@ -125,14 +125,9 @@ class NetworkProfile(_Strict):
         return (self.latency_ms + self.jitter_ms) / 1000.0
 
 
-def _profile_dir() -> Path:
-    return config_dir() / "network"
-
-
 def list_profiles() -> list[str]:
-    """Names of the network presets in configs/network/."""
-    d = _profile_dir()
-    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else []
+    """Names of the network presets (``network/`` of the built-in and the user's config directories)."""
+    return list(list_presets("network"))
 
 
 def load_profile(name_or_path: str | Path) -> NetworkProfile:
@@ -142,11 +137,7 @@ def load_profile(name_or_path: str | Path) -> NetworkProfile:
     """
     path = Path(name_or_path)
     if not path.suffix:
-        path = _profile_dir() / f"{name_or_path}.yaml"
-        if not path.exists():
-            raise ConfigError(
-                f"unknown network profile {str(name_or_path)!r}; presets: {', '.join(list_profiles())}"
-            )
+        path = find_preset("network", str(name_or_path), "network profile")
     data = read_yaml(path)
     data.setdefault("name", path.stem)
     return validate_model(NetworkProfile, data, path)

@@ -16,17 +16,20 @@ __all__ = ["fleet_name", "main", "non_negative_int", "non_negative_seconds", "ou
 
 
 def _cmd_scenario_list(args: argparse.Namespace) -> int:
-    from .sim.config import list_scenarios, load_scenario
+    from .config import BUILTIN_DIR, list_presets
+    from .sim.config import load_scenario
 
     rows = []
-    for name in list_scenarios():
-        sc = load_scenario(name)
+    for name, path in list_presets("scenarios").items():
+        sc = load_scenario(path)
         rows.append(
             {
                 "name": name,
                 "vehicles": len(sc.connected),
                 "obstacles": len(sc.obstacle_vehicles) + len(sc.pedestrians),
                 "description": sc.description,
+                "file": str(path),
+                "builtin": path.is_relative_to(BUILTIN_DIR),
             }
         )
     if args.json:
@@ -34,7 +37,9 @@ def _cmd_scenario_list(args: argparse.Namespace) -> int:
     else:
         width = max(len(r["name"]) for r in rows)
         for r in rows:
-            print(f"{r['name']:<{width}}  {r['vehicles']} vehicles  {r['obstacles']:>2} obstacles  {r['description']}")
+            own = "" if r["builtin"] else f"  ({r['file']})"
+            counts = f"{r['vehicles']} vehicles  {r['obstacles']:>2} obstacles"
+            print(f"{r['name']:<{width}}  {counts}  {r['description']}{own}")
     return 0
 
 
@@ -165,11 +170,22 @@ def fleet_name(text: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mapc", description="Map Container: map-based cooperative perception over V2X")
+    p = argparse.ArgumentParser(
+        prog="mapc",
+        description="Map Container: map-based cooperative perception over V2X",
+        epilog="Presets (scenarios/, network/, sensors/, manifests/ of YAML files) are looked up in --config-dir "
+        "(or $MAPC_CONFIG_DIR), then ~/.config/mapcontainer, then the ones shipped with the package.",
+    )
+    p.add_argument(
+        "--config-dir",
+        type=config_dir_arg,
+        default=None,
+        help="a directory of your own presets, searched before the built-in ones (sets MAPC_CONFIG_DIR)",
+    )
     sub = p.add_subparsers(dest="command", required=True)
 
     sc = sub.add_parser("scenario", help="scenario presets").add_subparsers(dest="sub", required=True)
-    ls = sc.add_parser("list", help="list the scenario presets in configs/scenarios/")
+    ls = sc.add_parser("list", help="list the scenario presets (built-in and your own)")
     ls.add_argument("--json", action="store_true", help="print JSON")
     ls.set_defaults(func=_cmd_scenario_list)
 
@@ -252,6 +268,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def config_dir_arg(value: str) -> Path:
+    """``--config-dir``: an existing directory, absolute (the services the launcher starts inherit it)."""
+    path = Path(value).expanduser().resolve()
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{value} is not a directory")
+    return path
+
+
 def output_dir(value: str) -> Path:
     """An ``--out`` directory, absolute (fleets run elsewhere write into it), checked before any work
     is done: a file of that name, or a place where no directory can be made, used to fail only after
@@ -277,6 +301,8 @@ def output_dir(value: str) -> Path:
 def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     """Parse ``argv`` with ``parser`` and run the chosen command; configuration errors exit 2."""
     args = parser.parse_args(argv)
+    if getattr(args, "config_dir", None) is not None:
+        os.environ["MAPC_CONFIG_DIR"] = str(args.config_dir)  # for this process and every one it starts
     try:
         return int(args.func(args) or 0)
     except ConfigError as exc:

@@ -3,13 +3,26 @@
 from __future__ import annotations
 
 import os
+from importlib import resources
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["ConfigError", "config_dir", "config_error", "deep_merge", "load_yaml_model", "read_yaml", "validate_model"]
+__all__ = [
+    "BUILTIN_DIR",
+    "ConfigError",
+    "config_error",
+    "deep_merge",
+    "find_preset",
+    "list_presets",
+    "load_yaml_model",
+    "preset_dirs",
+    "read_yaml",
+    "user_config_dirs",
+    "validate_model",
+]
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -18,13 +31,48 @@ class ConfigError(ValueError):
     """A configuration file is missing, not YAML, or does not validate (the message says where)."""
 
 
-def config_dir() -> Path:
-    """The configs/ directory: $MAPC_CONFIG_DIR, else the one beside the package (editable install)."""
+BUILTIN_DIR = Path(str(resources.files(__package__) / "configs"))
+"""The presets shipped with the package: ``scenarios/``, ``network/`` and ``sensors/`` (package data)."""
+
+
+def user_config_dirs() -> list[Path]:
+    """Directories whose presets override the built-in ones, first match wins: ``$MAPC_CONFIG_DIR``
+    (``mapc --config-dir DIR`` sets it for every process it starts), then ``$XDG_CONFIG_HOME/mapcontainer``
+    (default ``~/.config/mapcontainer``) when it exists. Each may hold any of the preset kinds."""
+    dirs = []
     env = os.environ.get("MAPC_CONFIG_DIR")
-    path = Path(env) if env else Path(__file__).resolve().parents[1] / "configs"
-    if not path.is_dir():
-        raise ConfigError(f"configuration directory {path} does not exist (set MAPC_CONFIG_DIR)")
-    return path
+    if env:
+        path = Path(env).expanduser()
+        if not path.is_dir():
+            raise ConfigError(f"configuration directory {path} (MAPC_CONFIG_DIR) does not exist")
+        dirs.append(path)
+    xdg = Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config") / "mapcontainer"
+    if xdg.is_dir():
+        dirs.append(xdg)
+    return dirs
+
+
+def preset_dirs(kind: str, builtin: Path | None = None) -> list[Path]:
+    """Where presets of ``kind`` are looked up, in order: the user's directories, then ``builtin``
+    (default ``BUILTIN_DIR / kind``)."""
+    return [d / kind for d in user_config_dirs()] + [builtin if builtin is not None else BUILTIN_DIR / kind]
+
+
+def list_presets(kind: str, builtin: Path | None = None, suffix: str = ".yaml") -> dict[str, Path]:
+    """Every preset of ``kind`` by name, each from the first directory that has it."""
+    found: dict[str, Path] = {}
+    for d in preset_dirs(kind, builtin):
+        for f in sorted(d.glob(f"*{suffix}")) if d.is_dir() else []:
+            found.setdefault(f.stem, f)
+    return dict(sorted(found.items()))
+
+
+def find_preset(kind: str, name: str, what: str, builtin: Path | None = None) -> Path:
+    """The file of preset ``name``; a ConfigError naming the presets there are when there is none."""
+    presets = list_presets(kind, builtin)
+    if name not in presets:
+        raise ConfigError(f"unknown {what} {name!r}; presets: {', '.join(presets) or 'none'}")
+    return presets[name]
 
 
 def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

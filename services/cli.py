@@ -237,7 +237,7 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     fleet = sub.add_parser("fleet", help="run the multi-process fleet on Zenoh").add_subparsers(
         dest="sub", required=True
     )
-    up = fleet.add_parser("up", help="start every service as its own process (deploy/fleet.yaml)")
+    up = fleet.add_parser("up", help="start every service as its own process (--manifest, default fleet)")
     add_fleet_args(up)
     up.add_argument(
         "--detach", action="store_true", help="run in the background; stop with `mapc fleet down`"

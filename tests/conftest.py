@@ -1,4 +1,5 @@
-"""Every test session has its own fleet registry, so tests never see (or stop) the user's fleets."""
+"""Every test session has its own fleet registry, so tests never see (or stop) the user's fleets, and
+sees only the built-in presets (no user config directory)."""
 
 from __future__ import annotations
 
@@ -16,3 +17,16 @@ def _own_fleet_registry(tmp_path_factory):
         os.environ.pop("MAPC_STATE_DIR", None)
     else:
         os.environ["MAPC_STATE_DIR"] = old
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _builtin_presets_only(tmp_path_factory):
+    old = {k: os.environ.get(k) for k in ("MAPC_CONFIG_DIR", "XDG_CONFIG_HOME")}
+    os.environ.pop("MAPC_CONFIG_DIR", None)
+    os.environ["XDG_CONFIG_HOME"] = str(tmp_path_factory.mktemp("xdg-config"))  # empty: no user presets
+    yield
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v

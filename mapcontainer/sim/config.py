@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt, model_validator
 
-from ..config import ConfigError, config_dir, deep_merge, load_yaml_model, read_yaml, validate_model
+from ..config import ConfigError, deep_merge, find_preset, list_presets, load_yaml_model, read_yaml, validate_model
 from ..hdmap.generator import MapSpec
 
 __all__ = [
@@ -163,13 +163,9 @@ class ScenarioConfig(_Strict):
         return self
 
 
-def _scenario_dir() -> Path:
-    return config_dir() / "scenarios"
-
-
 def list_scenarios() -> list[str]:
-    """Names of the scenario presets in configs/scenarios/."""
-    return sorted(p.stem for p in _scenario_dir().glob("*.yaml"))
+    """Names of the scenario presets (``scenarios/`` of the built-in and the user's config directories)."""
+    return list(list_presets("scenarios"))
 
 
 def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> ScenarioConfig:
@@ -180,14 +176,12 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
     """
     path = Path(name_or_path)
     if not path.suffix:
-        path = _scenario_dir() / f"{name_or_path}.yaml"
-        if not path.exists():
-            raise ConfigError(f"unknown scenario {name_or_path!r}; presets: {', '.join(list_scenarios())}")
+        path = find_preset("scenarios", str(name_or_path), "scenario")
     data = read_yaml(path)
     profile = data.pop("sensor_profile", "default")
     if not isinstance(profile, str):
         raise ConfigError(f"{path}: sensor_profile must be the name of a sensor profile, got {profile!r}")
-    sensors = read_yaml(config_dir() / "sensors" / f"{profile}.yaml")
+    sensors = read_yaml(find_preset("sensors", profile, "sensor profile"))
     own = data.get("sensors") or {}
     if not isinstance(own, dict):
         raise ConfigError(f"{path}: sensors must be a mapping of overrides, got {type(own).__name__}")
@@ -198,7 +192,7 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
 
 
 def load_sensor_config(name: str = "default") -> SensorConfig:
-    return load_yaml_model(SensorConfig, config_dir() / "sensors" / f"{name}.yaml")
+    return load_yaml_model(SensorConfig, find_preset("sensors", name, "sensor profile"))
 
 
 def scale_scenario(sc: ScenarioConfig, vehicles: int | None) -> ScenarioConfig:

@@ -36,7 +36,7 @@ from schemas.topics import topic
 
 from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
-from .manifest import FleetParams, ProcessSpec, load_manifest, resolve
+from .manifest import FleetParams, ProcessSpec, load_manifest, manifest_path, resolve
 from .supervisor import Supervisor, is_ours
 
 __all__ = [
@@ -85,7 +85,7 @@ def registry_dir() -> Path:
 def pointer_path(fleet: str, part: str) -> Path:
     """The registry entry of one launcher: fleet ``fleet`` run from the manifest named ``part``.
 
-    A fleet split over machines has one launcher per manifest (deploy/fleet-host-a.yaml and -b);
+    A fleet split over machines has one launcher per manifest (fleet-host-a and fleet-host-b);
     run on one machine, both parts are registered side by side and ``fleet down`` stops both.
     """
     return registry_dir() / f"{fleet}@{part}.json"
@@ -159,7 +159,11 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     p.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="default distributed")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--time-scale", type=float, default=None, help="scenario seconds per wall second")
-    p.add_argument("--manifest", default=None, help="fleet manifest (default deploy/fleet.yaml)")
+    p.add_argument(
+        "--manifest",
+        default=None,
+        help="fleet manifest: a name (fleet, fleet-host-a, fleet-host-b) or a YAML file (default fleet)",
+    )
     p.add_argument("--runs-dir", default=None, help="where run directories go (default ./runs, env MAPC_RUNS_DIR)")
     p.add_argument("--run-dir", default=None, help=argparse.SUPPRESS)
     p.add_argument("--listen", default="tcp/127.0.0.1:0", help="the rendezvous endpoint (port 0: a free one)")
@@ -345,7 +349,7 @@ def run(s: LauncherSettings) -> int:
         write_json(
             run_dir / "config.json",
             {
-                "manifest": str(s.manifest or "deploy/fleet.yaml"),
+                "manifest": str(manifest_path(s.manifest)),
                 "params": s.params.model_dump(),
                 "settings": s.model_dump(),
                 "endpoints": r.endpoints,

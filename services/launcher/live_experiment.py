@@ -42,7 +42,7 @@ __all__ = ["COMPARE_METRICS", "DEFAULT_PROFILES", "live_row", "run_live_network"
 
 DEFAULT_PROFILES = ("ideal", "dsrc", "lossy", "degraded")
 MODES = ("distributed", "centralized")
-EGO = "cv0"  # deploy/fleet.yaml `defaults.ego`: its messages stay on board the host
+EGO = "cv0"  # the fleet manifest's `defaults.ego`: its messages stay on board the host
 
 # (row key, label) compared in live_vs_inprocess.*
 COMPARE_METRICS = (
@@ -51,9 +51,6 @@ COMPARE_METRICS = (
     ("bytes_per_s_per_vehicle", "bytes/s per vehicle"),
     ("delivered_fraction", "delivered fraction"),
 )
-
-REPO = Path(__file__).resolve().parents[2]
-
 
 def _f(x: Any) -> float:
     try:
@@ -144,7 +141,7 @@ def run_live_point(
     if vehicles is not None:
         cmd += ["--vehicles", str(vehicles)]
     timeout = timeout_s if timeout_s is not None else duration + 180.0
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     report_path = run_dir / "report.json"
     if not report_path.exists():
         raise RuntimeError(

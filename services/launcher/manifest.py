@@ -1,4 +1,5 @@
-"""Fleet manifests: the process topology as data (deploy/fleet.yaml), resolved into command lines.
+"""Fleet manifests: the process topology as data (``manifests/fleet.yaml`` beside this file), resolved into
+command lines.
 
 A manifest lists process templates (module, role, id, arguments, start order, restart policy).
 ``resolve`` fills the templates' ``{placeholders}`` from the fleet parameters and expands
@@ -19,7 +20,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from mapcontainer.config import ConfigError, read_yaml, validate_model
+from mapcontainer.config import ConfigError, find_preset, read_yaml, validate_model
 
 __all__ = [
     "DEFAULT_MANIFEST",
@@ -29,11 +30,13 @@ __all__ = [
     "ProcessTemplate",
     "RestartPolicy",
     "load_manifest",
+    "manifest_path",
     "resolve",
     "vehicle_ids",
 ]
 
-DEFAULT_MANIFEST = Path(__file__).resolve().parents[2] / "deploy" / "fleet.yaml"
+MANIFEST_DIR = Path(__file__).resolve().parent / "manifests"  # package data: fleet, fleet-host-a, fleet-host-b
+DEFAULT_MANIFEST = "fleet"
 NAME = r"^[A-Za-z0-9_\-]{1,64}$"
 
 
@@ -142,10 +145,19 @@ class ProcessSpec:
         }
 
 
-def load_manifest(path: str | Path | None = None) -> Manifest:
-    p = Path(path) if path else DEFAULT_MANIFEST
-    if not p.exists():
-        raise ConfigError(f"fleet manifest {p} does not exist")
+def manifest_path(name_or_path: str | Path | None = None) -> Path:
+    """A manifest by name (``fleet``, ``fleet-host-a``, ...: the built-in ones or ``manifests/NAME.yaml`` in
+    a user config directory, see :func:`mapcontainer.config.user_config_dirs`) or a YAML file by path."""
+    text = str(name_or_path or DEFAULT_MANIFEST)
+    if Path(text).suffix:
+        if not Path(text).exists():
+            raise ConfigError(f"fleet manifest {text} does not exist")
+        return Path(text).resolve()
+    return find_preset("manifests", text, "fleet manifest", builtin=MANIFEST_DIR)
+
+
+def load_manifest(name_or_path: str | Path | None = None) -> Manifest:
+    p = manifest_path(name_or_path)
     return validate_model(Manifest, read_yaml(p), p)
 
 

@@ -20,7 +20,7 @@ from services.launcher.app import (
     running_launcher,
 )
 from services.launcher.control import active_fleets, detach
-from services.launcher.manifest import FleetParams
+from services.launcher.manifest import MANIFEST_DIR, FleetParams
 from services.launcher.supervisor import is_ours
 
 REPO = Path(__file__).resolve().parents[2]
@@ -100,10 +100,10 @@ def test_a_running_fleet_is_refused_before_anything_starts(registry, tmp_path, o
 
 
 def test_the_parts_of_a_split_fleet_run_side_by_side(registry, tmp_path, ours) -> None:
-    """deploy/fleet-host-a.yaml and -b.yaml on one machine: one fleet, two launchers."""
+    """The fleet-host-a and fleet-host-b manifests on one machine: one fleet, two launchers."""
     _register(registry, tmp_path, "split", ours, [], part="host-b")
     part = {
-        m: LauncherSettings(params=FleetParams(fleet="split"), manifest=str(REPO / "deploy" / m)) for m in MANIFESTS
+        m: LauncherSettings(params=FleetParams(fleet="split"), manifest=str(MANIFEST_DIR / m)) for m in MANIFESTS
     }
     assert already_running(part["fleet-host-a.yaml"]) is None
     assert "already running" in already_running(part["fleet-host-b.yaml"])
