@@ -243,7 +243,9 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
         "--detach", action="store_true", help="run in the background; stop with `mapc fleet down`"
     )
     up.add_argument("--dry-run", action="store_true", help="print the processes and their command lines only")
-    up.add_argument("--json", action="store_true", help="JSON output (with --dry-run or --detach)")
+    up.add_argument(
+        "--json", action="store_true", help="JSON output: the plan (--dry-run), the fleet (--detach), the final summary"
+    )
     up.set_defaults(func=_cmd_fleet_up)
 
     st = fleet.add_parser("status", help="running fleets: processes and the Zenoh endpoints to connect to")

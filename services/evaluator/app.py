@@ -43,6 +43,7 @@ class EvaluatorSettings(ServiceSettings):
     out: str | None = None
     receivers: dict[str, list[str]] = Field(default_factory=lambda: {"host": []})
     window_s: float = 5.0
+    burnin_s: float = Field(5.0, ge=0, description="scenario seconds left out of the steady-state figures")
     stale_input_s: float | None = None
 
 
@@ -52,12 +53,18 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
     p.add_argument("--out", default=None, help="directory for eval_summary.json and birdseye.png")
     p.add_argument("--receiver", action="append", default=None, help="as for the channel: host=cv0")
     p.add_argument("--window", type=float, default=5.0, help="seconds of the sliding window")
+    p.add_argument("--burnin", type=float, default=5.0, help="scenario seconds not in the steady-state figures")
     add_service_args(p, "evaluator", default_id="evaluator")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
     base["stale_input_s"] = None
     return EvaluatorSettings(
-        **base, scenario=a.scenario, out=a.out, receivers=parse_receivers(a.receiver), window_s=a.window
+        **base,
+        scenario=a.scenario,
+        out=a.out,
+        receivers=parse_receivers(a.receiver),
+        window_s=a.window,
+        burnin_s=a.burnin,
     )
 
 
@@ -70,7 +77,8 @@ def main(s: EvaluatorSettings) -> int:
     log = setup_logging("evaluator", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
     scenario = load_scenario(s.scenario) if s.scenario else None  # an unknown name: ConfigError at start
-    ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard={k: set(v) for k, v in s.receivers.items()})
+    onboard = {k: set(v) for k, v in s.receivers.items()}
+    ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard=onboard, burnin_s=s.burnin_s)
     clock = SimClock()
     work: queue.Queue[tuple[str, Received]] = queue.Queue(maxsize=10_000)
     latest: dict = {"figures": {}}  # replaced whole, never mutated: the health thread reads it

@@ -5,7 +5,11 @@ at camera-frame times; truth is kept for ``truth_keep_s`` and matched within ``t
 Vehicles are paired by id; objects with true obstacles by the Hungarian algorithm on horizontal
 distance with a gate (``mapcontainer.metrics.match_objects``). Errors are horizontal
 (x, y in the map frame): RMSE = sqrt(mean ||e||^2) over every pair in the window (the paper's
-rms1 for vehicles; its map-frame counterpart for objects).
+rms1 for vehicles; its map-frame counterpart for objects). The whole-run summary gives each figure
+over the whole run and in steady state, over the fused states with ``t_meas >= burnin_s`` (the
+vehicles start cold, from GNSS). Steady state also counts coverage, the fraction of true obstacles
+(all of the scenario's, seen by a vehicle or not) matched by a fused object, and the false-track
+fraction, the fused objects that match no obstacle within the gate.
 
 Latency. End to end = wall time the fused state was published (``t_wall_ns`` in the host's
 attachment) minus the wall time its ``t_meas`` happened on the world's clock
@@ -54,6 +58,7 @@ class Evaluator:
     onboard: dict[str, set[str]] = field(default_factory=lambda: {"host": set()})  # receiver -> on-board sources
     delivery_window_s: float = 30.0
     plot_every_s: float = 0.5
+    burnin_s: float = 5.0  # scenario seconds left out of the steady-state figures
 
     def __post_init__(self) -> None:
         self._truth: dict[int, GroundTruth] = {}
@@ -75,6 +80,9 @@ class Evaluator:
         self.tx_msgs_total: dict[str, int] = {}
         self._lat_all: list[float] = []
         self._by_vehicle: dict[str, list] = {}  # vid -> [sum of squared errors, pairs]
+        self._steady_by_vehicle: dict[str, list] = {}  # the same, t_meas >= burnin_s
+        # steady state: object [sum of squared errors, pairs], obstacles [matched, true], fused [false, all]
+        self._steady = {"object": [0.0, 0], "coverage": [0, 0], "false": [0, 0]}
         self._seq = 0
         # picture material: truth and fused tracks every plot_every_s, the last fused state
         self.tracks_truth: dict[str, list[tuple[float, float]]] = {}
@@ -130,6 +138,7 @@ class Evaluator:
         self._pending = keep
 
     def _evaluate(self, fused: FusedState, truth: GroundTruth, pub_ns, meas_ns, now_wall: float) -> None:
+        steady = fused.t_meas >= self.burnin_s
         v_sq = []
         tid = {v: i for i, v in enumerate(truth.vehicle_ids)}
         for i, vid in enumerate(fused.vehicle_ids):
@@ -137,13 +146,22 @@ class Evaluator:
                 p_hat = np.asarray(fused.vehicle_pose[i][:2], float)
                 e = p_hat - np.asarray(truth.vehicle_pose[tid[vid]][:2], float)
                 v_sq.append(float(e @ e))
-                acc = self._by_vehicle.setdefault(vid, [0.0, 0])
-                acc[0] += float(e @ e)
-                acc[1] += 1
+                for by in (self._by_vehicle, self._steady_by_vehicle) if steady else (self._by_vehicle,):
+                    acc = by.setdefault(vid, [0.0, 0])
+                    acc[0] += float(e @ e)
+                    acc[1] += 1
         p_f = np.asarray(fused.object_p_map, float).reshape(-1, 3)
         p_t = np.asarray(truth.obstacle_p_map, float).reshape(-1, 3)
         ti, fi = match_objects(p_f, p_t, self.gate_m)
         o_sq = [float(x) for x in np.sum((p_f[fi, :2] - p_t[ti, :2]) ** 2, axis=1)]
+        if steady:
+            for key, (a, b) in {
+                "object": (sum(o_sq), len(o_sq)),
+                "coverage": (len(ti), len(p_t)),
+                "false": (len(p_f) - len(fi), len(p_f)),
+            }.items():
+                self._steady[key][0] += a
+                self._steady[key][1] += b
         lat = (pub_ns - meas_ns) * 1e-6 if pub_ns is not None and meas_ns is not None else None
         self._samples.append(_Sample(now_wall, v_sq, o_sq, lat))
         if lat is not None:
@@ -241,17 +259,34 @@ class Evaluator:
         )
 
     def summary(self) -> dict:
-        """Whole-run figures for the final report."""
+        """Whole-run and steady-state figures for the final report."""
         lat = self._lat_all
+
+        def rmse(by: dict[str, list]) -> dict[str, float]:
+            return {k: float(np.sqrt(a / n)) for k, (a, n) in sorted(by.items()) if n}
+
+        def root_mean(pair: list) -> float | None:
+            return float(np.sqrt(pair[0] / pair[1])) if pair[1] else None
+
+        def fraction(pair: list) -> float | None:
+            return pair[0] / pair[1] if pair[1] else None
+
+        steady_v = [sum(col) for col in zip(*self._steady_by_vehicle.values(), strict=True)] or [0.0, 0]
         return {
             "evaluated": self.evaluated,
             "no_truth": self.no_truth,
             "t_meas_last": self.t_meas,
+            "burnin_s": self.burnin_s,
             "vehicle_rmse_m": float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,
             "object_rmse_m": float(np.sqrt(self._sum_o / self._n_o)) if self._n_o else None,
             "vehicle_pairs": self._n_v,
-            "vehicle_rmse_by_id_m": {k: float(np.sqrt(a / n)) for k, (a, n) in sorted(self._by_vehicle.items()) if n},
+            "vehicle_rmse_by_id_m": rmse(self._by_vehicle),
             "object_pairs": self._n_o,
+            "vehicle_rmse_steady_m": root_mean(steady_v),
+            "vehicle_rmse_steady_by_id_m": rmse(self._steady_by_vehicle),
+            "object_rmse_steady_m": root_mean(self._steady["object"]),
+            "object_coverage_steady": fraction(self._steady["coverage"]),
+            "false_track_fraction_steady": fraction(self._steady["false"]),
             "e2e_latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
             "e2e_latency_ms_p99": float(np.percentile(lat, 99)) if lat else None,
             "tx_bytes_total": dict(sorted(self.tx_bytes_total.items())),

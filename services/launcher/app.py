@@ -4,8 +4,10 @@ It is the fleet's Zenoh rendezvous: a peer listening on a free loopback port (or
 which every service connects to (``--connect``) and any client can use (``mapc health``,
 ``mapc fleet status`` prints it). It starts the manifest's processes group by group, a group
 when the previous ones are ready (their liveliness tokens seen), restarts crashed ones with
-backoff, prints a one-line summary each second and, at the end (duration reached, Ctrl-C,
-SIGTERM or ``mapc fleet down``), stops everything in reverse order and writes the report.
+backoff (announcing crashes and restarts on the console), prints a live line each second and, at
+the end (duration reached, Ctrl-C, SIGTERM or ``mapc fleet down``), stops everything in reverse
+order, writes the report and prints its summary as a table (``--json``: one JSON line); see
+:mod:`services.launcher.report`.
 
 Run directory ``runs/<fleet>-<timestamp>/``: ``config.json`` (resolved manifest and parameters),
 ``state.json`` (live process table, endpoints, launcher pid), ``events.jsonl``, ``metrics.jsonl``
@@ -37,6 +39,7 @@ from schemas.topics import topic
 from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
 from .manifest import FleetParams, ProcessSpec, load_manifest, manifest_path, resolve
+from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
 from .supervisor import Supervisor, is_ours
 
 __all__ = [
@@ -67,6 +70,7 @@ class LauncherSettings(BaseModel):
     listen: str = "tcp/127.0.0.1:0"
     join: str | None = Field(None, description="join this router as a client instead of being the rendezvous")
     summary: bool = Field(True, description="the live line each second")
+    json_summary: bool = Field(False, description="end with the summary as one JSON line instead of the table")
     frozen_kill_s: float = 5.0
     drain_s: float = 2.0
 
@@ -202,6 +206,7 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "listen": a.listen,
         "join": a.join,
         "summary": not a.no_summary,
+        "json_summary": bool(getattr(a, "json", False)),
     }
     if a.runs_dir:
         kw["runs_dir"] = a.runs_dir
@@ -212,29 +217,6 @@ def parse_args(argv: list[str] | None = None) -> LauncherSettings:
     p = argparse.ArgumentParser(prog="python -m services.launcher", description=__doc__.splitlines()[0])
     add_fleet_args(p)
     return settings_from_args(p.parse_args(argv))
-
-
-# ---------------------------------------------------------------------------------- summary
-
-
-def summary_line(t_run: float, up: int, expected: int, metrics: dict | None) -> str:
-    """The live one-line summary (pure: easy to test)."""
-
-    def f(x, spec=".2f", unit=""):
-        return "-" if x is None else f"{x:{spec}}{unit}"
-
-    parts = [f"{t_run:6.1f}s", f"up {up}/{expected}"]
-    m = metrics or {}
-    window = f" last {m['window_s']:g}s" if m.get("window_s") else ""  # the final report's are whole-run
-    parts.append(
-        f"RMSE{window} veh {f(m.get('vehicle_rmse_m'), '.2f', ' m')} obj {f(m.get('object_rmse_m'), '.2f', ' m')}"
-    )
-    bps = m.get("tx_bytes_per_s") or {}
-    if bps:
-        parts.append("kB/s " + " ".join(f"{k} {v / 1e3:.1f}" for k, v in bps.items()))
-    parts.append(f"delivered {f(m.get('delivered_fraction'), '.3f')}")
-    parts.append(f"e2e p50 {f(m.get('e2e_latency_ms_p50'), '.0f', ' ms')}")
-    return " | ".join(parts)
 
 
 # ---------------------------------------------------------------------------------- the run
@@ -267,10 +249,13 @@ class _Run:
         with self.lock:
             self.events_f.write(json.dumps(rec) + "\n")
             self.events_f.flush()
-        level = logging.WARNING if event in ("exited", "alive_lost", "frozen_kill", "stop_timeout") else logging.INFO
-        if event == "exited" and self.sup is not None and self.sup.stopping:
-            level = logging.INFO
-        log.log(level, "%s %s %s", name, event, details or "")
+        stopping = self.sup is not None and self.sup.stopping
+        crashed = event == "exited" and details.get("returncode") != 0 and not stopping
+        trouble = crashed or event in ("frozen_kill", "stop_timeout")
+        log.log(logging.WARNING if trouble else logging.INFO, "%s %s %s", name, event, details or "")
+        said = console_event(event, name, details, stopping)
+        if said:
+            print(f"{rec['t_run']:6.1f}s {said}", flush=True)
 
     def on_metrics(self, sample) -> None:
         msg = decode(sample.payload.to_bytes(), EvalMetrics)
@@ -438,7 +423,11 @@ def run(s: LauncherSettings) -> int:
                 next_print += 1.0
                 r.write_state()
                 if s.summary:
-                    print(summary_line(now - r.t0, up, len(sup.procs), metrics), flush=True)
+                    with r.lock:
+                        why = down_reasons([p.to_json() for p in sup.procs.values()])
+                    t = scenario_time(run_dir, time.time_ns())
+                    t = t if t is None or s.params.duration_s is None else min(t, s.params.duration_s)
+                    print(summary_line(t, s.params.duration_s, up, len(sup.procs), metrics, why), flush=True)
             r.stop.wait(0.2)
     except Exception as e:
         log.exception("launcher failed")
@@ -454,9 +443,9 @@ def run(s: LauncherSettings) -> int:
         if session is not None:
             session.close()
         if r.sup is not None:
-            report = write_report(r)
+            summary = write_report(r)["summary"]
             r.write_state()
-            print(json.dumps(report.get("summary", {})), flush=True)
+            print(json.dumps(summary) if s.json_summary else format_report(summary), flush=True)
         r.events_f.close()
         r.metrics_f.close()
         try:
@@ -485,21 +474,11 @@ def write_report(r: _Run) -> dict:
     except (OSError, ValueError):
         ev = None
     procs = [p.to_json() for p in r.sup.procs.values()]
-    summary = {
-        "fleet": r.s.params.fleet,
-        "run_dir": str(r.run_dir),
-        "wall_s": round(time.monotonic() - r.t0, 1),
-        "restarts": sum(p["restarts"] for p in procs),
-        "vehicle_rmse_m": (ev or {}).get("vehicle_rmse_m"),
-        "object_rmse_m": (ev or {}).get("object_rmse_m"),
-        "e2e_latency_ms_p50": (ev or {}).get("e2e_latency_ms_p50"),
-        "delivered_fraction": (ev or {}).get("delivered_fraction"),
-        "tx_bytes_per_msg": (ev or {}).get("tx_bytes_per_msg"),
-        "birdseye": str(r.run_dir / "birdseye.png") if (r.run_dir / "birdseye.png").exists() else None,
-    }
+    params = r.s.params.model_dump()
+    summary = make_summary(r.s.params.fleet, r.run_dir, params, procs, ev, time.monotonic() - r.t0)
     report = {
         "summary": summary,
-        "params": r.s.params.model_dump(),
+        "params": params,
         "started_wall": r.started_wall,
         "ended_wall": time.time(),
         "endpoints": r.endpoints,

@@ -199,7 +199,7 @@ def test_ctrl_c_stops_the_fleet_writes_the_report_and_exits_130(
     fleet = spawn(
         "services.cli",
         *("fleet", "up", "--fleet", fleet_name, "--vehicles", "1", "--network", "ideal"),
-        *("--runs-dir", str(tmp_path / "runs"), "--no-summary"),
+        *("--runs-dir", str(tmp_path / "runs"), "--no-summary", "--json"),
         name="fleet",
     )
 
@@ -213,7 +213,7 @@ def test_ctrl_c_stops_the_fleet_writes_the_report_and_exits_130(
     assert fleet.wait(timeout=120) == 130  # not 0: the run was cut short
     run_dir = Path(state["run_dir"])
     assert json.loads((run_dir / "report.json").read_text())["summary"]["fleet"] == fleet_name
-    out = fleet.log_path.read_text().splitlines()  # --no-summary: no live line, but the start and the end
+    out = fleet.log_path.read_text().splitlines()  # --no-summary: no live line, but the start and the end (--json)
     assert any("ready: world" in line for line in out) and json.loads(out[-1])["fleet"] == fleet_name
     assert process_groups_alive({p["pgid"] for p in state["processes"]}) == []
     assert not (pointer_path(fleet_name, "local")).exists()

@@ -16,7 +16,6 @@ from services.evaluator.plot import ellipse_params
 from services.host.app import fusion_stall
 from services.host.worker import FrameGate
 from services.launcher.app import parse_args as launcher_parse_args
-from services.launcher.app import summary_line
 from services.launcher.control import launcher_argv
 from services.launcher.manifest import FleetParams, Manifest, RestartPolicy, load_manifest, resolve
 from services.world.core import Pacer, scale_scenario
@@ -140,25 +139,6 @@ def test_detached_launcher_command_line_round_trips(tmp_path) -> None:
     back = launcher_parse_args(argv[3:])
     assert back.params == s.params
     assert back.run_dir == str(tmp_path / "run") and not back.summary
-
-
-def test_summary_line() -> None:
-    line = summary_line(
-        12.3,
-        7,
-        8,
-        {
-            "vehicle_rmse_m": 0.123,
-            "object_rmse_m": None,
-            "tx_bytes_per_s": {"cv0": 3700.0},
-            "delivered_fraction": 0.98,
-            "window_s": 5.0,
-        },
-    )
-    assert "RMSE last 5s veh 0.12 m" in line  # a windowed figure, unlike the final report's
-    assert "up 7/8" in line and "veh 0.12 m" in line and "obj -" in line and "cv0 3.7" in line
-    assert "delivered 0.980" in line
-    assert "up 0/0" in summary_line(0, 0, 0, None)
 
 
 # ------------------------------------------------------------------------------ host frame gate
@@ -314,6 +294,26 @@ def test_evaluator_rmse_latency_and_bandwidth() -> None:
     assert s["vehicle_rmse_by_id_m"]["cv0"] == pytest.approx(0.3, abs=1e-5)
     assert s["tx_msgs_total"] == {"cv0": 10, "cv1": 10}
     assert len(ev.ellipses()) == 1 + 3
+
+
+def test_evaluator_steady_state_leaves_the_burn_in_out() -> None:
+    """Before burnin_s the vehicle is 2 m off (a cold start), after it 0.1 m: steady state sees only the
+    latter, the whole run both; coverage and false tracks count from the burn-in on."""
+    ev = Evaluator("f", burnin_s=1.0)
+    for k in range(20):
+        t = k * 0.1
+        ev.on_truth(_truth(t, (0.0, 0.0), [(0.0, 0.0), (20.0, 0.0)]))
+        off, objects = (2.0, [(0.0, 0.3)]) if t < 1.0 else (0.1, [(0.0, 0.3), (60.0, 0.0)])
+        ev.on_fused(_fused(t, (off, 0.0), objects), None, None, now_wall=100 + t)
+    s = ev.summary()
+    assert s["burnin_s"] == 1.0
+    assert s["vehicle_rmse_steady_m"] == pytest.approx(0.1) and s["vehicle_rmse_steady_by_id_m"] == {
+        "cv0": pytest.approx(0.1)
+    }
+    assert s["vehicle_rmse_m"] == pytest.approx(np.sqrt((10 * 4.0 + 10 * 0.01) / 20))
+    assert s["object_rmse_steady_m"] == pytest.approx(0.3)
+    assert s["object_coverage_steady"] == pytest.approx(0.5)  # one of the two obstacles, every frame
+    assert s["false_track_fraction_steady"] == pytest.approx(0.5)  # the object at (60, 0) matches nothing
 
 
 def test_a_vehicles_fused_track_breaks_where_it_was_absent() -> None:
