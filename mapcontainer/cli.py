@@ -132,7 +132,10 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
         scenario=args.scenario,
         progress=not args.quiet,
     )
-    print(jsonout.dumps({"out": str(args.out), "points": len(rows)}))
+    doc = {"out": str(args.out), "points": len(rows)}
+    if args.quick:
+        doc["smoke_test"] = "short cold-started points: they show the sweep runs, not what the network does"
+    print(jsonout.dumps(doc))
     return 0
 
 
@@ -252,7 +255,11 @@ def build_parser() -> argparse.ArgumentParser:
         "network", help="latency x loss x bandwidth sweep in both modes (in process; --live: on the fleet)"
     )
     en.add_argument("--out", required=True, type=output_dir, help="output directory")
-    en.add_argument("--quick", action="store_true", help="a 2 x 2 x 2 grid of short runs (for tests)")
+    en.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke test: a 2 x 2 x 2 grid of 2.5 s cold-started points (1.5 s scored), too short for figures",
+    )
     en.add_argument("--seed", type=non_negative_int, default=0)
     en.add_argument("--workers", type=positive_int, default=2, help="worker processes")
     en.add_argument("--duration", type=seconds, default=None, help="seconds per point (default 4, quick 2.5)")

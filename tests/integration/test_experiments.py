@@ -79,7 +79,8 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
 def test_experiment_network_quick_writes_table_and_plots(tmp_path):
     out = tmp_path / "net"
     proc = _mapc("experiment", "network", "--quick", "--seed", "0", "--workers", "2", "--out", str(out))
-    assert json.loads(proc.stdout.strip().splitlines()[-1])["points"] == 16
+    last = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert last["points"] == 16 and "smoke_test" in last
 
     rows = list(csv.DictReader((out / "network.csv").open()))
     assert len(rows) == 16
@@ -102,7 +103,8 @@ def test_experiment_network_quick_writes_table_and_plots(tmp_path):
     md = (out / "network.md").read_text()
     assert "Key comparison" in md and "| distributed |" in md and "| centralized |" in md
     doc = json.loads((out / "results.json").read_text())
-    assert len(doc["rows"]) == 16 and doc["meta"]["quick"] is True
+    assert len(doc["rows"]) == 16 and doc["meta"]["quick"] is True and doc["meta"]["smoke_test"] is True
+    assert "**Smoke test**" in md
     for png in ("network_latency.png", "network_bandwidth.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
 

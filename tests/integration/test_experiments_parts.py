@@ -142,6 +142,11 @@ def test_network_md_header_describes_live_presets_truthfully(tmp_path):
     write_network_outputs(sweep, tmp_path / "s", {"seed": 0, "duration_s": 4.0, "warmup_s": 1.0})
     head = (tmp_path / "s" / "network.md").read_text().split("## Key comparison")[0]
     assert "Bernoulli loss; no jitter" in head and "first 1.0 s are not scored" in head
+    assert "cold start" in head and "Smoke test" not in head
+    assert "predicted to the fuse time" in head and "not a prediction" not in head  # what _output does
+    write_network_outputs(sweep, tmp_path / "q", {"seed": 0, "duration_s": 2.5, "warmup_s": 1.0, "smoke_test": True})
+    head = (tmp_path / "q" / "network.md").read_text().split("## Key comparison")[0]
+    assert "**Smoke test** (`--quick`)" in head
 
 
 def test_progress_bar_writes_deciles_to_a_file():
