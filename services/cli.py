@@ -80,9 +80,11 @@ def _cmd_fleet_status(args: argparse.Namespace) -> int:
         else:
             print(
                 f"fleet {name}: launcher {f['launcher_pid']} is gone (its last status: {f['status']}); "
-                "`mapc fleet down` stops what is left and clears the entry"
+                f"`mapc fleet down --fleet {f['fleet']}` stops what is left and clears the entry"
             )
         print(f"  connect: {', '.join(f['endpoints'])}   (e.g. mapc health --fleet {f['fleet']})")
+        if f["cwd"]:
+            print(f"  started in: {f['cwd']}")
         print(f"  run dir: {f['run_dir']}")
         for p in f["processes"]:
             up = "-" if p.get("uptime_s") is None else f"{p['uptime_s']:.0f}s"
@@ -94,13 +96,16 @@ def _cmd_fleet_status(args: argparse.Namespace) -> int:
 
 
 def _cmd_fleet_down(args: argparse.Namespace) -> int:
-    from .launcher.control import down
+    from .launcher.control import down, to_stop
 
-    rc, results = down(args.fleet, timeout_s=args.timeout)
+    fleets, refused = to_stop(args.fleet, every=args.all)
+    if refused:
+        print(f"mapc: {refused}", file=sys.stderr)
+    rc, results = (2, []) if refused else down(fleets, timeout_s=args.timeout)
     if args.json:
         print(json.dumps(results))
-    elif not results:
-        print("no fleet is running" if args.fleet is None else f"fleet {args.fleet} is not running")
+    elif not results and not refused:
+        print("no fleet is running")
     for r in results if not args.json else []:
         left = f"; STILL RUNNING: {', '.join(r['left'])}" if r["left"] else "; no process left"
         swept = f"; killed leftovers: {', '.join(r['swept'])}" if r["swept"] else ""
@@ -248,13 +253,25 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     )
     up.set_defaults(func=_cmd_fleet_up)
 
-    st = fleet.add_parser("status", help="running fleets: processes and the Zenoh endpoints to connect to")
+    st = fleet.add_parser(
+        "status",
+        help="running fleets: where each was started, its processes and the Zenoh endpoints to connect to "
+        "(exit 0 when one runs, 1 when none)",
+    )
     st.add_argument("--json", action="store_true")
-    st.add_argument("--fleet", default=None)
+    st.add_argument("--fleet", default=None, help="this fleet only")
     st.set_defaults(func=_cmd_fleet_status)
 
-    dn = fleet.add_parser("down", help="stop a fleet (default: every running one) leaving no process behind")
-    dn.add_argument("--fleet", default=None)
+    dn = fleet.add_parser(
+        "down",
+        help="stop a fleet leaving no process behind: the one running (several: pick with --fleet or --all); "
+        "exit 0 stopped or none running, 1 a process is left, 2 several fleets or an unknown name (nothing stopped)",
+    )
+    which = dn.add_mutually_exclusive_group()
+    which.add_argument(
+        "--fleet", default=None, help="the fleet to stop, all its manifest parts (default: the one running fleet)"
+    )
+    which.add_argument("--all", action="store_true", help="every fleet in your registry, other checkouts' too")
     dn.add_argument("--timeout", type=seconds, default=90.0, help="seconds to wait for the launcher")
     dn.add_argument("--json", action="store_true")
     dn.set_defaults(func=_cmd_fleet_down)

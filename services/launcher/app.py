@@ -350,6 +350,7 @@ def run(s: LauncherSettings) -> int:
                 "run_dir": str(run_dir.resolve()),
                 "launcher_pid": os.getpid(),
                 "endpoints": r.endpoints,
+                "cwd": os.getcwd(),
             },
         )
         r.write_state()

@@ -14,7 +14,7 @@ from typing import Any
 from .app import LauncherSettings, already_running, log_tail, make_run_dir, registry_dir
 from .supervisor import is_ours, kill_group, pid_alive
 
-__all__ = ["active_fleets", "detach", "down", "launcher_argv"]
+__all__ = ["active_fleets", "detach", "down", "launcher_argv", "to_stop"]
 
 
 def _read(path: Path) -> dict[str, Any] | None:
@@ -26,6 +26,8 @@ def _read(path: Path) -> dict[str, Any] | None:
 
 def active_fleets() -> list[dict[str, Any]]:
     """Every registered fleet: its pointer, its state.json and whether its launcher lives.
+
+    ``cwd`` is the launcher's working directory (None in the entries of launchers older than it).
 
     When the launcher is gone, state.json is its last word: each process is checked again and one
     that has exited is shown as ``gone``.
@@ -47,6 +49,7 @@ def active_fleets() -> list[dict[str, Any]]:
             {
                 "fleet": p.get("fleet", ptr.stem),
                 "manifest": p.get("manifest"),
+                "cwd": p.get("cwd"),
                 "pointer": str(ptr),
                 "run_dir": p.get("run_dir"),
                 "launcher_pid": pid,
@@ -58,6 +61,35 @@ def active_fleets() -> list[dict[str, Any]]:
             }
         )
     return out
+
+
+def _where(f: dict[str, Any]) -> str:
+    """Where a registered fleet was started from: the launcher's working directory, the manifest, the run
+    directory."""
+    cwd = f"started in {f['cwd']}, " if f.get("cwd") else ""
+    return f"{cwd}manifest {f['manifest']}, run dir {f['run_dir']}"
+
+
+def to_stop(fleet: str | None, every: bool = False) -> tuple[list[dict[str, Any]], str | None]:
+    """The registry entries ``mapc fleet down`` stops (:func:`active_fleets` rows), or why it stops none.
+
+    ``every``: all. ``fleet``: that fleet's (one entry per manifest part); a name not in the registry is
+    refused. Neither: the one fleet there is, nothing when there is none; several are refused, since the
+    others may be another checkout's or another job's. A refusal lists the registered fleets.
+    """
+    fleets = active_fleets()
+    names = sorted({f["fleet"] for f in fleets})
+    if every or (fleet is None and len(names) <= 1):
+        return fleets, None
+    if fleet in names:
+        return [f for f in fleets if f["fleet"] == fleet], None
+    listing = "".join(
+        f"\n  {f['fleet']}: launcher {f['launcher_pid']}{'' if f['launcher_alive'] else ' (gone)'}, {_where(f)}"
+        for f in fleets
+    )
+    if fleet is None:
+        return [], f"{len(names)} fleets are running; pick one with --fleet NAME, or stop them all with --all:{listing}"
+    return [], f"no fleet {fleet!r} is running" + (f"; the registered ones:{listing}" if fleets else " (none is)")
 
 
 def _recheck(proc: dict[str, Any]) -> dict[str, Any]:
@@ -146,14 +178,14 @@ def detach(s: LauncherSettings, timeout_s: float = 180.0) -> tuple[int, dict[str
     }
 
 
-def down(fleet: str | None = None, timeout_s: float = 90.0) -> tuple[int, list[dict]]:
-    """Stop the named fleet (or every active one): SIGTERM its launcher, wait, then sweep leftovers.
+def down(fleets: list[dict[str, Any]], timeout_s: float = 90.0) -> tuple[int, list[dict]]:
+    """Stop these fleets (:func:`to_stop`): SIGTERM each launcher, wait, then sweep leftovers.
 
     The launcher stops its services (SIGINT, then SIGKILL) and writes the report. Whatever is still
     alive afterwards (a launcher that hung or was killed) is killed by process group from state.json.
-    Returns (0 if nothing is left, 1 otherwise; what was done per fleet).
+    Returns (0 if nothing of ours is left, 1 otherwise; what was done per fleet). A pid that now runs
+    something else (recycled) does not count, so a stale entry is cleared.
     """
-    fleets = [f for f in active_fleets() if fleet is None or f["fleet"] == fleet]
     results = []
     rc = 0
     for f in fleets:
@@ -181,10 +213,10 @@ def down(fleet: str | None = None, timeout_s: float = 90.0) -> tuple[int, list[d
                 swept.append(p.get("name"))
         deadline = time.monotonic() + 2.0
         procs = state.get("processes", [])
-        while time.monotonic() < deadline and any(p.get("pid") and pid_alive(int(p["pid"])) for p in procs):
+        while time.monotonic() < deadline and any(p.get("pid") and is_ours(int(p["pid"])) for p in procs):
             time.sleep(0.05)  # SIGKILL is asynchronous: wait until the kernel has reaped them
-        left = [p.get("name") for p in procs if p.get("pid") and pid_alive(int(p["pid"]))]
-        if pid and pid_alive(int(pid)):
+        left = [p.get("name") for p in procs if p.get("pid") and is_ours(int(p["pid"]))]
+        if pid and is_ours(int(pid)):
             left.append("launcher")
         res.update(swept=swept, left=left, status=state.get("status"))
         if left:
