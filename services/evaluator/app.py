@@ -4,7 +4,8 @@ Subscribes ground truth, every host's fused state, the vehicles' ``v2x/tx`` (byt
 sends) and the channel's ``v2x/rx`` (what arrived); the figures are defined in
 :mod:`services.evaluator.core`. Once a second it publishes :class:`schemas.EvalMetrics` on the
 registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). On stop it writes
-``eval_summary.json`` and ``birdseye.png`` (truth vs fused, covariance ellipses) to ``--out``.
+``eval_summary.json``, ``birdseye.png`` (truth vs fused, covariance ellipses) and ``errors.png``
+(error over scenario time) to ``--out`` (:mod:`services.evaluator.plot`).
 Callbacks only enqueue; one worker thread decodes and evaluates.
 """
 
@@ -50,7 +51,7 @@ class EvaluatorSettings(ServiceSettings):
 def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
     p = argparse.ArgumentParser(prog="python -m services.evaluator", description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="paper-urban", help="for the map in the picture")
-    p.add_argument("--out", default=None, help="directory for eval_summary.json and birdseye.png")
+    p.add_argument("--out", default=None, help="directory for eval_summary.json, birdseye.png and errors.png")
     p.add_argument("--receiver", action="append", default=None, help="as for the channel: host=cv0")
     p.add_argument("--window", type=float, default=5.0, help="seconds of the sliding window")
     p.add_argument("--burnin", type=float, default=5.0, help="scenario seconds not in the steady-state figures")
@@ -151,15 +152,16 @@ def main(s: EvaluatorSettings) -> int:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "eval_summary.json", ev.summary())
         try:
-            from .plot import render_run
+            from .plot import render_birdseye, render_errors
 
             hdmap = None
             if scenario is not None:
                 from mapcontainer.hdmap.generator import generate_map
 
                 hdmap = generate_map(scenario.map)
-            render_run(out / "birdseye.png", ev, hdmap, f"fleet {s.fleet}: truth (red/grey) vs fused (blue)")
-        except Exception:  # the picture is a convenience; the summary is already written
-            log.exception("could not draw birdseye.png")
+            render_birdseye(out / "birdseye.png", ev, hdmap, f"fleet {s.fleet}: {s.scenario}")
+            render_errors(out / "errors.png", ev, f"fleet {s.fleet}: {s.scenario}")
+        except Exception:  # the pictures are a convenience; the summary is already written
+            log.exception("could not draw the run's pictures")
         log.info("wrote %s", out / "eval_summary.json")
     return 0

@@ -31,11 +31,18 @@ import numpy as np
 
 from mapcontainer.metrics import match_objects
 from schemas import EvalMetrics, FusedState, GroundTruth
-from schemas.arrays import cov_from_upper
 
 __all__ = ["Evaluator"]
 
 GATE_M = 3.0
+TRACE_MAX = 100_000  # entries kept per picture trace (10 Hz: almost 3 hours)
+
+
+def _trace(traces: dict, key) -> deque:
+    """The bounded trace of ``key`` (made on first use)."""
+    if key not in traces:
+        traces[key] = deque(maxlen=TRACE_MAX)
+    return traces[key]
 
 
 @dataclass
@@ -84,10 +91,13 @@ class Evaluator:
         # steady state: object [sum of squared errors, pairs], obstacles [matched, true], fused [false, all]
         self._steady = {"object": [0.0, 0], "coverage": [0, 0], "false": [0, 0]}
         self._seq = 0
-        # picture material: truth and fused tracks every plot_every_s, the last fused state
-        self.tracks_truth: dict[str, list[tuple[float, float]]] = {}
-        self.tracks_fused: dict[str, list[tuple[float, float]]] = {}
-        self.fused_objects: list[tuple[float, float]] = []
+        # picture material, in scenario time (bounded): truth every plot_every_s, every fused state
+        self.truth_vehicles: dict[str, deque[tuple[float, float, float]]] = {}  # vid -> (t, x, y)
+        self.truth_obstacles: dict[int, deque[tuple[float, float, float]]] = {}  # obstacle id -> (t, x, y)
+        self.tracks_fused: dict[str, deque[tuple[float, float, float]]] = {}  # vid -> (t, x, y), NaN at gaps
+        self.fused_objects: deque[tuple[float, int, int, float, float]] = deque(maxlen=TRACE_MAX)  # t, id, cls, x, y
+        # per fused state: (t_meas, {vid: horizontal error m}, object RMSE m or None, coverage or None)
+        self.errors: deque[tuple[float, dict[str, float], float | None, float | None]] = deque(maxlen=TRACE_MAX)
         self.last_fused: FusedState | None = None
         self.last_truth: GroundTruth | None = None
         self._last_plot_t = -np.inf
@@ -103,11 +113,11 @@ class Evaluator:
         for k in [k for k in self._truth if k < lo]:
             del self._truth[k]
         if truth.t_meas - self._last_plot_t >= self.plot_every_s - 1e-9:
-            self._last_plot_t = truth.t_meas
+            self._last_plot_t = t = truth.t_meas
             for vid, pose in zip(truth.vehicle_ids, truth.vehicle_pose, strict=True):
-                self.tracks_truth.setdefault(vid, []).append((float(pose[0]), float(pose[1])))
+                _trace(self.truth_vehicles, vid).append((t, float(pose[0]), float(pose[1])))
             for oid, p in zip(truth.obstacle_id, truth.obstacle_p_map, strict=True):
-                self.tracks_truth.setdefault(f"o{int(oid)}", []).append((float(p[0]), float(p[1])))
+                _trace(self.truth_obstacles, int(oid)).append((t, float(p[0]), float(p[1])))
 
     def _find_truth(self, t: float) -> GroundTruth | None:
         k = self._k(t)
@@ -140,12 +150,14 @@ class Evaluator:
     def _evaluate(self, fused: FusedState, truth: GroundTruth, pub_ns, meas_ns, now_wall: float) -> None:
         steady = fused.t_meas >= self.burnin_s
         v_sq = []
+        v_err: dict[str, float] = {}
         tid = {v: i for i, v in enumerate(truth.vehicle_ids)}
         for i, vid in enumerate(fused.vehicle_ids):
             if vid in tid:
                 p_hat = np.asarray(fused.vehicle_pose[i][:2], float)
                 e = p_hat - np.asarray(truth.vehicle_pose[tid[vid]][:2], float)
                 v_sq.append(float(e @ e))
+                v_err[vid] = float(np.sqrt(e @ e))
                 for by in (self._by_vehicle, self._steady_by_vehicle) if steady else (self._by_vehicle,):
                     acc = by.setdefault(vid, [0.0, 0])
                     acc[0] += float(e @ e)
@@ -176,14 +188,19 @@ class Evaluator:
         self.last = {"objects_fused": len(p_f), "objects_matched": len(ti), "obstacles_truth": len(p_t)}
         self.last_fused = fused
         self.last_truth = truth  # the truth at the last fused state's t_meas (for the picture)
+        t = fused.t_meas
+        self.errors.append(
+            (t, v_err, float(np.sqrt(np.mean(o_sq))) if o_sq else None, len(ti) / len(p_t) if len(p_t) else None)
+        )
         for i, vid in enumerate(fused.vehicle_ids):
-            self.tracks_fused.setdefault(vid, []).append(tuple(float(x) for x in fused.vehicle_pose[i][:2]))
+            _trace(self.tracks_fused, vid).append((t, float(fused.vehicle_pose[i][0]), float(fused.vehicle_pose[i][1])))
         for vid, pts in self.tracks_fused.items():  # absent from this state: the drawn line breaks here
-            if vid not in fused.vehicle_ids and not np.isnan(pts[-1][0]):
-                pts.append((np.nan, np.nan))
-        if len(p_f):
-            self.fused_objects.extend((float(x), float(y)) for x, y in p_f[:, :2])
-            del self.fused_objects[:-20000]
+            if vid not in fused.vehicle_ids and not np.isnan(pts[-1][1]):
+                pts.append((t, np.nan, np.nan))
+        self.fused_objects.extend(
+            (t, int(i), int(c), float(p[0]), float(p[1]))
+            for i, c, p in zip(fused.object_id, fused.object_cls, p_f, strict=True)
+        )
 
     def on_tx(self, src: str, seq: int | None, nbytes: int, now_wall: float) -> None:
         self._tx.setdefault(src, deque()).append((now_wall, nbytes))
@@ -295,15 +312,3 @@ class Evaluator:
             "directed_messages_settled": self.sent_total,
             "delivered_fraction": self.delivered_total / self.sent_total if self.sent_total else None,
         }
-
-    def ellipses(self) -> list[tuple[float, float, np.ndarray]]:
-        """(x, y, 2x2 horizontal covariance) of every vehicle and object in the last fused state."""
-        f = self.last_fused
-        if f is None:
-            return []
-        out = []
-        for pose, cov in zip(f.vehicle_pose, f.vehicle_pose_cov, strict=True):
-            out.append((float(pose[0]), float(pose[1]), cov_from_upper(np.asarray(cov, float))[:2, :2]))
-        for p, cov in zip(f.object_p_map, f.object_cov, strict=True):
-            out.append((float(p[0]), float(p[1]), cov_from_upper(np.asarray(cov, float))[:2, :2]))
-        return out

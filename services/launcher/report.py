@@ -25,7 +25,15 @@ def scenario_time(run_dir: Path, now_wall_ns: int) -> float | None:
 
 def down_reasons(procs: list[dict[str, Any]]) -> str:
     """Why the processes that are not up are not: ``world done``, ``host restarting``, ``cv2 failed`` ..."""
-    words = {"exited": "done", "backoff": "restarting", "failed": "failed", "pending": "not started"}
+    # a process that has ended but is not yet reaped still shows the state it ran in
+    words = {
+        "exited": "done",
+        "backoff": "restarting",
+        "failed": "failed",
+        "pending": "not started",
+        "starting": "exiting",
+        "ready": "exiting",
+    }
     out = []
     for p in procs:
         if p.get("alive"):

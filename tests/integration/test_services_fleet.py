@@ -104,11 +104,7 @@ def test_fleet_up_health_kill_restart_and_down(
             session.close()
 
         def restarted():
-            ev = [
-                e
-                for e in _events(run_dir)
-                if e["process"] == "vehicle-cv1" and e["t_wall"] >= t_kill_wall - 0.5
-            ]
+            ev = [e for e in _events(run_dir) if e["process"] == "vehicle-cv1" and e["t_wall"] >= t_kill_wall - 0.5]
             kinds = [e["event"] for e in ev]
             return ev if {"exited", "started", "ready"} <= set(kinds) else None
 
@@ -161,9 +157,12 @@ def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, m
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     lines = proc.stdout.strip().splitlines()
     assert any("up 6/6" in line for line in lines), lines[:5]
-    summary = json.loads(lines[-1])
-    run_dir = Path(summary["run_dir"])
-    assert summary["restarts"] == 0
+    # the run ends with the table a person reads; its last line names the run directory
+    assert lines[-1].strip().startswith("run dir"), lines[-12:]
+    assert any(line.strip().startswith("objects") for line in lines[-12:]), lines[-12:]
+    run_dir = Path(lines[-1].split()[2])
+    summary = json.loads((run_dir / "report.json").read_text())["summary"]
+    assert summary["restarts"] == 0 and summary["fleet"] == fleet_name
     for name in (
         "config.json",
         "state.json",
@@ -172,6 +171,7 @@ def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, m
         "report.json",
         "eval_summary.json",
         "birdseye.png",
+        "errors.png",
         "logs/world.log",
         "logs/host.log",
     ):

@@ -61,8 +61,9 @@ def test_down_reasons() -> None:
         {"name": "host", "alive": False, "state": "backoff", "returncode": -9},
         {"name": "cv2", "alive": False, "state": "failed", "returncode": 1},
         {"name": "cv1", "alive": True, "state": "ready", "returncode": None},
+        {"name": "cv3", "alive": False, "state": "ready", "returncode": None},  # ended, not yet reaped
     ]
-    assert down_reasons(procs) == "world done, host restarting, cv2 failed"
+    assert down_reasons(procs) == "world done, host restarting, cv2 failed, cv3 exiting"
 
 
 def test_crashes_and_restarts_are_announced_but_a_normal_stop_is_not() -> None:
