@@ -80,9 +80,8 @@ def render_birdseye(
     ax.set_xlabel("x east (m)")
     ax.set_ylabel("y north (m)")
     ax.set_title(title)
-    ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)
 
 
