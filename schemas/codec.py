@@ -10,6 +10,7 @@ the model, or a :class:`Rejection` whose ``reason`` is one of :data:`REASONS`.
 
 from __future__ import annotations
 
+import reprlib
 import types
 import typing
 from dataclasses import dataclass
@@ -38,6 +39,12 @@ REASONS = (
 M = TypeVar("M", bound=BaseModel)
 
 _VERSION_TAG = TAGS["schema_version"]
+
+# The repr of a value from a payload in a Rejection's detail: bounded in depth and length (the repr of
+# 1,000 nested lists raised RecursionError, which took the reader down with it).
+_repr = reprlib.Repr()
+_repr.maxlevel, _repr.maxstring, _repr.maxother, _repr.maxlist, _repr.maxdict = 3, 40, 40, 4, 4
+_payload_repr = _repr.repr
 
 
 @dataclass(frozen=True)
@@ -131,7 +138,7 @@ def _key_problem(key: Any, where: str) -> str:
             f"{where}map keyed by field name ({key!r}): schema_version {SCHEMA_VERSION} keys fields by "
             f"integer tag (a schema_version {SCHEMA_VERSION - 1} or older writer?)"
         )
-    return f"{where}map key {key!r} ({type(key).__name__}) is not an integer field tag"
+    return f"{where}map key {_payload_repr(key)} ({type(key).__name__}) is not an integer field tag"
 
 
 def untag_map(model: type[BaseModel], obj: dict[Any, Any], where: str = "") -> dict[str, Any]:
@@ -196,7 +203,8 @@ def decode(data: bytes, model: type[M]) -> M | Rejection:
         return Rejection("malformed", _key_problem(bad, "")[:200])
     version = obj.get(_VERSION_TAG)
     if type(version) is not int or version != SCHEMA_VERSION:  # an int: neither True nor 1.0
-        return Rejection("schema_version", f"schema_version {version!r}, this reader knows {SCHEMA_VERSION}")
+        detail = f"schema_version {_payload_repr(version)}, this reader knows {SCHEMA_VERSION}"
+        return Rejection("schema_version", detail)
     try:
         fields = untag_map(model, obj)
     except _BadKey as exc:

@@ -449,6 +449,25 @@ def test_random_bytes_are_malformed(model: type[BaseModel]) -> None:
         assert_rejected(rng.bytes(int(rng.integers(1, 200))), model, "malformed")
 
 
+DEEP = b"\x91" * 1000 + b"\xc0"  # a list nested 1,000 deep
+
+
+@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (b"\x81\x00" + DEEP, "schema_version"),  # as schema_version: its repr raised RecursionError
+        (b"\x81" + DEEP + b"\x01", "malformed"),  # as a map key
+        (b"\x82\x00" + msgpack.packb(SCHEMA_VERSION) + msgpack.packb(TAGS["sender"]) + DEEP, "invalid"),
+    ],
+    ids=["version", "key", "field"],
+)
+def test_deeply_nested_values_are_refused_not_raised(model: type[BaseModel], payload: bytes, reason: str) -> None:
+    out = assert_rejected(payload, model, reason)
+    assert len(out.detail) <= 200
+    assert isinstance(peek(payload), dict)
+
+
 @pytest.mark.parametrize("top", [[1, 2, 3], 5, "fused", b"\x00", None, 1.5])
 def test_non_map_top_level_is_malformed(top: Any) -> None:
     assert_rejected(pack(top), FusedState, "malformed")
