@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import queue
 import re
@@ -52,6 +51,7 @@ from schemas import HealthStatus, decode, encode
 from schemas.topics import topic
 
 __all__ = [
+    "EXIT_THREAD_DIED",
     "LatencySamples",
     "Received",
     "RateCounter",
@@ -78,6 +78,7 @@ __all__ = [
 log = logging.getLogger("mapc.runtime")
 
 STATES = ("ok", "degraded", "failed")
+EXIT_THREAD_DIED = 70  # EX_SOFTWARE: a service whose worker thread died exits with it
 
 
 # ------------------------------------------------------------------------------ configuration
@@ -321,8 +322,13 @@ class SimClock:
     """The world's clock as seen from another service: scenario time <-> wall time.
 
     The world puts ``epoch_wall_ns`` and ``time_scale`` into every attachment it sends; services
-    pass them on. ``t_scenario = (wall_ns - epoch_wall_ns) * 1e-9 * time_scale``.
+    pass them on. ``t_scenario = (wall_ns - epoch_wall_ns) * 1e-9 * time_scale``. A clock outside
+    the world's own limits (``time_scale`` in [TIME_SCALE_MIN, TIME_SCALE_MAX], an epoch after 1970
+    that fits int64) is ignored: attachments are unauthenticated, and a time scale of 1e-300 made
+    every conversion overflow.
     """
+
+    TIME_SCALE_MIN, TIME_SCALE_MAX = 1e-3, 100.0
 
     def __init__(self) -> None:
         self.epoch_wall_ns: int | None = None
@@ -330,7 +336,12 @@ class SimClock:
 
     def update(self, att: Mapping[str, Any]) -> bool:
         e, s = att.get("epoch_wall_ns"), att.get("time_scale")
-        if type(e) is int and type(s) in (int, float) and math.isfinite(s) and s > 0:  # not bool, inf, nan
+        if (
+            type(e) is int  # not bool
+            and 0 < e < 2**63
+            and type(s) in (int, float)
+            and self.TIME_SCALE_MIN <= s <= self.TIME_SCALE_MAX  # not inf, nan
+        ):
             self.epoch_wall_ns, self.time_scale = e, float(s)
             return True
         return False
@@ -570,7 +581,10 @@ class Service:
 
     Use as a context manager in the main thread. ``figures`` (a callable returning the core's
     stats dict) and ``health_check`` (returning ``(state, note)``) refine the health status.
-    Worker threads started with :meth:`spawn` are joined before the session closes.
+    Worker threads started with :meth:`spawn` are joined before the session closes. A worker thread
+    that dies of an exception turns the health to failed and stops the service, which then exits
+    with :data:`EXIT_THREAD_DIED` so that the launcher restarts it as it restarts a crashed one (a
+    process alive but dead inside would never be restarted).
     """
 
     def __init__(
@@ -598,6 +612,7 @@ class Service:
         self._state: str = "ok"
         self._state_note: str | None = None
         self._threads: list[threading.Thread] = []
+        self.thread_died: str | None = None  # the first worker thread that died, and why
         self._declared: list[Any] = []
         self._old_handlers: dict[int, Any] = {}
         self._parent = os.getppid()
@@ -654,6 +669,8 @@ class Service:
             self.session.close()
             self._restore_signals()
             self.log.info("stopped after %.1f s", time.monotonic() - self._t0)
+        if self.thread_died is not None and exc is None:
+            raise SystemExit(EXIT_THREAD_DIED)
 
     def ready(self) -> None:
         """Declare the liveliness token: the service is wired (subscribers declared) and working.
@@ -707,8 +724,10 @@ class Service:
                 target()
             except Exception as e:
                 self.metrics.error(f"{name}: {type(e).__name__}: {e}")
-                self.set_state("failed", f"thread {name} died: {e}")
-                self.log.exception("thread %s died", name)
+                self.set_state("failed", f"thread {name} died: {type(e).__name__}: {e}")
+                self.log.exception("thread %s died: the service stops and exits %d", name, EXIT_THREAD_DIED)
+                self.thread_died = self.thread_died or f"{name}: {type(e).__name__}: {e}"
+                self.stop()
 
         th = threading.Thread(target=run, name=f"{self.role}-{name}", daemon=True)
         self._threads.append(th)

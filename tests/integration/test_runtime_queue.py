@@ -1,4 +1,4 @@
-"""``Service.subscribe_queued`` on a real Zenoh session: order, the bound, and the overflow handler."""
+"""``Service`` on a real Zenoh session: ``subscribe_queued`` (order, bound, overflow handler), worker threads."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from services.runtime import Service, ServiceSettings, ZenohSettings
+from services.runtime import EXIT_THREAD_DIED, Service, ServiceSettings, ZenohSettings
 
 
 @pytest.mark.parametrize("with_overflow", [False, True])
@@ -39,3 +39,20 @@ def test_a_full_queue_drops_new_samples_or_hands_them_to_overflow(fleet_name, wa
         wait_for(lambda: len(calls) == len(expected), 10.0, "every sample handled")
     assert calls == expected
     assert svc.metrics.latency.percentiles_ms()[0] is not None  # the handler's run time is recorded
+
+
+def test_a_worker_thread_that_dies_fails_the_service_and_ends_it_with_exit_70(fleet_name) -> None:
+    """A process alive but dead inside is never restarted: the service stops and exits EX_SOFTWARE."""
+    settings = ServiceSettings(fleet=fleet_name, id="t0", zenoh=ZenohSettings(listen=["tcp/127.0.0.1:0"]))
+
+    def broken() -> None:
+        raise OverflowError("a clock from an attachment")
+
+    with pytest.raises(SystemExit) as exit_info:
+        with Service("host", settings) as svc:
+            svc.spawn(broken, "fusion")
+            assert svc.wait(timeout=10.0), "the dead thread did not stop the service"
+            state, note = svc.current_state()
+            assert state == "failed" and "fusion" in note and "OverflowError" in note
+    assert exit_info.value.code == EXIT_THREAD_DIED == 70
+    assert svc.metrics.errors == 1 and "fusion: OverflowError" in svc.thread_died
