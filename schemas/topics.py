@@ -58,6 +58,23 @@ class Topic:
                 raise ValueError(f"{k}={v!r} is not a valid key chunk")
         return self.template.format(**filled)
 
+    def parse(self, key: str) -> dict[str, str] | None:
+        """The placeholders of a concrete ``key`` of this topic (``{"fleet": ..., "src": ...}``), or None
+        when the key is not one of this topic's or a placeholder's chunk is not one :meth:`key` accepts
+        (Zenoh's ``*`` matches chunks such as ``cv1.x`` that our keys never hold)."""
+        parts, want = str(key).split("/"), self.template.split("/")
+        if len(parts) != len(want):
+            return None
+        out: dict[str, str] = {}
+        for got, t in zip(parts, want, strict=True):
+            if t.startswith("{") and t.endswith("}"):
+                if not is_chunk(got):
+                    return None
+                out[t[1:-1]] = got
+            elif got != t:
+                return None
+        return out
+
 
 TOPICS: tuple[Topic, ...] = (
     Topic("sensors", "mc/{fleet}/sim/{vid}/sensors", SensorFrame, 10.0,

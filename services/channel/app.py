@@ -155,9 +155,14 @@ def main(s: ChannelSettings) -> int:
             return pubs[key]
 
         def on_tx(kind: str):
+            tx = topic(f"{kind}_tx")
+
             def cb(msg: Received) -> None:
-                src = msg.key.split("/")[-2]
-                relay.offer(kind, src, msg.payload, msg.attachment)
+                where = tx.parse(msg.key)
+                if where is None:  # Zenoh's * also matches chunks such as cv1.x that no rx key can hold
+                    svc.metrics.reject("bad_key", f"{msg.key} is not a {tx.name} key of ours", log)
+                    return
+                relay.offer(kind, where["src"], msg.payload, msg.attachment)
 
             return cb
 

@@ -99,8 +99,8 @@ def main(s: EvaluatorSettings) -> int:
         svc.subscribe(topic("truth").key(fleet=s.fleet), enqueue("truth"))
         svc.subscribe(topic("fused").pattern(fleet=s.fleet), enqueue("fused"))
         for kind in ("prior", "raw"):
-            svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), enqueue("tx"))
-            svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet), enqueue("rx"))
+            svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), enqueue(f"{kind}_tx"))
+            svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet), enqueue(f"{kind}_rx"))
 
         def process(kind: str, msg: Received) -> None:
             now = time.time()
@@ -116,11 +116,14 @@ def main(s: EvaluatorSettings) -> int:
                     pub_ns = msg.attachment.get("t_wall_ns")
                     pub_ns = pub_ns if isinstance(pub_ns, int) and pub_ns > 0 else msg.t_recv_wall_ns
                     ev.on_fused(fused, pub_ns, clock.wall_ns(fused.t_meas), now)
-            elif kind == "tx":
-                ev.on_tx(msg.key.split("/")[-2], _seq(msg.payload), len(msg.payload), now)
-            else:
-                parts = msg.key.split("/")
-                ev.on_rx(parts[-3], parts[-2], _seq(msg.payload), now)
+            else:  # a V2X topic: who sent it (and to whom) is in its key
+                where = topic(kind).parse(msg.key)
+                if where is None:
+                    svc.metrics.reject("bad_key", f"{msg.key} is not a {kind} key of ours", log)
+                elif kind.endswith("_tx"):
+                    ev.on_tx(where["src"], _seq(msg.payload), len(msg.payload), now)
+                else:
+                    ev.on_rx(where["dst"], where["src"], _seq(msg.payload), now)
 
         def loop() -> None:
             next_pub = time.monotonic() + 1.0
@@ -136,7 +139,12 @@ def main(s: EvaluatorSettings) -> int:
                     svc.metrics.reject("unscorable", f"{kind} on {msg.key}: {type(exc).__name__}: {exc}", log)
                 if time.monotonic() >= next_pub:
                     next_pub += 1.0
-                    m = ev.snapshot(time.time())
+                    try:
+                        m = ev.snapshot(time.time())
+                    except Exception as exc:  # figures that do not validate: report, keep evaluating
+                        svc.metrics.error(f"snapshot: {type(exc).__name__}: {exc}")
+                        log.exception("could not make the metrics snapshot")
+                        continue
                     latest["figures"] = {
                         k: v
                         for k, v in m.model_dump().items()

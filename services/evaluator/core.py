@@ -14,7 +14,8 @@ fraction, the fused objects that match no obstacle within the gate.
 Latency. End to end = wall time the fused state was published (``t_wall_ns`` in the host's
 attachment) minus the wall time its ``t_meas`` happened on the world's clock
 (``epoch_wall_ns + t_meas / time_scale``), so it includes the vehicle's processing, the link
-model, the host's reorder wait and its solve.
+model, the host's reorder wait and its solve. One outside [0, MAX_E2E_LATENCY_MS] comes from a
+broken or forged clock: it is counted (``latency_refused``) and left out.
 
 Bandwidth. Payload bytes each vehicle puts on ``v2x/tx`` per second (what the radio would carry),
 and the delivered fraction: distinct (src, seq) received on ``v2x/rx/{dst}/{src}`` over messages
@@ -35,6 +36,7 @@ from schemas import EvalMetrics, FusedState, GroundTruth
 __all__ = ["Evaluator"]
 
 GATE_M = 3.0
+MAX_E2E_LATENCY_MS = 60_000.0  # a longer (or negative) end-to-end latency is a forged or broken clock
 TRACE_MAX = 100_000  # entries kept per picture trace (10 Hz: almost 3 hours)
 
 
@@ -75,6 +77,7 @@ class Evaluator:
         self._n_v = self._n_o = 0
         self.evaluated = 0
         self.no_truth = 0
+        self.latency_refused = 0
         self.t_meas: float | None = None
         self.last: dict[str, int] = {"objects_fused": 0, "objects_matched": 0, "obstacles_truth": 0}
         self._tx: dict[str, deque[tuple[float, int]]] = {}
@@ -175,6 +178,9 @@ class Evaluator:
                 self._steady[key][0] += a
                 self._steady[key][1] += b
         lat = (pub_ns - meas_ns) * 1e-6 if pub_ns is not None and meas_ns is not None else None
+        if lat is not None and not 0.0 <= lat <= MAX_E2E_LATENCY_MS:
+            self.latency_refused += 1  # e.g. t_wall_ns = 1 in the host's attachment
+            lat = None
         self._samples.append(_Sample(now_wall, v_sq, o_sq, lat))
         if lat is not None:
             self._lat_all.append(lat)
@@ -292,6 +298,7 @@ class Evaluator:
         return {
             "evaluated": self.evaluated,
             "no_truth": self.no_truth,
+            "latency_refused": self.latency_refused,
             "t_meas_last": self.t_meas,
             "burnin_s": self.burnin_s,
             "vehicle_rmse_m": float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,

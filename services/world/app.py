@@ -33,6 +33,7 @@ from schemas.topics import topic
 from ..runtime import (
     Service,
     ServiceSettings,
+    SimClock,
     add_service_args,
     make_attachment,
     service_settings_from_args,
@@ -48,7 +49,9 @@ class WorldSettings(ServiceSettings):
     scenario: str = "paper-urban"
     seed: int = 0
     vehicles: int | None = Field(None, ge=1, description="connected vehicles (None: the scenario's)")
-    time_scale: float = Field(1.0, gt=0, le=100, description="scenario seconds per wall second")
+    time_scale: float = Field(
+        1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="scenario seconds per wall second"
+    )
     duration_s: float | None = Field(None, gt=0, description="scenario seconds to run; None: until stopped")
     wait_subscribers_s: float = Field(10.0, ge=0, description="wait this long for the vehicles' subscribers")
     start_delay_s: float = Field(0.2, ge=0, description="wall seconds between the clock's epoch and now")

@@ -121,6 +121,9 @@ def test_sensor_frames_become_priors_behind_the_channel(rendezvous, fleet_name, 
         topic("prior_rx").pattern(fleet=fleet_name, dst="host"),
         lambda s: got.append((str(s.key_expr), s.payload.to_bytes())),
     )
+    # Zenoh's * matches the chunk "cv1.x", which no rx key can hold: refused, and the channel relays on
+    # (its scheduler thread died on this one message)
+    session.put(f"mc/{fleet_name}/v2x/tx/cv1.x/prior", b"\x80")
     spawn("services.world", *common, "--vehicles", "2", "--duration", "3", "--wait-subscribers", "3")
     deadline = time.monotonic() + 60
     while len(got) < 3 and time.monotonic() < deadline:
@@ -137,6 +140,7 @@ def test_sensor_frames_become_priors_behind_the_channel(rendezvous, fleet_name, 
     assert vehicle.msgs_in_per_s > 0 and vehicle.msgs_out_per_s > 0 and vehicle.latency_ms_p50 is not None
     channel = views[("channel", "channel")].status
     assert channel.figures["offered_msgs"] >= 3 and channel.figures["delivered_fraction"] == 1.0
+    assert channel.rejects == {"bad_key": 1} and channel.state == "ok"
 
 
 def test_a_vehicle_that_falls_behind_skips_frames_but_keeps_their_odometry(

@@ -212,9 +212,11 @@ def test_sim_clock_maps_scenario_time_to_wall_time() -> None:
     c = SimClock()
     assert c.now() is None and c.wall_ns(1.0) is None and not c.known
     assert not c.update({"epoch_wall_ns": "x"})
-    for bad_scale in (float("inf"), float("nan"), True, 0, -1.0):  # a clock that would stop or run away
+    for bad_scale in (float("inf"), float("nan"), True, 0, -1.0, 1e-300, 1e6):  # would stop, overflow or run away
         assert not c.update({"epoch_wall_ns": 1, "time_scale": bad_scale}) and not c.known
     assert not c.update({"epoch_wall_ns": True, "time_scale": 1.0})
+    for bad_epoch in (0, -5, 2**64 - 1):
+        assert not c.update({"epoch_wall_ns": bad_epoch, "time_scale": 1.0}) and not c.known
     assert c.update({"epoch_wall_ns": 1_000_000_000, "time_scale": 0.5})
     assert c.wall_ns(2.0) == 5_000_000_000  # 2 s of scenario at half speed: 4 s of wall time
     assert c.now(5_000_000_000) == pytest.approx(2.0)

@@ -391,3 +391,17 @@ def test_the_fusion_loop_survives_a_payload_that_breaks_the_core(monkeypatch) ->
     assert error[0] == "error" and "OverflowError: a defect" in error[1]
     assert [(item[0], round(item[2], 1)) for item in fused] == [("fused", 0.0), ("fused", 0.1), ("fused", 0.2)]
     assert [r[:2] for r in fused[0][-1]] == [(False, "ingest_error"), (True, None)] and not th.is_alive()
+
+
+@pytest.mark.parametrize("pub_wall_ns", [1, 10**18 * 9])
+def test_a_forged_publish_time_is_left_out_of_the_latency_and_counted(pub_wall_ns: int) -> None:
+    """t_wall_ns = 1 in a fused state's attachment made a latency of -1e12 ms, which no EvalMetrics
+    accepts: the evaluator's thread died on its next snapshot."""
+    ev = Evaluator("f")
+    ev.on_truth(_truth(0.0, (0.0, 0.0), []))
+    ev.on_fused(_fused(0.0, (0.1, 0.0), []), pub_wall_ns=pub_wall_ns, t_meas_wall_ns=10**18, now_wall=5.0)
+    ev.on_truth(_truth(0.1, (0.0, 0.0), []))
+    ev.on_fused(_fused(0.1, (0.1, 0.0), []), pub_wall_ns=10**18 + 150_000_000, t_meas_wall_ns=10**18, now_wall=5.1)
+    m = ev.snapshot(5.2)
+    assert m.evaluated == 2 and m.e2e_latency_ms_p50 == pytest.approx(150.0)
+    assert ev.summary()["latency_refused"] == 1

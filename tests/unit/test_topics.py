@@ -84,3 +84,14 @@ def test_topic_is_immutable() -> None:
     assert isinstance(t, Topic)
     with pytest.raises(AttributeError):
         t.name = "other"  # type: ignore[misc]
+
+
+def test_parse_gives_a_keys_placeholders_and_refuses_what_key_would_not_make() -> None:
+    rx = topic("prior_rx")
+    assert rx.parse(rx.key(fleet="f", dst="host", src="cv1")) == {"fleet": "f", "dst": "host", "src": "cv1"}
+    for t in TOPICS:
+        values = {f: f"{f}-1" for f in t.fields}
+        assert t.parse(t.key(**values)) == values, t.name
+    tx = topic("prior_tx")
+    for bad in ("mc/f/v2x/tx/cv1.x/prior", "mc/f/v2x/tx/cv1/raw", "mc/f/v2x/tx/cv1", "mc/f/v2x/tx/a/b/prior", ""):
+        assert tx.parse(bad) is None, bad
