@@ -66,6 +66,12 @@ class PoseSearchParams(BaseModel):
         5, ge=3, description="constraints on (x, y, yaw) a solution needs: the 3 unknowns and 2 more"
     )
     min_landmarks: int = Field(2, ge=1, description="... of which at least this many landmark inliers")
+    grid_detections: int = Field(
+        64,
+        ge=2,
+        description="the grid scores at most this many detections (points first, then poles): its memory "
+        "and time grow with detections x landmarks x hypotheses, and a frame of 4,096 took 6 GB",
+    )
 
 
 @dataclass(frozen=True)
@@ -172,31 +178,35 @@ class PoseSearch:
         return out
 
     def _grid_scores(self, fd: FrameData, x0, off: np.ndarray, yaws: np.ndarray) -> np.ndarray:
-        """Truncated squared pixel residuals of all detections, per (position, heading): (len(off), len(yaws))."""
+        """Truncated squared pixel residuals of the detections (at most ``grid_detections`` of them), per
+        (position, heading): (len(off), len(yaws))."""
         p, m = self.params, self.matcher
         gate2 = p.gate_px**2
         total = np.zeros((len(off), len(yaws)))
         reach = m.params.range_m + float(np.max(np.hypot(off[:, 0], off[:, 1]), initial=0.0))
-        if len(fd.pt_uv):
+        pt_uv, pt_cls = fd.pt_uv[: p.grid_detections], fd.pt_cls[: p.grid_detections]
+        n_poles = p.grid_detections - len(pt_uv)
+        pole_M1, pole_M2 = fd.pole_M1[:n_poles], fd.pole_M2[:n_poles]
+        if len(pt_uv):
             near = np.flatnonzero(np.hypot(*(m._pt_xyz[:, :2] - x0[:2]).T) <= reach)
-            near = near[np.isin(m._pt_cls[near], fd.pt_cls)]
-            best = np.full((len(off), len(yaws), len(fd.pt_uv)), gate2)
+            near = near[np.isin(m._pt_cls[near], pt_cls)]
+            best = np.full((len(off), len(yaws), len(pt_uv)), gate2)
             if len(near):
                 u, v, z = self._project(fd, x0, off, yaws, m._pt_xyz[near])
                 vis = z > m.params.min_depth_m
-                for c in np.unique(fd.pt_cls):
-                    dets = np.flatnonzero(fd.pt_cls == c)
+                for c in np.unique(pt_cls):
+                    dets = np.flatnonzero(pt_cls == c)
                     lm = m._pt_cls[near] == c
                     if not lm.any():
                         continue
-                    du = u[..., lm, None] - fd.pt_uv[dets, 0]
-                    dv = v[..., lm, None] - fd.pt_uv[dets, 1]
+                    du = u[..., lm, None] - pt_uv[dets, 0]
+                    dv = v[..., lm, None] - pt_uv[dets, 1]
                     d2 = np.where(vis[..., lm, None], du * du + dv * dv, np.inf)
                     best[..., dets] = np.minimum(d2.min(axis=2), gate2)
             total += best.sum(axis=2)
-        if len(fd.pole_M1):
+        if len(pole_M1):
             near = np.flatnonzero(np.hypot(*(m._pole_base[:, :2] - x0[:2]).T) <= reach)
-            mid = 0.5 * (fd.pole_M1 + fd.pole_M2)  # (D, 2)
+            mid = 0.5 * (pole_M1 + pole_M2)  # (D, 2)
             best = np.full((len(off), len(yaws), len(mid)), gate2)
             if len(near):
                 ub, vb, zb = self._project(fd, x0, off, yaws, m._pole_base[near])

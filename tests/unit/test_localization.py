@@ -7,6 +7,8 @@ clutter, and a lane mask rendered from the painted lane samples like a segmentat
 
 from __future__ import annotations
 
+import tracemalloc
+
 import cv2
 import numpy as np
 import pytest
@@ -516,6 +518,26 @@ def test_search_does_not_guess_from_one_landmark():
     out = PoseSearch(MapMatcher(HDMAP)).search(one, truth, cov, _yaws_both_ways(truth[5]), radius_m=9.0)
     assert out.match is None
     assert out.reason  # too few features or ambiguous: said, not guessed
+
+
+def test_the_grid_search_of_a_frame_with_4096_detections_stays_small():
+    """A frame of MAX_LANDMARKS point detections (105 kB on the wire) took the grid over 6 GB: the grid
+    scores at most grid_detections of them, so its memory does not grow with the frame."""
+    rng = np.random.default_rng(7)
+    truth = pose_on(30.0)
+    frame, _ = synth_frame(truth, rng)
+    n = 4096
+    pts = np.column_stack([rng.uniform(0, 1280, n), rng.uniform(0, 720, n)])
+    big = CameraFrame(frame.intr, frame.T_body_cam, pts, rng.choice(np.unique(frame.points_cls), n), frame.poles_uv)
+    cov = np.diag([9.0, 9.0, 0.04, 4e-4, 4e-4, np.pi**2 / 3])
+    tracemalloc.start()
+    try:
+        out = PoseSearch(MapMatcher(HDMAP)).search(big, truth, cov, _yaws_both_ways(truth[5]), radius_m=9.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert out.match is None and out.reason  # clutter everywhere: nothing accepted, and said why
+    assert peak < 150e6, f"{peak / 1e6:.0f} MB"
 
 
 @pytest.mark.parametrize(
