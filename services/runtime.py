@@ -46,6 +46,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapcontainer import jsonout
+from mapcontainer.admission import Admission
 from mapcontainer.config import ConfigError
 from schemas import HealthStatus, decode, encode
 from schemas.topics import topic
@@ -64,6 +65,7 @@ __all__ = [
     "build_health",
     "build_zenoh_config",
     "flatten_figures",
+    "sender_admission",
     "listening_locators",
     "make_attachment",
     "open_session",
@@ -78,6 +80,11 @@ __all__ = [
 log = logging.getLogger("mapc.runtime")
 
 STATES = ("ok", "degraded", "failed")
+# Refusals that mean lost input (a full queue, a flooding sender, too many senders): any of them in the last
+# DEGRADED_AFTER_REJECT_S seconds makes a service degraded. Bad input (invalid, stale, ...) does not: the
+# service handled it as it should.
+DEGRADING_REJECTS = ("queue_full", "flood", "too_many_senders")
+DEGRADED_AFTER_REJECT_S = 10.0
 EXIT_THREAD_DIED = 70  # EX_SOFTWARE: a service whose worker thread died exits with it
 
 
@@ -464,11 +471,23 @@ class ServiceMetrics:
         self.msgs_out = RateCounter(self.window_s)
         self._lock = threading.Lock()
         self._logged: set[str] = set()
+        self._last_reject: dict[str, tuple[float, str]] = {}  # reason -> (monotonic time, detail)
+
+    def recent_rejects(self, reasons: Iterable[str], within_s: float) -> dict[str, tuple[int, str]]:
+        """Of ``reasons``, those counted in the last ``within_s`` seconds: reason -> (total, last detail)."""
+        now = time.monotonic()
+        with self._lock:
+            return {
+                r: (self.rejects[r], self._last_reject[r][1])
+                for r in reasons
+                if r in self._last_reject and now - self._last_reject[r][0] <= within_s
+            }
 
     def reject(self, reason: str, detail: str = "", logger: logging.Logger | None = None) -> None:
         """Count a rejected input by reason; log the first one of each reason."""
         with self._lock:
             self.rejects[reason] += 1
+            self._last_reject[reason] = (time.monotonic(), detail[:200])
             first = reason not in self._logged
             self._logged.add(reason)
         if first:
@@ -576,6 +595,13 @@ class CountingPublisher:
         self._pub.undeclare()
 
 
+def sender_admission(topic_name: str, time_scale: float = 1.0, max_senders: int = 256) -> Admission:
+    """Per-sender admission for a topic: twice its nominal rate in wall time (``time_scale`` scenario seconds
+    per wall second), with one second of that as the burst."""
+    rate = 2.0 * (topic(topic_name).rate_hz or 10.0) * max(time_scale, 1.0)
+    return Admission(rate_hz=rate, burst=rate, max_senders=max_senders)
+
+
 class Service:
     """A service process's runtime: session, liveliness token, health, counters, signals.
 
@@ -586,6 +612,8 @@ class Service:
     with :data:`EXIT_THREAD_DIED` so that the launcher restarts it as it restarts a crashed one (a
     process alive but dead inside would never be restarted).
     """
+
+    OVERFLOW_FACTOR = 10  # subscribe_queued: samples waiting for the overflow handler, per maxsize
 
     def __init__(
         self,
@@ -613,6 +641,7 @@ class Service:
         self._state_note: str | None = None
         self._threads: list[threading.Thread] = []
         self.thread_died: str | None = None  # the first worker thread that died, and why
+        self._admission_lock = threading.Lock()
         self._declared: list[Any] = []
         self._old_handlers: dict[int, Any] = {}
         self._parent = os.getppid()
@@ -754,6 +783,8 @@ class Service:
             candidates.append(("degraded", f"input stalled for {idle:.1f} s"))
         if self.metrics.last_error_t is not None and time.monotonic() - self.metrics.last_error_t < 10.0:
             candidates.append(("degraded", self.metrics.last_error))
+        for reason, (n, detail) in self.metrics.recent_rejects(DEGRADING_REJECTS, DEGRADED_AFTER_REJECT_S).items():
+            candidates.append(("degraded", f"input lost: {reason} ({n} so far; the last: {detail})"))
         return max(candidates, key=lambda c: STATES.index(c[0]))
 
     def health(self) -> HealthStatus:
@@ -830,6 +861,15 @@ class Service:
         self._declared.append(sub)
         return sub
 
+    def admit(self, admission: Admission, sender: str, what: str) -> bool:
+        """Whether ``sender``'s message (``what``, for the log) passes its per-sender admission; a refusal
+        (``flood``, ``too_many_senders``) is counted. Thread-safe: Zenoh runs callbacks on several threads."""
+        with self._admission_lock:
+            reason = admission.admit(sender, time.monotonic())
+        if reason is not None:
+            self.metrics.reject(reason, f"{what} from {sender}", self.log)
+        return reason is None
+
     def subscribe_queued(
         self,
         key: str,
@@ -841,36 +881,43 @@ class Service:
         """Subscribe with a bounded queue and one worker thread running ``handler`` in arrival order.
 
         When ``maxsize`` samples wait for ``handler``, a new sample is counted as reject ``queue_full``
-        and dropped; with ``overflow`` it is still counted, but passed to ``overflow`` instead, in the
-        same worker and in arrival order (a cheap partial handling: a vehicle keeps the odometry of a
-        frame it has no time to match). The handler's run time is recorded as the processing latency.
+        and dropped; with ``overflow`` it is counted as ``skipped`` and passed to ``overflow`` instead, in
+        the same worker and in arrival order (a cheap partial handling: a vehicle keeps the odometry of a
+        frame it has no time to match), until ``OVERFLOW_FACTOR * maxsize`` samples wait for it, beyond
+        which it is dropped as ``queue_full`` too (a flood must not grow the queue without bound). The
+        handler's run time is recorded as the processing latency.
         """
         q: queue.SimpleQueue[tuple[Received, bool]] = queue.SimpleQueue()
         lock = threading.Lock()
         waiting = 0  # samples in q for ``handler``
+        skipping = 0  # samples in q for ``overflow``
 
         def enqueue(msg: Received) -> None:
-            nonlocal waiting
+            nonlocal waiting, skipping
             with lock:
                 full = waiting >= maxsize
+                drop = full and (overflow is None or skipping >= self.OVERFLOW_FACTOR * maxsize)
                 waiting += not full
+                skipping += full and not drop
+            if drop:
+                self.metrics.reject("queue_full", f"{name}: {maxsize} samples waiting, dropped", self.log)
+                return
             if full:
-                what = "dropped" if overflow is None else "passed to the overflow handler"
-                self.metrics.reject("queue_full", f"{name}: {maxsize} samples waiting, {what}", self.log)
-                if overflow is None:
-                    return
+                self.metrics.reject("skipped", f"{name}: {maxsize} samples waiting, handled in part", self.log)
             q.put((msg, not full))
 
         def work() -> None:
-            nonlocal waiting
+            nonlocal waiting, skipping
             while not self.stop_requested.is_set():
                 try:
                     msg, whole = q.get(timeout=0.2)
                 except queue.Empty:
                     continue
-                if whole:
-                    with lock:
+                with lock:
+                    if whole:
                         waiting -= 1
+                    else:
+                        skipping -= 1
                 t0 = time.perf_counter()
                 try:
                     (handler if whole else overflow)(msg)

@@ -29,8 +29,10 @@ from ..runtime import (
     Received,
     Service,
     ServiceSettings,
+    SimClock,
     add_service_args,
     make_attachment,
+    sender_admission,
     service_settings_from_args,
     setup_logging,
 )
@@ -47,6 +49,9 @@ class ChannelSettings(ServiceSettings):
         default_factory=lambda: {"host": []}, description="receiver id -> its on-board sources (not relayed)"
     )
     stale_input_s: float | None = None  # an idle channel is not unhealthy
+    time_scale: float = Field(
+        1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="the world's: senders' rates scale"
+    )
 
 
 def parse_receivers(specs: list[str] | None) -> dict[str, list[str]]:
@@ -70,11 +75,14 @@ def parse_args(argv: list[str] | None = None) -> ChannelSettings:
         default=None,
         help="receiver id, optionally with on-board sources: host=cv0 (repeatable; default host)",
     )
+    p.add_argument("--time-scale", type=float, default=1.0, help="the world's (senders' rates scale with it)")
     add_service_args(p, "channel", default_id="channel")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
     base["stale_input_s"] = None
-    return ChannelSettings(**base, network=a.network, seed=a.seed, receivers=parse_receivers(a.receiver))
+    return ChannelSettings(
+        **base, network=a.network, seed=a.seed, receivers=parse_receivers(a.receiver), time_scale=a.time_scale
+    )
 
 
 class Relay:
@@ -156,13 +164,15 @@ def main(s: ChannelSettings) -> int:
 
         def on_tx(kind: str):
             tx = topic(f"{kind}_tx")
+            admission = sender_admission(tx.name, s.time_scale)  # a flooding source loses its own excess only
 
             def cb(msg: Received) -> None:
                 where = tx.parse(msg.key)
                 if where is None:  # Zenoh's * also matches chunks such as cv1.x that no rx key can hold
                     svc.metrics.reject("bad_key", f"{msg.key} is not a {tx.name} key of ours", log)
                     return
-                relay.offer(kind, where["src"], msg.payload, msg.attachment)
+                if svc.admit(admission, where["src"], tx.name):
+                    relay.offer(kind, where["src"], msg.payload, msg.attachment)
 
             return cb
 

@@ -36,6 +36,7 @@ from schemas import EvalMetrics, FusedState, GroundTruth
 __all__ = ["Evaluator"]
 
 GATE_M = 3.0
+MAX_SOURCES = 256  # distinct V2X sources counted; more are a flood of names (counted in sources_refused)
 MAX_E2E_LATENCY_MS = 60_000.0  # a longer (or negative) end-to-end latency is a forged or broken clock
 TRACE_MAX = 100_000  # entries kept per picture trace (10 Hz: almost 3 hours)
 
@@ -78,6 +79,7 @@ class Evaluator:
         self.evaluated = 0
         self.no_truth = 0
         self.latency_refused = 0
+        self.sources_refused = 0
         self.t_meas: float | None = None
         self.last: dict[str, int] = {"objects_fused": 0, "objects_matched": 0, "obstacles_truth": 0}
         self._tx: dict[str, deque[tuple[float, int]]] = {}
@@ -209,6 +211,9 @@ class Evaluator:
         )
 
     def on_tx(self, src: str, seq: int | None, nbytes: int, now_wall: float) -> None:
+        if src not in self._tx and len(self._tx) >= MAX_SOURCES:
+            self.sources_refused += 1
+            return
         self._tx.setdefault(src, deque()).append((now_wall, nbytes))
         self.tx_bytes_total[src] = self.tx_bytes_total.get(src, 0) + nbytes
         self.tx_msgs_total[src] = self.tx_msgs_total.get(src, 0) + 1
@@ -216,7 +221,7 @@ class Evaluator:
             self._tx_sent.append((now_wall, src, seq))
 
     def on_rx(self, dst: str, src: str, seq: int | None, now_wall: float) -> None:
-        if seq is not None:
+        if seq is not None and src in self._tx:  # a delivery of a source never seen sending counts for nothing
             self._rx_seen[(dst, src, seq)] = now_wall
 
     # -- outputs ----------------------------------------------------------------------------
@@ -299,6 +304,7 @@ class Evaluator:
             "evaluated": self.evaluated,
             "no_truth": self.no_truth,
             "latency_refused": self.latency_refused,
+            "sources_refused": self.sources_refused,
             "t_meas_last": self.t_meas,
             "burnin_s": self.burnin_s,
             "vehicle_rmse_m": float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,

@@ -28,7 +28,9 @@ from typing import Any, Literal
 
 from pydantic import Field
 
+from mapcontainer.admission import Admission
 from mapcontainer.config import read_yaml, validate_model
+from schemas.codec import peek
 from schemas.topics import topic
 
 from ..runtime import (
@@ -38,12 +40,13 @@ from ..runtime import (
     SimClock,
     add_service_args,
     make_attachment,
+    sender_admission,
     service_settings_from_args,
     setup_logging,
 )
 from .worker import fusion_loop, fusion_process
 
-__all__ = ["HostSettings", "fusion_stall", "main", "parse_args"]
+__all__ = ["HostSettings", "fused_lag", "fusion_stall", "main", "parse_args"]
 
 
 class HostSettings(ServiceSettings):
@@ -55,6 +58,12 @@ class HostSettings(ServiceSettings):
     params: dict[str, Any] | None = Field(None, description="FusionParams fields (None: defaults)")
     inline: bool = False
     inbox: int = 2000
+    time_scale: float = Field(
+        1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="the world's: senders' rates scale"
+    )
+    max_fused_lag_s: float = Field(
+        1.0, gt=0, description="degraded when the fused output trails the world's clock by more (wall seconds)"
+    )
 
 
 def _fusion_params(path: str | None) -> dict[str, Any] | None:
@@ -78,6 +87,7 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
     p.add_argument("--local", action="append", default=[], help="on-board source, e.g. cv0 (repeatable)")
     p.add_argument("--params", default=None, help="YAML file of FusionParams fields")
     p.add_argument("--inline", action="store_true", help="run the solver in a thread, not a worker process")
+    p.add_argument("--time-scale", type=float, default=1.0, help="the world's (senders' rates scale with it)")
     add_service_args(p, "host", default_id="host")
     a = p.parse_args(argv)
     return HostSettings(
@@ -89,6 +99,7 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
         local=a.local,
         params=_fusion_params(a.params),
         inline=a.inline,
+        time_scale=a.time_scale,
     )
 
 
@@ -109,6 +120,18 @@ def fusion_stall(
     new = {r: n - rejects_at_fused.get(r, 0) for r, n in rejects.items() if n > rejects_at_fused.get(r, 0)}
     why = ", ".join(f"{n} {r}" for r, n in sorted(new.items(), key=lambda kv: -kv[1])) or "none"
     return f"input is flowing but nothing was fused for {since_fused_s:.1f} s (rejected since then: {why})"
+
+
+def fused_lag(t_now: float | None, t_fused: float | None, time_scale: float, max_lag_s: float) -> str | None:
+    """Why the host is degraded although it fuses, or None: its newest fused state (scenario time
+    ``t_fused``) trails the world's clock ``t_now`` by more than ``max_lag_s`` wall seconds, so it does not
+    keep up with its input (a solve slower than the frames, e.g. under a flood)."""
+    if t_now is None or t_fused is None:
+        return None
+    lag_s = (t_now - t_fused) / time_scale
+    if lag_s <= max_lag_s:
+        return None
+    return f"the fused output trails the world by {lag_s:.1f} s (more than {max_lag_s:g} s): not keeping up"
 
 
 def main(s: HostSettings) -> int:
@@ -166,7 +189,8 @@ def main(s: HostSettings) -> int:
             pass
         return {**core_stats["stats"], **fig}
 
-    fused_at = {"t": time.monotonic(), "rejects": {}}  # the last publish and the rejections until then
+    # the last publish (monotonic), the rejections until then, and its scenario time
+    fused_at: dict[str, Any] = {"t": time.monotonic(), "rejects": {}, "t_meas": None}
     rc = 0
     with Service("host", s, figures=figures) as svc:
 
@@ -180,12 +204,21 @@ def main(s: HostSettings) -> int:
                 fused_at["rejects"],
                 s.stale_input_s,
             )
+            if why is None and time.monotonic() - fused_at["t"] < 5.0:  # fusing: does it keep up?
+                why = fused_lag(clock.now(), fused_at.get("t_meas"), s.time_scale, s.max_fused_lag_s)
             return ("degraded", why) if why else ("ok", None)
 
         svc.health_check = check
         fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=s.id))
 
-        def on_msg(msg: Received) -> None:
+        def on_msg(msg: Received, where: dict[str, str], admission: Admission, name: str) -> None:
+            src = where["src"]
+            if not svc.admit(admission, src, name):
+                return
+            sender = peek(msg.payload).get("sender")
+            if sender is not None and sender != src:  # the key names the radio source; so must the message
+                svc.metrics.reject("sender_mismatch", f"a message of {sender!r} on {src}'s key", log)
+                return
             clock.update(msg.attachment)
             t_recv = clock.now(msg.t_recv_wall_ns)
             if t_recv is None:
@@ -198,11 +231,23 @@ def main(s: HostSettings) -> int:
             except queue.Full:
                 svc.metrics.reject("queue_full", f"fusion inbox full ({s.inbox})", log)
 
-        kinds = ["prior"] if s.mode == "distributed" else ["raw"]
-        for kind in kinds:
-            svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet, dst=s.id), on_msg)
-            for src in s.local:
-                svc.subscribe(topic(f"{kind}_tx").key(fleet=s.fleet, src=src), on_msg)
+        def subscriber(name: str):
+            """on_msg for the keys of topic ``name``: the source from the key, one admission per topic."""
+            tp, admission = topic(name), sender_admission(name, s.time_scale)
+
+            def cb(msg: Received) -> None:
+                where = tp.parse(msg.key)
+                if where is None:
+                    svc.metrics.reject("bad_key", f"{msg.key} is not a {name} key of ours", log)
+                else:
+                    on_msg(msg, where, admission, name)
+
+            return cb
+
+        kind = "prior" if s.mode == "distributed" else "raw"
+        svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet, dst=s.id), subscriber(f"{kind}_rx"))
+        for src in s.local:
+            svc.subscribe(topic(f"{kind}_tx").key(fleet=s.fleet, src=src), subscriber(f"{kind}_tx"))
 
         def drain() -> None:
             nonlocal rc
@@ -235,7 +280,7 @@ def main(s: HostSettings) -> int:
                     if not accepted:
                         svc.metrics.reject(reason or "rejected", "by the container", log)
                 if item[0] == "fused":
-                    fused_at.update(t=time.monotonic(), rejects=dict(svc.metrics.rejects))
+                    fused_at.update(t=time.monotonic(), rejects=dict(svc.metrics.rejects), t_meas=item[2])
 
         svc.spawn(drain, "drain")
         svc.wait()

@@ -81,7 +81,7 @@ class FleetParams(_Strict):
     mode: Literal["distributed", "centralized"] = "distributed"
     duration_s: float | None = Field(None, gt=0, description="scenario seconds; None: until stopped")
     seed: int = Field(0, ge=0)
-    time_scale: float = Field(1.0, gt=0)
+    time_scale: float = Field(1.0, ge=1e-3, le=100.0)
     host_id: str = Field("host", pattern=NAME)
     ego: str = Field("cv0", pattern=NAME, description="the vehicle the host container runs on")
     zenoh_config: str | None = Field(None, description="a Zenoh JSON5 file every process starts from")

@@ -6,9 +6,12 @@ thread that calls ``VehicleAgent.handle(t, frame)`` and publishes the result on
 the world's clock on and adds ``t_capture_wall_ns`` (when the world published the frame).
 
 Frames are handled in order. When the vehicle cannot keep up, new frames are counted as
-``queue_full`` and not matched or sent; in distributed mode the worker still passes their odometry and
+``skipped`` and not matched or sent; in distributed mode the worker still passes their odometry and
 GNSS fix to the localizer, in order (``VehicleAgent.skip``), so that no stretch of the path goes
 unmeasured.
+
+Health: degraded while the vehicle is not localized by the map (its localizer in GNSS fallback or
+not yet started) for more than ``unlocalized_s`` seconds of scenario time: its priors are then GNSS-grade.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ from __future__ import annotations
 import argparse
 import time
 from typing import Literal
+
+from pydantic import Field
 
 from mapcontainer.hdmap.generator import generate_map
 from mapcontainer.sim.config import load_scenario
@@ -45,6 +50,7 @@ class VehicleSettings(ServiceSettings):
     # and the host refused them all as stale (fleet e2e p50 0.7-1.0 s; once no fused state after
     # 1.5 s). Measured with 2: e2e p50 0.19-0.29 s, every fused state evaluated.
     queue: int = 2
+    unlocalized_s: float = Field(3.0, gt=0, description="degraded when not map-matched for longer (scenario s)")
 
 
 def parse_args(argv: list[str] | None = None) -> VehicleSettings:
@@ -75,7 +81,16 @@ def main(s: VehicleSettings) -> int:
     figures_fn = getattr(agent, "figures", None) or getattr(agent, "stats", None)
     extra = {"sent": 0.0, "last_msg_bytes": 0.0, "skipped": 0.0}  # skipped: frames given to agent.skip
 
-    with Service("vehicle", s, figures=lambda: {**(figures_fn() if figures_fn else {}), **extra}) as svc:
+    lost = {"since": None, "t": None}  # scenario time map matching was lost (None: localized), the newest frame's
+
+    def check() -> tuple[str, str | None]:
+        if s.mode != "distributed" or lost["since"] is None or lost["t"] - lost["since"] <= s.unlocalized_s:
+            return "ok", None
+        return "degraded", f"not localized by the map for {lost['t'] - lost['since']:.1f} s (GNSS-grade priors)"
+
+    with Service(
+        "vehicle", s, figures=lambda: {**(figures_fn() if figures_fn else {}), **extra}, health_check=check
+    ) as svc:
         kind = "prior_tx" if s.mode == "distributed" else "raw_tx"
         pub = svc.publisher(topic(kind).key(fleet=s.fleet, src=s.id))
 
@@ -105,6 +120,12 @@ def main(s: VehicleSettings) -> int:
             out = agent.handle(got[1], got[0])
             if refused(out):
                 return
+            if s.mode == "distributed":
+                lost["t"] = got[1]
+                if out.quality.mode == "map_matching":
+                    lost["since"] = None
+                elif lost["since"] is None:
+                    lost["since"] = got[1]
             payload = encode(out)
             pub.put(
                 payload,

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from schemas import (
+    FusedState,
     HealthStatus,
     LocalizationQuality,
     ObjectObservations,
@@ -147,7 +148,7 @@ def test_a_vehicle_that_falls_behind_skips_frames_but_keeps_their_odometry(
     rendezvous, fleet_name, spawn, watch_liveliness
 ):
     """A burst of frames: the vehicle matches and sends the first and the 2 that wait; it hands the rest
-    to the localizer without their camera (the ``skipped`` figure), each counted as ``queue_full``."""
+    to the localizer without their camera (the ``skipped`` figure), each counted as a ``skipped`` reject."""
     from mapcontainer.sim import World, load_scenario
 
     session, endpoint = rendezvous
@@ -180,7 +181,7 @@ def test_a_vehicle_that_falls_behind_skips_frames_but_keeps_their_odometry(
     pub.undeclare()
     sent, skipped = status.figures["sent"], status.figures["skipped"]
     assert skipped > 0 and sent + skipped == len(payloads)
-    assert status.rejects.get("queue_full") == skipped
+    assert status.rejects.get("skipped") == skipped and "queue_full" not in status.rejects
     assert len(got) == sent and all(p.sender == "cv1" for p in got)
     assert [p.t_meas for p in got] == sorted(p.t_meas for p in got)
 
@@ -340,3 +341,62 @@ def test_a_service_with_bad_settings_says_why_and_exits_2(tmp_path, spawn):
         assert p.wait(timeout=60) == 2
         log = p.log_path.read_text()
         assert "configuration error" in log and why in log and "Traceback" not in log, log
+
+
+def test_a_flooding_sender_costs_only_itself_and_the_host_says_so(
+    rendezvous, fleet_name, spawn, wait_for, watch_liveliness
+):
+    """cv1 floods the host with fresh priors (hundreds a second) while cv0 sends its 10 Hz: the host admits
+    each sender at most twice its nominal rate, refuses the rest as ``flood``, reports itself degraded
+    naming the sender, and keeps fusing cv0. A message whose payload names another sender than its key
+    is refused as ``sender_mismatch``."""
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    spawn("services.host", "--fleet", fleet_name, "--connect", endpoint, "--known-senders", "cv0,cv1")
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="host", id="host"), timeout=90)
+    pubs = {
+        src: session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src=src))
+        for src in ("cv0", "cv1", "cv9")
+    }
+    epoch = time.time_ns()
+    attachment = make_attachment(epoch_wall_ns=epoch, time_scale=1.0)
+    seqs = {"cv0": 0, "cv1": 0}
+
+    def prior(sender: str, t: float) -> bytes:
+        seqs[sender] += 1
+        return encode(
+            VehiclePrior(
+                fleet=fleet_name,
+                sender=sender,
+                seq=seqs[sender],
+                t_meas=t,
+                t_sent=t,
+                pose=np.array([5.0 * t, 3.0 * (sender == "cv1"), 0, 0, 0, 0]),
+                pose_cov=np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005])[np.triu_indices(6)] ** 2,
+                v_map=np.array([5.0, 0, 0]),
+                quality=LocalizationQuality(mode="map_matching"),
+            )
+        )
+
+    def now() -> float:
+        return (time.time_ns() - epoch) * 1e-9
+
+    fused: list[bytes] = []
+    sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
+    pubs["cv9"].put(prior("cv1", round(now(), 1)), attachment=attachment)  # cv1's message on cv9's key
+    for _ in range(30):  # 3 s: cv0 at 10 Hz, cv1 with 40 fresh priors per tick (400 a second)
+        t = round(now(), 1)
+        pubs["cv0"].put(prior("cv0", t), attachment=attachment)
+        for k in range(40):
+            pubs["cv1"].put(prior("cv1", t - 0.0025 * k), attachment=attachment)
+        time.sleep(0.1)
+    status = next(v.status for v in fleet_health(session, fleet_name, timeout_s=2.0) if v.role == "host")
+    assert status.rejects.get("sender_mismatch") == 1
+    assert status.rejects.get("flood", 0) >= 30 * 40 - 2 * 10 * 3 * 2, status.rejects  # at most 2x nominal through
+    assert status.state == "degraded" and "flood" in status.last_error and "cv1" in status.last_error, status
+    sub.undeclare()
+    last = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused[-10:]) if f]
+    assert last and all("cv0" in f.vehicle_ids for f in last)  # cv0 is still fused, where it is
+    for f in last:
+        i = f.vehicle_ids.index("cv0")
+        assert abs(f.vehicle_pose[i][0] - 5.0 * f.t_meas) < 0.5

@@ -13,7 +13,7 @@ from schemas import FusedState, GroundTruth
 from services.channel.app import Relay, parse_receivers
 from services.evaluator.core import Evaluator, match_objects
 from services.evaluator.plot import ellipse_params
-from services.host.app import fusion_stall
+from services.host.app import fused_lag, fusion_stall
 from services.host.worker import FrameGate
 from services.launcher.app import parse_args as launcher_parse_args
 from services.launcher.control import launcher_argv
@@ -405,3 +405,23 @@ def test_a_forged_publish_time_is_left_out_of_the_latency_and_counted(pub_wall_n
     m = ev.snapshot(5.2)
     assert m.evaluated == 2 and m.e2e_latency_ms_p50 == pytest.approx(150.0)
     assert ev.summary()["latency_refused"] == 1
+
+
+def test_the_evaluator_counts_at_most_max_sources_senders() -> None:
+    from services.evaluator.core import MAX_SOURCES
+
+    ev = Evaluator("f")
+    for i in range(MAX_SOURCES + 50):
+        ev.on_tx(f"s{i}", 0, 100, now_wall=1.0)
+        ev.on_rx("host", f"s{i}", 0, now_wall=1.01)
+    ev.on_rx("host", "never-sent", 0, now_wall=1.02)
+    assert len(ev.tx_msgs_total) == MAX_SOURCES and ev.summary()["sources_refused"] == 50
+    assert all(key[1] != "never-sent" for key in ev._rx_seen)
+
+
+def test_a_host_that_does_not_keep_up_says_so() -> None:
+    assert fused_lag(10.0, 9.8, time_scale=1.0, max_lag_s=1.0) is None
+    why = fused_lag(10.0, 7.9, time_scale=1.0, max_lag_s=1.0)
+    assert why is not None and "2.1 s" in why and "not keeping up" in why
+    assert fused_lag(10.0, 7.9, time_scale=4.0, max_lag_s=1.0) is None  # 2.1 scenario s are 0.5 wall s
+    assert fused_lag(None, 7.9, 1.0, 1.0) is None and fused_lag(10.0, None, 1.0, 1.0) is None
