@@ -861,6 +861,19 @@ class Service:
         self._declared.append(sub)
         return sub
 
+    def watch_alive(self, key: str) -> threading.Event:
+        """An event that is set while the liveliness token ``key`` exists (Zenoh tells of a killed process
+        within milliseconds, of a frozen one after its lease)."""
+        import zenoh
+
+        alive = threading.Event()
+
+        def on_token(sample) -> None:
+            (alive.set if sample.kind == zenoh.SampleKind.PUT else alive.clear)()
+
+        self._declared.append(self.session.liveliness().declare_subscriber(key, on_token, history=True))
+        return alive
+
     def admit(self, admission: Admission, sender: str, what: str) -> bool:
         """Whether ``sender``'s message (``what``, for the log) passes its per-sender admission; a refusal
         (``flood``, ``too_many_senders``) is counted. Thread-safe: Zenoh runs callbacks on several threads."""

@@ -61,6 +61,9 @@ class HostSettings(ServiceSettings):
     time_scale: float = Field(
         1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="the world's: senders' rates scale"
     )
+    standby_for: str | None = Field(
+        None, description="a warm standby of this host id: same input, publishes only while that host is gone"
+    )
     max_fused_lag_s: float = Field(
         1.0, gt=0, description="degraded when the fused output trails the world's clock by more (wall seconds)"
     )
@@ -88,6 +91,11 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
     p.add_argument("--params", default=None, help="YAML file of FusionParams fields")
     p.add_argument("--inline", action="store_true", help="run the solver in a thread, not a worker process")
     p.add_argument("--time-scale", type=float, default=1.0, help="the world's (senders' rates scale with it)")
+    p.add_argument(
+        "--standby-for",
+        default=None,
+        help="run as the warm standby of this host id: fuse its input, publish its fused state while it is gone",
+    )
     add_service_args(p, "host", default_id="host")
     a = p.parse_args(argv)
     return HostSettings(
@@ -100,6 +108,7 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
         params=_fusion_params(a.params),
         inline=a.inline,
         time_scale=a.time_scale,
+        standby_for=a.standby_for,
     )
 
 
@@ -209,7 +218,13 @@ def main(s: HostSettings) -> int:
             return ("degraded", why) if why else ("ok", None)
 
         svc.health_check = check
-        fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=s.id))
+        hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
+        fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=hid))
+        primary = (
+            svc.watch_alive(topic("alive").key(fleet=s.fleet, role="host", id=s.standby_for))
+            if (s.standby_for)
+            else None
+        )
 
         def on_msg(msg: Received, where: dict[str, str], admission: Admission, name: str) -> None:
             src = where["src"]
@@ -245,7 +260,7 @@ def main(s: HostSettings) -> int:
             return cb
 
         kind = "prior" if s.mode == "distributed" else "raw"
-        svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet, dst=s.id), subscriber(f"{kind}_rx"))
+        svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet, dst=hid), subscriber(f"{kind}_rx"))
         for src in s.local:
             svc.subscribe(topic(f"{kind}_tx").key(fleet=s.fleet, src=src), subscriber(f"{kind}_tx"))
 
@@ -268,12 +283,16 @@ def main(s: HostSettings) -> int:
                 results = item[-1]
                 if item[0] == "fused":
                     _, payload, t, solve_s, stats, results = item
-                    fused_pub.put(
-                        payload,
-                        attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **clock.fields()),
-                    )
+                    active = primary is None or not primary.is_set()
+                    if active:
+                        fused_pub.put(
+                            payload,
+                            attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **clock.fields()),
+                        )
+                        fig["fused_published"] += 1
+                    if primary is not None:
+                        fig["standby_active"] = float(active)
                     svc.metrics.latency.add(solve_s)
-                    fig["fused_published"] += 1
                     fig["solve_ms"] = solve_s * 1e3
                     core_stats["stats"] = stats
                 for accepted, reason, _ in results:

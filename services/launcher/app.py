@@ -164,6 +164,12 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--time-scale", type=float, default=None, help="scenario seconds per wall second")
     p.add_argument(
+        "--standby",
+        action="store_true",
+        default=None,
+        help="also run a warm standby host that publishes the fused state while the host is gone",
+    )
+    p.add_argument(
         "--manifest",
         default=None,
         help="fleet manifest: a name (fleet, fleet-host-a, fleet-host-b) or a YAML file (default fleet)",
@@ -195,6 +201,7 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "mode": a.mode,
         "seed": a.seed,
         "time_scale": a.time_scale,
+        "standby": a.standby,
         "zenoh_config": a.zenoh_config,
     }
     params = manifest.defaults.model_copy(update={k: v for k, v in over.items() if v is not None})

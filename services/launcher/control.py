@@ -128,6 +128,8 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
     ]
     if p.vehicles is not None:
         argv += ["--vehicles", str(p.vehicles)]
+    if p.standby:
+        argv.append("--standby")
     if p.duration_s is not None:
         argv += ["--duration", str(p.duration_s)]
     if s.manifest:

@@ -84,6 +84,7 @@ class FleetParams(_Strict):
     time_scale: float = Field(1.0, ge=1e-3, le=100.0)
     host_id: str = Field("host", pattern=NAME)
     ego: str = Field("cv0", pattern=NAME, description="the vehicle the host container runs on")
+    standby: bool = Field(False, description="run a warm standby host that takes over when the host is gone")
     zenoh_config: str | None = Field(None, description="a Zenoh JSON5 file every process starts from")
 
 
@@ -94,6 +95,7 @@ class ProcessTemplate(_Strict):
     id: str
     args: list[str | list[str]] = Field(default_factory=list)
     for_each: Literal["vehicle"] | None = None
+    when: str | None = Field(None, description="a boolean fleet parameter: the process runs only when it is true")
     start_order: int = 0
     restart: RestartPolicy | None = None
     ready_timeout_s: float = Field(90.0, gt=0, description="until its liveliness token is seen")
@@ -223,6 +225,11 @@ def resolve(
     }
     specs: list[ProcessSpec] = []
     for tpl in manifest.processes:
+        if tpl.when is not None:
+            if not isinstance(base.get(tpl.when), bool):
+                raise ConfigError(f"{tpl.name}: when: {tpl.when!r} is not a boolean fleet parameter")
+            if not base[tpl.when]:
+                continue
         instances = [{"vid": v} for v in vids] if tpl.for_each == "vehicle" else [{}]
         for extra in instances:
             values = {**base, **extra}

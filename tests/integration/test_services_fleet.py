@@ -217,3 +217,60 @@ def test_ctrl_c_stops_the_fleet_writes_the_report_and_exits_130(
     assert any("ready: world" in line for line in out) and json.loads(out[-1])["fleet"] == fleet_name
     assert process_groups_alive({p["pgid"] for p in state["processes"]}) == []
     assert not (pointer_path(fleet_name, "local")).exists()
+
+
+def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, mapc, wait_for, watch_liveliness):
+    """mapc fleet up --standby: a second host fuses the same input and publishes the fused state on the
+    host's key only while the host's liveliness token is gone (SIGKILL to its process group here), so the
+    fused output goes on while the launcher restarts the host, and stops doubling once it is back."""
+    from schemas import FusedState, decode
+
+    runs = tmp_path / "runs"
+    up = mapc(
+        *("fleet", "up", "--detach", "--json", "--fleet", fleet_name, "--vehicles", "2", "--network", "ideal"),
+        *("--standby", "--runs-dir", str(runs)),
+        timeout=240,
+    )
+    assert up.returncode == 0, up.stdout + up.stderr
+    info = json.loads(up.stdout)
+    run_dir = Path(info["run_dir"])
+    try:
+        state = _state(run_dir)
+        assert {p["name"] for p in state["processes"]} >= {"host", "host-standby"}
+        endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
+        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        got: list[tuple[float, str]] = []  # (monotonic arrival, the fusing host's id)
+
+        def on_fused(sample) -> None:
+            msg = decode(sample.payload.to_bytes(), FusedState)
+            if msg:
+                got.append((time.monotonic(), msg.sender))
+
+        try:
+            alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+            key = topic("alive").key(fleet=fleet_name, role="host", id="host")
+            alive.wait_alive(key, timeout=30)
+            sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), on_fused)
+            wait_for(lambda: len(got) >= 20, timeout=120, what="fused output", every=0.2)
+            host = next(p for p in state["processes"] if p["name"] == "host")
+            t_kill = time.monotonic()
+            os.killpg(host["pgid"], signal.SIGKILL)
+            alive.wait_gone(key, timeout=5)
+            alive.wait_alive(key, timeout=90)  # restarted by the launcher
+            t_back = time.monotonic()
+            wait_for(lambda: any(t > t_back + 2 and s == "host" for t, s in got), timeout=60, what="the host again")
+            sub.undeclare()
+        finally:
+            session.close()
+    finally:
+        down = mapc("fleet", "down", "--fleet", fleet_name, timeout=180)
+    assert down.returncode == 0, down.stdout + down.stderr
+    before = [s for t, s in got if t < t_kill]
+    during = [s for t, s in got if t_kill + 0.5 < t < t_back]
+    after = [s for t, s in got if t > t_back + 2]
+    assert set(before) == {"host"}  # the standby is silent while the host is there
+    assert during and set(during) == {"host-standby"}, got  # ... and speaks while it is gone
+    assert after and set(after) == {"host"}
+    arrivals = [t for t, _ in got if t_kill - 1 < t < t_back]
+    gap = max(b - a for a, b in zip(arrivals, arrivals[1:], strict=False))
+    print(f"fused output gap after SIGKILL of the host: {gap:.2f} s; host back after {t_back - t_kill:.1f} s")

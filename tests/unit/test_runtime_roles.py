@@ -108,6 +108,18 @@ def test_manifest_errors_name_the_problem() -> None:
         resolve(Manifest.model_validate(none_arg), FleetParams(), "/r", "tcp/x:1")
 
 
+def test_a_process_with_when_runs_only_when_its_fleet_parameter_is_true() -> None:
+    m = load_manifest("fleet")
+    names = {sp.name for sp in resolve(m, FleetParams(), "/r", "tcp/x:1")}
+    assert "host-standby" not in names and "host" in names
+    standby = {sp.name: sp for sp in resolve(m, FleetParams(standby=True), "/r", "tcp/x:1")}["host-standby"]
+    assert (standby.role, standby.id) == ("host", "host-standby")
+    assert standby.argv[standby.argv.index("--standby-for") + 1] == "host"
+    bad = {"name": "m", "processes": [{"name": "a", "module": "m", "role": "r", "id": "i", "when": "scenario"}]}
+    with pytest.raises(ConfigError, match="not a boolean fleet parameter"):
+        resolve(Manifest.model_validate(bad), FleetParams(), "/r", "tcp/x:1")
+
+
 def test_restart_policy_backoff() -> None:
     p = RestartPolicy(backoff_initial_s=0.5, backoff_factor=2.0, backoff_max_s=3.0, max_restarts=5)
     assert [p.delay_s(n) for n in range(1, 6)] == [0.5, 1.0, 2.0, 3.0, 3.0]
