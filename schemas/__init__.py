@@ -4,6 +4,7 @@ from .codec import REASONS, Rejection, decode, encode
 from .models import (
     SCHEMA_VERSION,
     CameraInfo,
+    Certificate,
     Envelope,
     EvalMetrics,
     FusedState,
@@ -17,6 +18,7 @@ from .models import (
     Observations,
     Odometry,
     RawObservations,
+    SecuredMessage,
     SensorFrame,
     VehiclePrior,
 )
@@ -25,6 +27,7 @@ __all__ = [
     "REASONS",
     "SCHEMA_VERSION",
     "CameraInfo",
+    "Certificate",
     "Envelope",
     "EvalMetrics",
     "FusedState",
@@ -39,6 +42,7 @@ __all__ = [
     "Odometry",
     "RawObservations",
     "Rejection",
+    "SecuredMessage",
     "SensorFrame",
     "VehiclePrior",
     "decode",

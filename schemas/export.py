@@ -18,7 +18,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from .models import SCHEMA_VERSION
+from .models import SCHEMA_VERSION, SecuredMessage
 from .tags import TAGS
 from .topics import TOPICS
 
@@ -26,8 +26,11 @@ __all__ = ["DEFAULT_DIR", "MODELS", "export", "render", "schema_filename", "stal
 
 DEFAULT_DIR = Path(__file__).parent / "json"
 
-# Every message model that travels on a registered topic, in registry order.
-MODELS: tuple[type[BaseModel], ...] = tuple(dict.fromkeys(t.model for t in TOPICS if t.model is not None))
+# Every message model that travels on a registered topic, in registry order, then the signed envelope
+# that carries a message on the V2X link (SecuredMessage, with its Certificate).
+MODELS: tuple[type[BaseModel], ...] = tuple(
+    dict.fromkeys([*(t.model for t in TOPICS if t.model is not None), SecuredMessage])
+)
 
 _WIRE_NOTE = (
     "Wire format: a msgpack map keyed by each property's integer x-tag, not its name (nested parts too); "

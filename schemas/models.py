@@ -27,6 +27,7 @@ from .arrays import F32, I16, U8, U32, Cov, cov_from_upper, cov_to_upper
 __all__ = [
     "SCHEMA_VERSION",
     "CameraInfo",
+    "Certificate",
     "Envelope",
     "EvalMetrics",
     "FusedState",
@@ -39,6 +40,7 @@ __all__ = [
     "ObjectObservations",
     "Odometry",
     "RawObservations",
+    "SecuredMessage",
     "SensorFrame",
     "VehiclePrior",
 ]
@@ -58,6 +60,13 @@ MAX_TIME_S = 1e10  # seconds, either sign: scenario time, or Unix time in Health
 MAX_COORD_M = 1e6  # map-frame coordinates, either sign (the map is a local frame)
 MAX_SPEED_MPS = 100.0  # any road user's speed, either sign
 MAX_YAW_RATE_RADPS = 10.0
+
+# Signed messages (SecuredMessage, Certificate; mapcontainer/security.py signs and verifies them).
+DIGEST_BYTES = 8  # HashedId8 of IEEE 1609.2: the first 8 bytes of the SHA-256 of a certificate's encoding
+PUBLIC_KEY_BYTES = 33  # a P-256 point, SEC 1 compressed: 0x02 or 0x03 (parity of y), then x (32 bytes)
+SIGNATURE_BYTES = 64  # ECDSA P-256: r then s, 32 bytes each, big-endian (not DER)
+MAX_CERT_TIME_S = 2**32 - 1  # certificate validity: Unix seconds as an unsigned 32-bit int (to the year 2106)
+MAX_TIME_US = int(MAX_TIME_S * 1e6)  # a generation time in microseconds, either sign
 
 
 class ObjectClass(IntEnum):
@@ -365,3 +374,82 @@ class EvalMetrics(Envelope):
     tx_msgs_per_s: dict[str, float] = Field(default_factory=dict)
     tx_bytes_per_msg: dict[str, float] = Field(default_factory=dict)
     delivered_fraction: float | None = Field(None, ge=0, le=1)
+
+
+# ----------------------------------------------------------------------------- security
+
+
+class Certificate(_Model):
+    """An explicit certificate, as IEEE 1609.2 / ETSI TS 103 097 send it: who holds which P-256 key, when.
+
+    A vehicle's is issued by the fleet CA; the CA's own is self-signed (``issuer`` all zero). The
+    **canonical encoding** is the msgpack map of the six fields keyed by tag in tag order (as the codec
+    packs it); the issuer signs that encoding without ``signature`` (ECDSA P-256 over its SHA-256), and a
+    certificate is named by its **digest**: the first 8 bytes of the SHA-256 of its whole canonical
+    encoding (HashedId8). See schemas/README.md and :mod:`mapcontainer.security`.
+    """
+
+    # certificate files are JSON (bytes as base64url), read back with model_validate_json
+    model_config = ConfigDict(**_Model.model_config, val_json_bytes="base64")
+
+    subject: str = Field(pattern=NAME_PATTERN, description="id of the key's holder: a vehicle id (or the CA's name)")
+    public_key: bytes = Field(
+        min_length=PUBLIC_KEY_BYTES,
+        max_length=PUBLIC_KEY_BYTES,
+        description="the holder's P-256 public key, SEC 1 compressed point (33 bytes)",
+    )
+    valid_from: int = Field(ge=0, le=MAX_CERT_TIME_S, description="start of validity, Unix time (s)")
+    valid_until: int = Field(ge=0, le=MAX_CERT_TIME_S, description="end of validity (inclusive), Unix time (s)")
+    issuer: bytes = Field(
+        min_length=DIGEST_BYTES,
+        max_length=DIGEST_BYTES,
+        description="digest of the issuing CA's certificate (8 bytes); all zero for a self-signed CA certificate",
+    )
+    signature: bytes = Field(
+        min_length=SIGNATURE_BYTES,
+        max_length=SIGNATURE_BYTES,
+        description="the issuer's ECDSA P-256 signature (r || s, 64 bytes) over the SHA-256 of the canonical "
+        "encoding without this field",
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.public_key[0] not in (2, 3):
+            raise ValueError(f"public_key starts with {self.public_key[0]:#04x}, not 0x02 or 0x03 (a compressed point)")
+        if self.valid_until < self.valid_from:
+            raise ValueError(f"valid_until {self.valid_until} is before valid_from {self.valid_from}")
+        return self
+
+
+class SecuredMessage(_Model):
+    """A signed message: what goes on the V2X link instead of the bare message (1609.2's SignedData).
+
+    The signer is named by its full certificate (about once a second) or by the certificate's 8-byte
+    digest, never both. ``signature`` is ECDSA P-256 over the SHA-256 of ``payload || t_gen_us
+    (int64, big-endian) || digest of the signer's certificate``, whichever way the signer is named.
+    """
+
+    schema_version: int = Field(SCHEMA_VERSION, description="wire contract version; readers reject others")
+    payload: bytes = Field(description="the message, msgpack-encoded as schemas/README.md says (e.g. a VehiclePrior)")
+    certificate: Certificate | None = Field(None, description="the signer's full certificate; else signer_digest")
+    signer_digest: bytes | None = Field(
+        None,
+        min_length=DIGEST_BYTES,
+        max_length=DIGEST_BYTES,
+        description="digest (HashedId8) of the signer's certificate, sent in its place; else certificate",
+    )
+    t_gen_us: int = Field(
+        ge=-MAX_TIME_US, le=MAX_TIME_US, description="generation time, Unix time in microseconds (1609.2's Time64)"
+    )
+    signature: bytes = Field(
+        min_length=SIGNATURE_BYTES,
+        max_length=SIGNATURE_BYTES,
+        description="the signer's ECDSA P-256 signature (r || s, 64 bytes) over the SHA-256 of "
+        "payload || t_gen_us as int64 big-endian || signer's certificate digest",
+    )
+
+    @model_validator(mode="after")
+    def _one_signer(self):
+        if (self.certificate is None) == (self.signer_digest is None):
+            raise ValueError("a SecuredMessage names its signer by certificate or by signer_digest: exactly one")
+        return self

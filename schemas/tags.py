@@ -114,7 +114,19 @@ TAGS: dict[str, int] = {
     "tx_msgs_per_s": 80,
     "tx_bytes_per_msg": 81,
     "delivered_fraction": 82,
-    # new fields: next tag 83
+    # Certificate
+    "subject": 83,
+    "public_key": 84,
+    "valid_from": 85,
+    "valid_until": 86,
+    "issuer": 87,
+    "signature": 88,
+    # SecuredMessage
+    "payload": 89,
+    "certificate": 90,
+    "signer_digest": 91,
+    "t_gen_us": 92,
+    # new fields: next tag 93
 }
 
 

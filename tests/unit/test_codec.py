@@ -17,6 +17,7 @@ from schemas import (
     REASONS,
     SCHEMA_VERSION,
     CameraInfo,
+    Certificate,
     EvalMetrics,
     FusedState,
     GnssFix,
@@ -29,6 +30,7 @@ from schemas import (
     Odometry,
     RawObservations,
     Rejection,
+    SecuredMessage,
     SensorFrame,
     VehiclePrior,
     decode,
@@ -187,6 +189,25 @@ def eval_metrics(full: bool) -> EvalMetrics:
     )
 
 
+def certificate() -> Certificate:
+    return Certificate(
+        subject="veh-1",
+        public_key=b"\x02" + bytes(range(32)),
+        valid_from=1_790_000_000,
+        valid_until=1_800_000_000,
+        issuer=b"\x11" * 8,
+        signature=bytes(range(64)),
+    )
+
+
+def secured_message(full: bool) -> SecuredMessage:
+    """A SecuredMessage with its certificate (full) or the digest; the signature is not a real one."""
+    signer = {"certificate": certificate()} if full else {"signer_digest": b"\x22" * 8}
+    return SecuredMessage(
+        payload=encode(vehicle_prior(False)), t_gen_us=1_795_000_000_123_456, signature=bytes(64), **signer
+    )
+
+
 CASES = {
     "sensor_frame_full": lambda: observations(SensorFrame, True),
     "sensor_frame_min": lambda: observations(SensorFrame, False),
@@ -202,12 +223,14 @@ CASES = {
     "health_min": lambda: health(False),
     "eval_metrics_full": lambda: eval_metrics(True),
     "eval_metrics_min": lambda: eval_metrics(False),
+    "secured_message_full": lambda: secured_message(True),
+    "secured_message_digest": lambda: secured_message(False),
 }
 
 # Every wire model: the messages and the parts nested in them.
 WIRE_MODELS = [
     SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus, EvalMetrics,
-    CameraInfo, GnssFix, Odometry, ObjectObservations, LocalizationQuality,
+    CameraInfo, GnssFix, Odometry, ObjectObservations, LocalizationQuality, SecuredMessage, Certificate,
 ]  # fmt: skip
 
 

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from schemas.export import DEFAULT_DIR, MODELS, export, render, schema_filename, stale
+from schemas.models import SecuredMessage
 from schemas.topics import TOPICS
 
 
@@ -28,6 +29,7 @@ def test_export_writes_one_file_per_model_plus_topics(tmp_path: Path) -> None:
             "ground_truth.json",
             "health_status.json",
             "eval_metrics.json",
+            "secured_message.json",
             "topics.json",
         ]
     )
@@ -55,7 +57,7 @@ def test_stale_reports_missing_and_changed_files(tmp_path: Path) -> None:
 
 
 def test_every_topic_model_is_exported() -> None:
-    assert {t.model for t in TOPICS if t.model is not None} == set(MODELS)
+    assert {t.model for t in TOPICS if t.model is not None} | {SecuredMessage} == set(MODELS)
     assert {schema_filename(m) for m in MODELS} | {"topics.json"} == set(render())
 
 
