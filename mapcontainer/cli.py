@@ -12,7 +12,16 @@ from pathlib import Path
 from . import jsonout
 from .config import ConfigError
 
-__all__ = ["fleet_name", "main", "non_negative_int", "non_negative_seconds", "output_dir", "positive_int", "seconds"]
+__all__ = [
+    "fleet_name",
+    "main",
+    "non_negative_int",
+    "non_negative_seconds",
+    "output_dir",
+    "positive_int",
+    "seconds",
+    "vehicle_ids",
+]
 
 
 def _cmd_scenario_list(args: argparse.Namespace) -> int:
@@ -94,6 +103,52 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_security(args: argparse.Namespace) -> int:
+    from .security_bench import bench_security
+
+    print(jsonout.dumps(bench_security(iterations=args.iterations, objects=args.objects)))
+    return 0
+
+
+KEYS_SKEW_S = 3600.0  # keys init: certificates start this long before now (clocks of other machines)
+
+
+def _cmd_keys_init(args: argparse.Namespace) -> int:
+    import time
+
+    from .security import CA_NAME, issue, make_ca, save_credentials
+
+    vehicles = args.vehicles if args.vehicles is not None else [f"cv{i}" for i in range(args.count)]
+    out = Path(args.out)
+    names = [CA_NAME, *vehicles]
+    existing = [p.name for n in names for p in (out / f"{n}.key.pem", out / f"{n}.cert.json") if p.exists()]
+    if existing and not args.force:
+        more = " ..." if len(existing) > 4 else ""
+        raise ConfigError(f"{out} already holds {', '.join(existing[:4])}{more}: keys of a run (--force replaces them)")
+    now = time.time() - KEYS_SKEW_S
+    validity_s = args.validity_days * 86400.0 + KEYS_SKEW_S
+    try:
+        ca = make_ca(args.ca_name, now=now, validity_s=validity_s)
+        vehicle_creds = [issue(ca, vid, validity_s, now) for vid in vehicles]
+    except ValueError as exc:  # a validity past 2106 (Unix seconds in 32 bits)
+        raise ConfigError(f"--validity-days {args.validity_days:g}: {exc}") from None
+    save_credentials(ca, out, CA_NAME)
+    digests = {}
+    for creds in vehicle_creds:
+        save_credentials(creds, out)
+        digests[creds.subject] = creds.digest.hex()
+    cert = ca.certificate
+    doc = {
+        "dir": str(out),
+        "ca": {"subject": cert.subject, "digest": ca.digest.hex()},
+        "valid_from": cert.valid_from,
+        "valid_until": cert.valid_until,
+        "vehicles": digests,
+    }
+    print(jsonout.dumps(doc))
+    return 0
+
+
 def _cmd_experiment_paper(args: argparse.Namespace) -> int:
     from .experiments.paper import PaperSettings, run_paper_experiment
 
@@ -161,6 +216,20 @@ seconds = _bounded(float, 0, strict=True, unit=" s")
 non_negative_seconds = _bounded(float, 0, strict=False, unit=" s")
 positive_int = _bounded(int, 1, strict=False)
 non_negative_int = _bounded(int, 0, strict=False)
+positive_days = _bounded(float, 0, strict=True, unit=" days")
+
+
+def vehicle_ids(text: str) -> list[str]:
+    """``cv0,cv1,...``: distinct ids (letters, digits, '_' or '-'), none of them ``ca``."""
+    from schemas.topics import is_chunk
+
+    ids = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [v for v in ids if not is_chunk(v) or v == "ca"]
+    if not ids or bad:
+        raise argparse.ArgumentTypeError(f"not a list of vehicle ids: {', '.join(map(repr, bad)) or repr(text)}")
+    if len(set(ids)) != len(ids):
+        raise argparse.ArgumentTypeError(f"a vehicle id is repeated in {text!r}")
+    return ids
 
 
 def fleet_name(text: str) -> str:
@@ -222,6 +291,14 @@ def build_parser() -> argparse.ArgumentParser:
         "machine's speed (batch_ms_p50, cycle_over_batch); 0 skips it",
     )
     bf.set_defaults(func=_cmd_bench_fusion)
+    bs = bench.add_parser(
+        "security",
+        help="signed V2X messages: microseconds per sign and verify, bytes added to a typical VehiclePrior "
+        "(ecdsa_*: the cryptography package alone, a yardstick of the machine's speed)",
+    )
+    bs.add_argument("--iterations", type=positive_int, default=1000, help="calls timed per figure (the median)")
+    bs.add_argument("--objects", type=non_negative_int, default=8, help="object detections in the prior")
+    bs.set_defaults(func=_cmd_bench_security)
 
     exp = sub.add_parser("experiment", help="experiments that write tables and plots").add_subparsers(
         dest="sub", required=True
@@ -272,6 +349,21 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", default=None)
     ex.add_argument("--check", action="store_true", help="only report stale files; exit 1 if any")
     ex.set_defaults(func=_cmd_schemas_export)
+
+    keys = sub.add_parser("keys", help="credentials for signed V2X messages").add_subparsers(dest="sub", required=True)
+    ki = keys.add_parser(
+        "init",
+        help="write a test CA (ca.key.pem, ca.cert.json) and each vehicle's key and certificate "
+        "(ID.key.pem, ID.cert.json) into a directory; certificates start an hour before now (clock skew)",
+    )
+    ki.add_argument("--out", required=True, type=output_dir, help="output directory")
+    who = ki.add_mutually_exclusive_group()
+    who.add_argument("--vehicles", type=vehicle_ids, default=None, help="comma-separated vehicle ids (cv0,cv1,...)")
+    who.add_argument("--count", type=positive_int, default=4, help="vehicles cv0..cv{N-1} (default 4)")
+    ki.add_argument("--validity-days", type=positive_days, default=30.0, help="days the certificates are valid")
+    ki.add_argument("--ca-name", type=fleet_name, default="mapc-ca", help="the CA certificate's subject")
+    ki.add_argument("--force", action="store_true", help="replace credentials already in --out")
+    ki.set_defaults(func=_cmd_keys_init)
     return p
 
 

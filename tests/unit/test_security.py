@@ -1,5 +1,5 @@
 """Signed V2X messages: signing and verifying, every rejection reason, the bounded caches, credentials on
-disk and the README's recipe."""
+disk, the README's recipe, ``mapc keys init`` and ``mapc bench security``."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import pytest
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
+from mapcontainer.cli import main
 from mapcontainer.config import ConfigError
 from mapcontainer.security import (
     CA_NAME,
@@ -31,6 +32,7 @@ from mapcontainer.security import (
     make_ca,
     save_credentials,
 )
+from mapcontainer.security_bench import bench_security
 from schemas import (
     Certificate,
     LocalizationQuality,
@@ -426,3 +428,62 @@ def test_readme_recipe_opens_our_signed_messages(ca, creds) -> None:
     other = issue(make_ca("other", now=NOW - 60), "cv0", 600.0, NOW - 60)
     with pytest.raises(ValueError, match="not our CA"):
         namespace["open_signed"](Signer(other).sign(payload, NOW), ca_cert)
+
+
+# ------------------------------------------------------------------------------ CLI
+
+
+def test_keys_init_writes_a_ca_and_the_vehicles_credentials(tmp_path, capsys) -> None:
+    out = tmp_path / "keys"
+    assert main(["keys", "init", "--out", str(out), "--vehicles", "cv0,cv1,rsu-1", "--validity-days", "2"]) == 0
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert sorted(doc["vehicles"]) == ["cv0", "cv1", "rsu-1"] and doc["dir"] == str(out)
+    assert doc["valid_until"] - doc["valid_from"] == 2 * 86400 + 3600
+    ca_cert = load_certificate(out, CA_NAME)
+    assert certificate_digest(ca_cert).hex() == doc["ca"]["digest"] and ca_cert.subject == "mapc-ca"
+    v = Verifier(ca_cert, WINDOW_S)
+    t = doc["valid_from"] + 7200.0
+    for vid, digest in doc["vehicles"].items():
+        cred = load_credentials(out, vid)
+        assert cred.digest.hex() == digest
+        assert v.verify(Signer(cred).sign(prior(vid), t), t, vid)
+
+    assert main(["keys", "init", "--out", str(out)]) == 2  # would replace cv0, cv1 and the CA
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mapc: configuration error:") and "--force" in err and len(err.splitlines()) == 1
+    assert main(["keys", "init", "--out", str(out), "--count", "2", "--force"]) == 0
+    assert sorted(json.loads(capsys.readouterr().out)["vehicles"]) == ["cv0", "cv1"]
+    assert load_credentials(out, "cv1").certificate.issuer == certificate_digest(load_certificate(out, CA_NAME))
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["--vehicles", "cv0,cv0"], ["--vehicles", "cv0,ca"], ["--vehicles", "a b"], ["--count", "0"],
+     ["--validity-days", "0"], ["--vehicles", "cv0", "--count", "2"]],
+)  # fmt: skip
+def test_keys_init_refuses_bad_arguments(tmp_path, capsys, argv: list[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["keys", "init", "--out", str(tmp_path / "k"), *argv])
+    assert exc.value.code == 2
+    assert not (tmp_path / "k").exists()
+
+
+def test_keys_init_refuses_a_validity_past_2106(tmp_path, capsys) -> None:
+    assert main(["keys", "init", "--out", str(tmp_path), "--validity-days", "1e9"]) == 2
+    assert "uint32" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bench_security_prints_its_figures(capsys) -> None:
+    assert main(["bench", "security", "--iterations", "3", "--objects", "8"]) == 0
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert doc["iterations"] == 3 and doc["objects"] == 8
+    for name in ("sign_us_p50", "verify_us_p50", "verify_full_us_p50", "verify_new_certificate_us_p50"):
+        assert doc[name] > 0, name
+    assert doc["bytes_added_digest"] == 95 and doc["bytes_added_full"] == 95 - 11 + 1 + 132
+    assert doc["prior_bytes"] > 256 and doc["sign_over_ecdsa"] > 0
+
+
+def test_bench_security_payload_sizes() -> None:
+    small = bench_security(iterations=1, objects=0)
+    assert small["prior_bytes"] < 256 and small["bytes_added_digest"] == 94  # bin8 for the payload
