@@ -32,6 +32,7 @@ from schemas.arrays import cov_from_upper
 
 from . import geometry as geo
 from .channel import Channel, NetworkProfile, load_profile
+from .faults import FaultInjector
 from .fusion import FusionParams
 from .host import make_host
 from .metrics import match_objects
@@ -150,6 +151,9 @@ def run_pipeline(
         states0 = world.states(0.0)  # a pure function of time: does not advance the sensors
         initial.update(warm_start_poses({v: np.asarray(states0[v].pose, float) for v in world.vehicle_ids}, seed))
     agents = {v: VehicleAgent(world.hdmap, v, fleet, mode, initial_pose=initial[v]) for v in world.vehicle_ids}
+    faults = {v: FaultInjector(v, sc.faults) for v in world.vehicle_ids}
+    if mode != "distributed" and any(faults.values()):
+        raise ValueError("faults act on a vehicle's priors: they need mode='distributed'")
     channel = Channel(profile, seed=seed)
     hosts = {
         view.name: make_host(
@@ -173,20 +177,20 @@ def run_pipeline(
             msg = agents[vid].handle(t, frame)
             if isinstance(msg, Rejection):  # the simulator's own frames: a bug, not bad input
                 raise RuntimeError(f"{vid} refused its frame at {t:.2f} s: {msg.reason}: {msg.detail}")
-            payload = encode(msg)
             rec.gnss[vid] = np.asarray(frame.gnss.p_map, dtype=float)
             if mode == "distributed":
                 rec.priors[vid] = np.asarray(msg.pose, dtype=float)
                 rec.prior_covs[vid] = cov_from_upper(msg.pose_cov)
                 rec.loc_mode[vid] = msg.quality.mode
-            if vid == ego:
-                for name, host in hosts.items():
-                    if vid in listeners[name]:
-                        host.ingest(payload, t)
-            else:
-                result.tx_bytes[vid] += len(payload)
-                result.tx_msgs[vid] += 1
-                channel.send(vid, HOST_ID, payload, t)
+            for payload in [encode(m) for m in (faults[vid].apply(msg) if faults[vid] else [msg])]:
+                if vid == ego:
+                    for name, host in hosts.items():
+                        if vid in listeners[name]:
+                            host.ingest(payload, t)
+                else:
+                    result.tx_bytes[vid] += len(payload)
+                    result.tx_msgs[vid] += 1
+                    channel.send(vid, HOST_ID, payload, t)
         for d in channel.deliver(t):
             result.deliveries.append((d.src, d.t_sent, d.t_arrive))
             for name, host in hosts.items():

@@ -8,6 +8,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt, model_validator
 
 from ..config import ConfigError, deep_merge, find_preset, list_presets, load_yaml_model, read_yaml, validate_model
+from ..faults import Fault
 from ..hdmap.generator import MapSpec
 
 __all__ = [
@@ -149,6 +150,7 @@ class ScenarioConfig(_Strict):
     obstacle_vehicles: list[VehicleSpec] = Field(default_factory=list)
     pedestrians: list[PedestrianSpec] = Field(default_factory=list)
     duration_s: float = Field(30.0, gt=0, description="default episode length")
+    faults: list[Fault] = Field(default_factory=list, description="misbehaving vehicles (mapcontainer.faults)")
 
     @model_validator(mode="after")
     def _indices(self):

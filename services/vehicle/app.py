@@ -22,6 +22,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from mapcontainer.faults import FaultInjector
 from mapcontainer.hdmap.generator import generate_map
 from mapcontainer.sim.config import load_scenario
 from schemas import Rejection, SensorFrame, encode
@@ -75,8 +76,12 @@ def main(s: VehicleSettings) -> int:
 
     log = setup_logging("vehicle", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
-    hdmap = generate_map(load_scenario(s.scenario).map)
+    scenario = load_scenario(s.scenario)
+    hdmap = generate_map(scenario.map)
     agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode)
+    faults = FaultInjector(s.id, scenario.faults)  # the scenario's faults of this vehicle, if any
+    if faults:
+        log.warning("this vehicle misbehaves as configured: %s", [f.model_dump() for f in faults.faults])
     clock = SimClock()
     figures_fn = getattr(agent, "figures", None) or getattr(agent, "stats", None)
     extra = {"sent": 0.0, "last_msg_bytes": 0.0, "skipped": 0.0}  # skipped: frames given to agent.skip
@@ -126,17 +131,18 @@ def main(s: VehicleSettings) -> int:
                     lost["since"] = None
                 elif lost["since"] is None:
                     lost["since"] = got[1]
-            payload = encode(out)
-            pub.put(
-                payload,
-                attachment=make_attachment(
-                    t_wall_ns=time.time_ns(),
-                    t_capture_wall_ns=msg.attachment.get("t_wall_ns"),
-                    **clock.fields(),
-                ),
-            )
-            extra["sent"] += 1
-            extra["last_msg_bytes"] = float(len(payload))
+            for m in faults.apply(out) if faults and s.mode == "distributed" else [out]:
+                payload = encode(m)
+                pub.put(
+                    payload,
+                    attachment=make_attachment(
+                        t_wall_ns=time.time_ns(),
+                        t_capture_wall_ns=msg.attachment.get("t_wall_ns"),
+                        **clock.fields(),
+                    ),
+                )
+                extra["sent"] += 1
+                extra["last_msg_bytes"] = float(len(payload))
 
         def on_skipped_frame(msg: Received) -> None:
             got = frame_of(msg)
