@@ -110,41 +110,11 @@ def _cmd_bench_security(args: argparse.Namespace) -> int:
     return 0
 
 
-KEYS_SKEW_S = 3600.0  # keys init: certificates start this long before now (clocks of other machines)
-
-
 def _cmd_keys_init(args: argparse.Namespace) -> int:
-    import time
-
-    from .security import CA_NAME, issue, make_ca, save_credentials
+    from .security import write_fleet_keys
 
     vehicles = args.vehicles if args.vehicles is not None else [f"cv{i}" for i in range(args.count)]
-    out = Path(args.out)
-    names = [CA_NAME, *vehicles]
-    existing = [p.name for n in names for p in (out / f"{n}.key.pem", out / f"{n}.cert.json") if p.exists()]
-    if existing and not args.force:
-        more = " ..." if len(existing) > 4 else ""
-        raise ConfigError(f"{out} already holds {', '.join(existing[:4])}{more}: keys of a run (--force replaces them)")
-    now = time.time() - KEYS_SKEW_S
-    validity_s = args.validity_days * 86400.0 + KEYS_SKEW_S
-    try:
-        ca = make_ca(args.ca_name, now=now, validity_s=validity_s)
-        vehicle_creds = [issue(ca, vid, validity_s, now) for vid in vehicles]
-    except ValueError as exc:  # a validity past 2106 (Unix seconds in 32 bits)
-        raise ConfigError(f"--validity-days {args.validity_days:g}: {exc}") from None
-    save_credentials(ca, out, CA_NAME)
-    digests = {}
-    for creds in vehicle_creds:
-        save_credentials(creds, out)
-        digests[creds.subject] = creds.digest.hex()
-    cert = ca.certificate
-    doc = {
-        "dir": str(out),
-        "ca": {"subject": cert.subject, "digest": ca.digest.hex()},
-        "valid_from": cert.valid_from,
-        "valid_until": cert.valid_until,
-        "vehicles": digests,
-    }
+    doc = write_fleet_keys(Path(args.out), vehicles, args.validity_days * 86400.0, args.ca_name, force=args.force)
     print(jsonout.dumps(doc))
     return 0
 

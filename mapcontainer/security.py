@@ -320,6 +320,48 @@ _T_VERSION, _T_PAYLOAD, _T_CERT, _T_DIGEST, _T_TGEN, _T_SIG = (
 )
 
 
+KEYS_SKEW_S = 3600.0  # write_fleet_keys: certificates start this long before now (clocks of other machines)
+
+
+def write_fleet_keys(
+    out: Path, vehicles: list[str], validity_s: float, ca_name: str = "fleet-ca", *, force: bool = False
+) -> dict:
+    """A test CA and credentials for ``vehicles`` in ``out`` (``mapc keys init``, and a fleet run's own keys).
+
+    Returns what was written (the CA's and each vehicle's certificate digest, the validity). A directory
+    that already holds credentials of these names is a ConfigError unless ``force``.
+    """
+    names = [CA_NAME, *vehicles]
+    existing = [p.name for n in names for p in _paths(Path(out), n) if p.exists()]
+    if existing and not force:
+        more = " ..." if len(existing) > 4 else ""
+        raise ConfigError(f"{out} already holds {', '.join(existing[:4])}{more}: keys of a run (--force replaces them)")
+    now = time.time() - KEYS_SKEW_S
+    try:
+        ca = make_ca(ca_name, now=now, validity_s=validity_s + KEYS_SKEW_S)
+        vehicle_creds = [issue(ca, vid, validity_s + KEYS_SKEW_S, now) for vid in vehicles]
+    except ValueError as exc:  # a validity past 2106 (Unix seconds in 32 bits), a bad name
+        raise ConfigError(f"keys for {vehicles}: {exc}") from None
+    save_credentials(ca, out, CA_NAME)
+    for creds in vehicle_creds:
+        save_credentials(creds, out)
+    cert = ca.certificate
+    return {
+        "dir": str(out),
+        "ca": {"subject": cert.subject, "digest": ca.digest.hex()},
+        "valid_from": cert.valid_from,
+        "valid_until": cert.valid_until,
+        "vehicles": {c.subject: c.digest.hex() for c in vehicle_creds},
+    }
+
+
+def inner_payload(data: bytes) -> bytes:
+    """The message inside a SecuredMessage, unverified (for counting and routing); ``data`` itself if it is
+    not one. Whoever acts on the content verifies first (:class:`Verifier`)."""
+    inner = peek(data).get("payload")
+    return inner if isinstance(inner, bytes) else data
+
+
 # ------------------------------------------------------------------------------ verifying
 
 

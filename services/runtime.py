@@ -613,7 +613,7 @@ class Service:
     process alive but dead inside would never be restarted).
     """
 
-    OVERFLOW_FACTOR = 10  # subscribe_queued: samples waiting for the overflow handler, per maxsize
+    OVERFLOW_MAX = 256  # subscribe_queued: samples waiting for the overflow handler (a cold start's search: 2-3 s)
 
     def __init__(
         self,
@@ -896,7 +896,7 @@ class Service:
         When ``maxsize`` samples wait for ``handler``, a new sample is counted as reject ``queue_full``
         and dropped; with ``overflow`` it is counted as ``skipped`` and passed to ``overflow`` instead, in
         the same worker and in arrival order (a cheap partial handling: a vehicle keeps the odometry of a
-        frame it has no time to match), until ``OVERFLOW_FACTOR * maxsize`` samples wait for it, beyond
+        frame it has no time to match), until ``OVERFLOW_MAX`` samples wait for it, beyond
         which it is dropped as ``queue_full`` too (a flood must not grow the queue without bound). The
         handler's run time is recorded as the processing latency.
         """
@@ -909,7 +909,7 @@ class Service:
             nonlocal waiting, skipping
             with lock:
                 full = waiting >= maxsize
-                drop = full and (overflow is None or skipping >= self.OVERFLOW_FACTOR * maxsize)
+                drop = full and (overflow is None or skipping >= self.OVERFLOW_MAX)
                 waiting += not full
                 skipping += full and not drop
             if drop:

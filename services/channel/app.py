@@ -138,9 +138,9 @@ class Relay:
         with self._cond:
             st = self.channel.stats()
         st.pop("links", None)
-        offered = st.get("offered_msgs", 0)
+        settled = st.get("offered_msgs", 0) - st.get("in_flight_msgs", 0)  # a message in flight is not lost yet
         delivered = st.get("delivered_msgs", 0) - st.get("duplicated_msgs", 0)
-        st["delivered_fraction"] = delivered / offered if offered else 1.0
+        st["delivered_fraction"] = delivered / settled if settled else 1.0
         return st
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from pydantic import Field
 
+from mapcontainer.security import inner_payload
 from mapcontainer.sim.config import load_scenario
 from schemas import FusedState, GroundTruth, encode
 from schemas.codec import peek
@@ -70,7 +71,8 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
 
 
 def _seq(payload: bytes) -> int | None:
-    seq = peek(payload).get("seq")  # peek gives {} for what is not our message: bytes, not a delivery
+    """The sequence number of a V2X message, signed or not (unverified: it only counts deliveries)."""
+    seq = peek(inner_payload(payload)).get("seq")  # {} for what is not our message: bytes, not a delivery
     return seq if isinstance(seq, int) else None
 
 

@@ -30,7 +30,8 @@ from pydantic import Field
 
 from mapcontainer.admission import Admission
 from mapcontainer.config import read_yaml, validate_model
-from schemas.codec import peek
+from mapcontainer.security import CA_NAME, Verifier, load_certificate
+from schemas.codec import Rejection, peek
 from schemas.topics import topic
 
 from ..runtime import (
@@ -48,6 +49,8 @@ from .worker import fusion_loop, fusion_process
 
 __all__ = ["HostSettings", "fused_lag", "fusion_stall", "main", "parse_args"]
 
+VERIFY_WINDOW_S = 5.0  # a signed message generated longer ago (or ahead) than this is refused as replayed
+
 
 class HostSettings(ServiceSettings):
     scenario: str = "paper-urban"
@@ -61,6 +64,7 @@ class HostSettings(ServiceSettings):
     time_scale: float = Field(
         1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="the world's: senders' rates scale"
     )
+    keys: str | None = Field(None, description="directory of the fleet's keys: accept signed messages only")
     standby_for: str | None = Field(
         None, description="a warm standby of this host id: same input, publishes only while that host is gone"
     )
@@ -91,6 +95,7 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
     p.add_argument("--params", default=None, help="YAML file of FusionParams fields")
     p.add_argument("--inline", action="store_true", help="run the solver in a thread, not a worker process")
     p.add_argument("--time-scale", type=float, default=1.0, help="the world's (senders' rates scale with it)")
+    p.add_argument("--keys", default=None, help="directory of the fleet's keys (its CA): accept signed messages only")
     p.add_argument(
         "--standby-for",
         default=None,
@@ -109,6 +114,7 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
         inline=a.inline,
         time_scale=a.time_scale,
         standby_for=a.standby_for,
+        keys=a.keys,
     )
 
 
@@ -155,6 +161,8 @@ def main(s: HostSettings) -> int:
         "max_wait_s": s.max_wait_s,
         "params": s.params,
     }
+    verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+    verify_lock = threading.Lock()
     # The worker starts before the Zenoh session exists (never fork after opening one; spawn anyway).
     if s.inline:
         inbox: Any = queue.Queue(maxsize=s.inbox)
@@ -230,7 +238,15 @@ def main(s: HostSettings) -> int:
             src = where["src"]
             if not svc.admit(admission, src, name):
                 return
-            sender = peek(msg.payload).get("sender")
+            payload = msg.payload
+            if verifier is not None:  # signed: the certificate, the signature, freshness, and the sender
+                with verify_lock:
+                    out = verifier.verify(payload, time.time(), expected_sender=src)
+                if isinstance(out, Rejection):
+                    svc.metrics.reject(out.reason, f"{name} from {src}: {out.detail}", log)
+                    return
+                payload = out.payload
+            sender = peek(payload).get("sender")
             if sender is not None and sender != src:  # the key names the radio source; so must the message
                 svc.metrics.reject("sender_mismatch", f"a message of {sender!r} on {src}'s key", log)
                 return
@@ -242,7 +258,7 @@ def main(s: HostSettings) -> int:
                     log.warning("no world clock in the attachments; receive times are seconds since start")
                 t_recv = time.monotonic() - t0_mono
             try:
-                inbox.put_nowait(("ingest", msg.payload, t_recv))
+                inbox.put_nowait(("ingest", payload, t_recv))
             except queue.Full:
                 svc.metrics.reject("queue_full", f"fusion inbox full ({s.inbox})", log)
 

@@ -38,7 +38,7 @@ from schemas.topics import topic
 
 from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
-from .manifest import FleetParams, ProcessSpec, load_manifest, manifest_path, resolve
+from .manifest import FleetParams, ProcessSpec, load_manifest, manifest_path, resolve, vehicle_ids
 from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
 from .supervisor import Supervisor, is_ours
 
@@ -140,10 +140,13 @@ def new_run_dir(runs_dir: str | Path, fleet: str) -> Path:
 def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[ProcessSpec]:
     """The processes to run; ConfigError (before anything starts) for an unknown scenario or network."""
     from mapcontainer.channel import load_profile
+    from mapcontainer.security import CA_NAME, load_certificate
     from mapcontainer.sim.config import load_scenario
 
     load_scenario(s.params.scenario)
     load_profile(s.params.network)
+    if s.params.signing and s.params.keys is not None:  # the given keys: their CA must be readable now
+        load_certificate(s.params.keys, CA_NAME)
     zc = s.params.zenoh_config
     if s.join:  # the launcher's own session, as run() opens it: Zenoh's objections now, not later
         zenoh_config(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
@@ -163,6 +166,14 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     p.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="default distributed")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--time-scale", type=float, default=None, help="scenario seconds per wall second")
+    p.add_argument(
+        "--no-signing",
+        dest="signing",
+        action="store_false",
+        default=None,
+        help="vehicles send unsigned messages (for comparison; default: signed with a test CA made for the run)",
+    )
+    p.add_argument("--keys", default=None, help="the fleet's keys directory (mapc keys init) instead of the run's own")
     p.add_argument(
         "--standby",
         action="store_true",
@@ -202,6 +213,8 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "seed": a.seed,
         "time_scale": a.time_scale,
         "standby": a.standby,
+        "signing": True if a.keys is not None and a.signing is None else a.signing,  # keys given: signed
+        "keys": a.keys,
         "zenoh_config": a.zenoh_config,
     }
     params = manifest.defaults.model_copy(update={k: v for k, v in over.items() if v is not None})
@@ -338,6 +351,10 @@ def run(s: LauncherSettings) -> int:
             raise RuntimeError("could not read the rendezvous endpoint from the Zenoh admin space")
         connect = next((e for e in r.endpoints if "127.0.0.1" in e), r.endpoints[0])
         specs = plan(s, run_dir, connect)
+        if s.params.signing and s.params.keys is None:  # a test CA and the vehicles' credentials for this run
+            from mapcontainer.security import write_fleet_keys
+
+            write_fleet_keys(run_dir / "keys", vehicle_ids(s.params), validity_s=7 * 86400.0)
         write_json(
             run_dir / "config.json",
             {

@@ -130,6 +130,10 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
         argv += ["--vehicles", str(p.vehicles)]
     if p.standby:
         argv.append("--standby")
+    if not p.signing:
+        argv.append("--no-signing")
+    if p.keys is not None:
+        argv += ["--keys", p.keys]
     if p.duration_s is not None:
         argv += ["--duration", str(p.duration_s)]
     if s.manifest:

@@ -30,6 +30,7 @@ __all__ = [
     "ProcessTemplate",
     "RestartPolicy",
     "load_manifest",
+    "keys_dir",
     "manifest_path",
     "resolve",
     "vehicle_ids",
@@ -85,6 +86,10 @@ class FleetParams(_Strict):
     host_id: str = Field("host", pattern=NAME)
     ego: str = Field("cv0", pattern=NAME, description="the vehicle the host container runs on")
     standby: bool = Field(False, description="run a warm standby host that takes over when the host is gone")
+    signing: bool = Field(True, description="vehicles sign their V2X messages, the host accepts signed ones only")
+    keys: str | None = Field(
+        None, description="the fleet's keys directory (mapc keys init); None: a test CA made for the run"
+    )
     zenoh_config: str | None = Field(None, description="a Zenoh JSON5 file every process starts from")
 
 
@@ -163,6 +168,13 @@ def load_manifest(name_or_path: str | Path | None = None) -> Manifest:
     return validate_model(Manifest, read_yaml(p), p)
 
 
+def keys_dir(params: FleetParams, run_dir: str | Path) -> str | None:
+    """Where the fleet's keys are: the given directory, the run's own (``keys/``), or None (unsigned)."""
+    if not params.signing:
+        return None
+    return params.keys or str(Path(run_dir) / "keys")
+
+
 def vehicle_ids(params: FleetParams) -> list[str]:
     """The connected vehicles' ids, as the world names them (cv0, cv1, ...)."""
     n = params.vehicles
@@ -218,6 +230,7 @@ def resolve(
     vids = vehicle_ids(params)
     base = {
         **params.model_dump(),
+        "keys_dir": keys_dir(params, run_dir),
         "run_dir": str(run_dir),
         "connect": connect,
         "vehicle_ids": ",".join(vids),

@@ -24,6 +24,7 @@ from pydantic import Field
 
 from mapcontainer.faults import FaultInjector
 from mapcontainer.hdmap.generator import generate_map
+from mapcontainer.security import Signer, load_credentials
 from mapcontainer.sim.config import load_scenario
 from schemas import Rejection, SensorFrame, encode
 from schemas.topics import topic
@@ -52,6 +53,7 @@ class VehicleSettings(ServiceSettings):
     # 1.5 s). Measured with 2: e2e p50 0.19-0.29 s, every fused state evaluated.
     queue: int = 2
     unlocalized_s: float = Field(3.0, gt=0, description="degraded when not map-matched for longer (scenario s)")
+    keys: str | None = Field(None, description="directory of the fleet's keys: sign every V2X message (None: unsigned)")
 
 
 def parse_args(argv: list[str] | None = None) -> VehicleSettings:
@@ -64,10 +66,11 @@ def parse_args(argv: list[str] | None = None) -> VehicleSettings:
         default=VehicleSettings.model_fields["queue"].default,
         help="frames waiting before new ones are skipped (not matched or sent; their odometry and GNSS are kept)",
     )
+    p.add_argument("--keys", default=None, help="directory of the fleet's keys (mapc keys init): sign what is sent")
     add_service_args(p, "vehicle")
     a = p.parse_args(argv)
     return VehicleSettings(
-        **service_settings_from_args(a).model_dump(), scenario=a.scenario, mode=a.mode, queue=a.queue
+        **service_settings_from_args(a).model_dump(), scenario=a.scenario, mode=a.mode, queue=a.queue, keys=a.keys
     )
 
 
@@ -80,6 +83,7 @@ def main(s: VehicleSettings) -> int:
     hdmap = generate_map(scenario.map)
     agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode)
     faults = FaultInjector(s.id, scenario.faults)  # the scenario's faults of this vehicle, if any
+    signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # ConfigError: exit 2 at start
     if faults:
         log.warning("this vehicle misbehaves as configured: %s", [f.model_dump() for f in faults.faults])
     clock = SimClock()
@@ -132,7 +136,7 @@ def main(s: VehicleSettings) -> int:
                 elif lost["since"] is None:
                     lost["since"] = got[1]
             for m in faults.apply(out) if faults and s.mode == "distributed" else [out]:
-                payload = encode(m)
+                payload = encode(m) if signer is None else signer.sign(encode(m), time.time())
                 pub.put(
                     payload,
                     attachment=make_attachment(
