@@ -17,7 +17,10 @@ Row keys (``NETWORK_COLUMNS``; the live-fleet sweep writes rows with the same ke
   ``_output``), so an old message costs what that prediction gets wrong (acceleration and turns
   over its age), not speed x age.
 * ``bytes_per_s_per_vehicle``: payload bytes offered to the link per second per sending vehicle
-  (the host vehicle's own messages stay on board and are not counted); ``bytes_per_message``.
+  (the host vehicle's own messages stay on board and are not counted); ``bytes_per_message``. The
+  messages are signed as the live fleet sends them (``signed``; ECDSA P-256 with the certificate
+  about once a second, :mod:`mapcontainer.security`), so these are bytes on the air;
+  ``bytes_per_message_unsigned`` is the message inside.
 * ``delivered_fraction``: delivered / (delivered + dropped) over the messages whose fate was decided
   by the end of the run (messages still in flight at the end are left out, so a long latency does
   not count as loss); ``dropped_loss_fraction``, ``dropped_queue_fraction``: the same denominator.
@@ -91,6 +94,8 @@ NETWORK_COLUMNS = (
     "vehicle_coverage",
     "bytes_per_s_per_vehicle",
     "bytes_per_message",
+    "bytes_per_message_unsigned",
+    "signed",
     "msgs_per_s_per_vehicle",
     "delivered_fraction",
     "dropped_loss_fraction",
@@ -140,12 +145,15 @@ def run_network_point(
     scenario: str = "paper-urban",
     warmup_s: float = 1.0,
     radius_m: float = 50.0,
+    signing: bool = True,
 ) -> dict[str, Any]:
     """One sweep point: run the pipeline and return its row (keys: ``NETWORK_COLUMNS``)."""
     if duration <= warmup_s:
         raise ValueError(f"duration ({duration} s) must exceed warmup_s ({warmup_s} s)")
     t0 = time.perf_counter()
-    res = run_pipeline(scenario, seed=seed, duration_s=duration, mode=mode, network=profile, views=(View("fused"),))
+    res = run_pipeline(
+        scenario, seed=seed, duration_s=duration, mode=mode, network=profile, views=(View("fused"),), signing=signing
+    )
     scored = [r for r in res.records if r.t >= warmup_s - 1e-9]
     obj_sq, veh_sq = [], []
     obj_near = veh_total = veh_seen = 0
@@ -174,6 +182,7 @@ def run_network_point(
     n_send = max(1, len(senders))
     tx_bytes, tx_msgs = sum(res.tx_bytes.values()), sum(res.tx_msgs.values())
     rejected = sum(sum(st.get("rejected", {}).values()) for st in res.host_stats.values())
+    rejected += sum(res.security_rejected.values())
     return {
         "source": "pipeline",
         "scenario": res.scenario,
@@ -193,6 +202,10 @@ def run_network_point(
         "vehicle_coverage": _nan_round(veh_seen / veh_total) if veh_total else float("nan"),
         "bytes_per_s_per_vehicle": _nan_round(tx_bytes / duration / n_send, 1),
         "bytes_per_message": _nan_round(tx_bytes / tx_msgs, 1) if tx_msgs else float("nan"),
+        "bytes_per_message_unsigned": _nan_round(sum(res.tx_message_bytes.values()) / tx_msgs, 1)
+        if tx_msgs
+        else float("nan"),
+        "signed": signing,
         "msgs_per_s_per_vehicle": _nan_round(tx_msgs / duration / n_send, 2),
         "delivered_fraction": _nan_round(delivered / decided) if decided else float("nan"),
         "dropped_loss_fraction": _nan_round(dropped_loss / decided) if decided else float("nan"),

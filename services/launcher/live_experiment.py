@@ -95,6 +95,8 @@ def live_row(report: dict, profile: NetworkProfile, duration_s: float, warmup_s:
         "vehicle_coverage": nan,
         "bytes_per_s_per_vehicle": round(b / duration_s / n_send, 1) if tx_bytes else nan,
         "bytes_per_message": round(b / m, 1) if m else nan,
+        "bytes_per_message_unsigned": nan,  # the evaluator sees the signed bytes only
+        "signed": bool(params.get("signing", True)),
         "msgs_per_s_per_vehicle": round(m / duration_s / n_send, 2) if tx_msgs else nan,
         "delivered_fraction": _f(ev.get("delivered_fraction")),
         "dropped_loss_fraction": nan,
