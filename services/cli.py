@@ -5,7 +5,8 @@ The core package never imports zenoh or ``services``; the commands that need a l
 
 ``mapc fleet up [--scenario S] [--vehicles N] [--network P] [--duration S] [--fleet NAME]
 [--mode distributed|centralized] [--detach] [--dry-run]``, ``mapc fleet status [--json]``,
-``mapc fleet down [--fleet NAME]``, ``mapc health [--fleet NAME] [--json] [--watch]``, and
+``mapc fleet down [--fleet NAME]``, ``mapc health [--fleet NAME] [--connect EP] [--zenoh-config FILE]
+[--json] [--watch]``, and
 ``mapc experiment network --live --out DIR [--profiles ideal,dsrc,...] [--mode distributed|centralized|both]
 [--duration S]`` (the network profiles on the live fleet, beside the in-process figures).
 """
@@ -116,14 +117,44 @@ def _cmd_fleet_down(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------ health
 
 
+def _health_zenoh_file(path: str):
+    """``mapc health --zenoh-config FILE``: the file as a Zenoh configuration, and its client endpoints.
+
+    A missing or malformed file is a ConfigError in one line (Zenoh's JSON5 parser reports on several)."""
+    import re
+
+    from mapcontainer.config import ConfigError
+
+    from .runtime import ZenohSettings, zenoh_config
+
+    try:
+        conf = zenoh_config(ZenohSettings(config_file=path))
+    except ConfigError as exc:
+        text = str(exc)
+        where, what = re.search(r"-->\s*(\d+:\d+)", text), re.search(r"^\s*=\s*(.+)$", text, re.M)
+        if where and what:  # the parser's "--> line:col ... = expected ..." layout
+            text = f"the Zenoh configuration file {path}: line {where.group(1)}: {what.group(1)}"
+        raise ConfigError(" ".join(text.split())) from None
+    try:
+        endpoints = json.loads(conf.get_json("connect/endpoints"))
+    except Exception:  # no connect section
+        endpoints = []
+    if isinstance(endpoints, dict):  # endpoints per mode
+        endpoints = endpoints.get("client") or []
+    return [str(e) for e in endpoints]
+
+
 def _cmd_health(args: argparse.Namespace) -> int:
     from .health import exit_code, fleet_health, format_table
     from .launcher.control import active_fleets
-    from .runtime import ZenohSettings, open_session, zenoh_error_text
+    from .runtime import ZenohSettings, zenoh_config, zenoh_error_text
 
     fleet, connect, expected = args.fleet, list(args.connect or []), []
     if not connect and os.environ.get("MAPC_ZENOH_CONNECT"):
         connect = os.environ["MAPC_ZENOH_CONNECT"].split(",")
+    if args.zenoh_config:  # its endpoints come after --connect and $MAPC_ZENOH_CONNECT, before the registry's
+        file_connect = _health_zenoh_file(args.zenoh_config)  # ConfigError: exit 2, one line
+        connect = connect or file_connect
     running = [f for f in active_fleets() if f["launcher_alive"]]
     names = sorted({f["fleet"] for f in running})
     if fleet is None and len(names) == 1:
@@ -143,12 +174,18 @@ def _cmd_health(args: argparse.Namespace) -> int:
         print(f"mapc: {why}; or give --connect ENDPOINT", file=sys.stderr)
         return 2
     fleet = fleet or "local"  # --connect without --fleet
+    # --connect is laid over --zenoh-config (its login, TLS, timeouts) as for the services
+    settings = ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000, config_file=args.zenoh_config)
+    conf = zenoh_config(settings)  # a configuration Zenoh refuses: ConfigError, exit 2
     try:
-        session = open_session(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000))
-    except Exception as e:  # zenoh raises ZError when nothing listens at the endpoint
+        import zenoh
+
+        session = zenoh.open(conf)
+    except Exception as e:  # zenoh raises ZError when nothing listens at the endpoint or the login fails
         if args.json:
             print("[]")
-        print(f"mapc: cannot reach {', '.join(connect)}: {zenoh_error_text(e)}", file=sys.stderr)
+        hint = "" if args.zenoh_config else " (a router that asks for a login or TLS needs --zenoh-config FILE)"
+        print(f"mapc: cannot reach {', '.join(connect)}: {zenoh_error_text(e)}{hint}", file=sys.stderr)
         return 2
     try:
         while True:
@@ -281,6 +318,13 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     )
     h.add_argument("--fleet", default=None, help="fleet name (default: the one running fleet)")
     h.add_argument("--connect", action="append", default=None, help="a Zenoh endpoint of the fleet")
+    h.add_argument(
+        "--zenoh-config",
+        default=None,
+        metavar="FILE",
+        help="a Zenoh JSON5 client configuration (user/password or TLS, e.g. from deploy/zenoh/secure/) "
+        "for a secured router; --connect is laid over its endpoints",
+    )
     h.add_argument("--json", action="store_true", help="a JSON list of services")
     h.add_argument("--watch", action="store_true", help="refresh every second until Ctrl-C")
     h.add_argument("--timeout", type=seconds, default=1.0, help="seconds to wait for answers")

@@ -3,8 +3,9 @@
 #   deploy/zenoh/secure/gen-test-certs.sh [OUT_DIR] [ROUTER_NAMES]
 # OUT_DIR defaults to deploy/zenoh/secure/certs (ignored by git). ROUTER_NAMES is the router
 # certificate's subjectAltName list (default "DNS:localhost,IP:127.0.0.1"; add your hosts' names
-# and addresses for a real fleet). Client certificates carry their role as common name
-# (vehicle, host, ops), which access_control can match with cert_common_names.
+# and addresses for a real fleet). Client certificates carry a common name that access_control can
+# match with cert_common_names: the role (vehicle, host, ops) and, for per-vehicle rules as in
+# router-acl.json5, the vehicle id (cv0..cv3).
 # The private keys are unencrypted: for tests on one machine only. A real fleet keeps its CA key
 # offline and gives each machine only its own key (chmod 600).
 set -euo pipefail
@@ -30,9 +31,9 @@ sign() {  # name, extensions
 sign router "subjectAltName=$sans
 extendedKeyUsage=serverAuth,clientAuth
 basicConstraints=CA:FALSE"
-for role in vehicle host ops; do
-  sign "$role" "extendedKeyUsage=clientAuth
+for name in vehicle host ops cv0 cv1 cv2 cv3; do
+  sign "$name" "extendedKeyUsage=clientAuth
 basicConstraints=CA:FALSE"
 done
 chmod 600 ./*-key.pem
-echo "test certificates in $(pwd): ca.pem router.pem vehicle.pem host.pem ops.pem (+ *-key.pem)"
+echo "test certificates in $(pwd): ca.pem router.pem vehicle.pem host.pem ops.pem cv0.pem..cv3.pem (+ *-key.pem)"
