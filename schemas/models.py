@@ -17,7 +17,7 @@ units; readers ignore fields (tags) they do not know. A breaking change bumps SC
 from __future__ import annotations
 
 from enum import IntEnum
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -291,6 +291,11 @@ class FusedState(Envelope):
         default_factory=lambda: np.zeros((0, 6), np.float32), description="position covariance, upper triangle"
     )
     messages_fused: int = Field(0, ge=0, description="messages in the window this state was solved from")
+    flagged: list[Annotated[str, Field(pattern=NAME_PATTERN)]] = Field(
+        default_factory=list,
+        max_length=MAX_OBJECTS,
+        description="vehicles flagged by misbehaviour detection: the others see them elsewhere than they say",
+    )
 
     @model_validator(mode="after")
     def _consistent(self):

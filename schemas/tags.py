@@ -126,7 +126,9 @@ TAGS: dict[str, int] = {
     "certificate": 90,
     "signer_digest": 91,
     "t_gen_us": 92,
-    # new fields: next tag 93
+    # FusedState (added)
+    "flagged": 93,
+    # new fields: next tag 94
 }
 
 

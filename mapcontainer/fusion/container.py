@@ -28,6 +28,7 @@ from schemas.models import MAX_OBJECTS
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer
 from .graph import FusionGraph, SolveReport
+from .misbehaviour import MisbehaviourMonitor
 from .motion import accel_psd, cv_predict
 from .params import FusionParams
 from .poses import pose_cov_from_tangent, sym_from_upper, upper_from_sym, vector_from_pose3
@@ -83,6 +84,7 @@ class Container:
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
         self._candidates: dict[float, list[VehicleCandidate]] = {}
+        self.monitor = MisbehaviourMonitor(params)
 
     # ------------------------------------------------------------------ input
     def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
@@ -151,6 +153,8 @@ class Container:
         self.graph.add_detections(batch)
         self._counts["detections"] += len(batch)
         self._cross_detections(t_min)
+        if self.params.misbehaviour:
+            self.monitor.update(t)
         for tid in self.tracker.expire(t):
             self.graph.remove_track(tid)
         self.graph.prune(t_min)
@@ -187,12 +191,23 @@ class Container:
         pose = np.asarray(m.pose, dtype=float)
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
+        if self.params.misbehaviour:
+            reported = {v.vid: v.p_map for v in self._vehicle_candidates(t)}
+            self.monitor.observe(m.sender, t, p_map, np.asarray(objs.cls)[keep], reported)
+            if m.sender in self.monitor.flagged:  # its detections would carry its error into everyone's picture
+                self._counts["detections_of_flagged"] += len(p_map)
+                return []
         idx = np.flatnonzero(keep)
         dets = [
             Detection(m.sender, t, int(i), p_body[i], cov_body[i], int(objs.cls[i]), p_map[j], S_map[j])
             for j, i in enumerate(idx)
         ]
-        vehicles = [v for v in self._vehicle_candidates(t) if v.vid != m.sender]
+        mb = self.monitor
+        vehicles = [
+            v
+            for v in self._vehicle_candidates(t)
+            if v.vid != m.sender and v.vid not in mb.flagged and not mb.disputes(m.sender, v.vid)
+        ]
         assignments, _ = self.tracker.associate(dets, vehicles)
         batch = []
         observers: dict[tuple[str, float], object] = {}
@@ -331,6 +346,7 @@ class Container:
             object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
             object_cov=upper_from_sym(_make_pd(np.array(covs).reshape(-1, 3, 3))).astype(np.float32),
             messages_fused=sum(len(c.tkeys) for c in g.vehicles.values()),
+            flagged=sorted(self.monitor.flagged),
         )
 
     # ------------------------------------------------------------------ health
@@ -364,4 +380,7 @@ class Container:
             "observer_gone": self._counts["observer_gone"],
             "duplicate_instant": self._counts["duplicate_instant"],
             "too_close": self._counts["too_close"],
+            "flagged": dict.fromkeys(sorted(self.monitor.flagged), 1.0),
+            "flagged_total": self.monitor.flagged_total,
+            "detections_of_flagged": self._counts["detections_of_flagged"],
         }

@@ -87,6 +87,22 @@ class FusionParams(BaseModel):
     min_range_m: float = Field(0.5, gt=0, description="detections closer to the body origin than this are ignored")
     cross_localization: bool = Field(True, description="detections of connected vehicles constrain their poses")
 
+    # ---- misbehaviour detection (mapcontainer/fusion/misbehaviour.py)
+    misbehaviour: bool = Field(True, description="flag vehicles the others see elsewhere than they say they are")
+    misbehaviour_radius_m: float = Field(6.0, gt=0, description="a detection this near a vehicle is a sighting of it")
+    misbehaviour_window_s: float = Field(2.0, gt=0, description="sightings of the last this many seconds decide")
+    misbehaviour_min_sightings: int = Field(4, ge=1, description="an observer with this many sightings has a view")
+    misbehaviour_min_observers: int = Field(
+        2, ge=1, description="... by at least this many other vehicles (two vehicles alone cannot tell who lies)"
+    )
+    misbehaviour_offset_m: float = Field(0.6, gt=0, description="a view farther off than this disagrees")
+    misbehaviour_trust_s: float = Field(
+        10.0, gt=0, description="a vehicle whose view of a third one agreed this recently is corroborated"
+    )
+    misbehaviour_spread_m: float = Field(
+        1.0, gt=0, description="... consistently: the sightings' median distance from their median below this"
+    )
+
     # ---- motion models
     accel_psd_vehicle: float = Field(
         2.0, gt=0, description="white-noise-on-acceleration PSD of obstacle vehicles, horizontal (m^2/s^3)"

@@ -79,6 +79,7 @@ class Evaluator:
         self.evaluated = 0
         self.no_truth = 0
         self.latency_refused = 0
+        self.flagged_first: dict[str, float] = {}  # vehicle -> scenario time the host first flagged it
         self.sources_refused = 0
         self.t_meas: float | None = None
         self.last: dict[str, int] = {"objects_fused": 0, "objects_matched": 0, "obstacles_truth": 0}
@@ -197,6 +198,8 @@ class Evaluator:
         self.last_fused = fused
         self.last_truth = truth  # the truth at the last fused state's t_meas (for the picture)
         t = fused.t_meas
+        for vid in fused.flagged:
+            self.flagged_first.setdefault(vid, t)
         self.errors.append(
             (t, v_err, float(np.sqrt(np.mean(o_sq))) if o_sq else None, len(ti) / len(p_t) if len(p_t) else None)
         )
@@ -305,6 +308,7 @@ class Evaluator:
             "no_truth": self.no_truth,
             "latency_refused": self.latency_refused,
             "sources_refused": self.sources_refused,
+            "flagged_first_t": dict(sorted(self.flagged_first.items())),
             "t_meas_last": self.t_meas,
             "burnin_s": self.burnin_s,
             "vehicle_rmse_m": float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,

@@ -223,6 +223,9 @@ def main(s: HostSettings) -> int:
             )
             if why is None and time.monotonic() - fused_at["t"] < 5.0:  # fusing: does it keep up?
                 why = fused_lag(clock.now(), fused_at.get("t_meas"), s.time_scale, s.max_fused_lag_s)
+            flagged = sorted(core_stats["stats"].get("flagged") or {})
+            if why is None and flagged:
+                why = f"misbehaviour: {', '.join(flagged)} seen elsewhere than they say (detections not fused)"
             return ("degraded", why) if why else ("ok", None)
 
         svc.health_check = check

@@ -137,6 +137,7 @@ def make_summary(
             "e2e_latency_ms_p99": ev.get("e2e_latency_ms_p99"),
             "delivered_fraction": ev.get("delivered_fraction"),
             "tx_bytes_per_msg": ev.get("tx_bytes_per_msg") or {},
+            "flagged_first_t": ev.get("flagged_first_t") or {},
             **{name: path if Path(path).exists() else None for name, path in pictures.items()},
         }
     )
@@ -178,6 +179,10 @@ def format_report(s: dict[str, Any]) -> str:
         f"p99 {num(s.get('e2e_latency_ms_p99'), '.0f', ' ms')} (sensor time to fused output)"
     )
     lines.append(f"  delivered     {pct(s.get('delivered_fraction'))} of the messages sent over the radio")
+    flagged = s.get("flagged_first_t") or {}
+    if flagged:
+        first = ", ".join(f"{v} from t = {t:.1f} s" for v, t in flagged.items())
+        lines.append(f"  flagged       {first} (misbehaviour: seen elsewhere than reported)")
     by = s.get("restarts_by_process") or {}
     which = f" ({', '.join(f'{k} {v}' for k, v in by.items())})" if by else ""
     lines.append(f"  restarts      {s['restarts']}{which}")

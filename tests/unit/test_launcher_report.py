@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 from services.launcher.report import (
     console_event,
@@ -106,3 +107,9 @@ def test_a_run_without_evaluation_still_has_a_table(tmp_path) -> None:
     s = make_summary("demo", tmp_path, PARAMS, [], None, 3.0)
     table = format_report(s)
     assert "fleet demo" in table and "objects" in table and " - " in table
+
+
+def test_flagged_vehicles_are_in_the_table() -> None:
+    s = make_summary("f", Path("/r"), {}, [], {**EV, "flagged_first_t": {"cv1": 2.9}}, 10.0)
+    assert "flagged       cv1 from t = 2.9 s" in format_report(s)
+    assert "flagged" not in format_report(make_summary("f", Path("/r"), {}, [], EV, 10.0))
