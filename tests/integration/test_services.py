@@ -30,6 +30,22 @@ from services.runtime import ZenohSettings, make_attachment, open_session, read_
 pytestmark = pytest.mark.integration
 
 
+def moving_prior(fleet: str, sender: str, seq: int, t: float, y: float = 0.0, objects=None) -> VehiclePrior:
+    """A prior of a vehicle at (5 t, y) driving east at 5 m/s, with ``objects`` (ObjectObservations) if given."""
+    return VehiclePrior(
+        fleet=fleet,
+        sender=sender,
+        seq=seq,
+        t_meas=t,
+        t_sent=t,
+        pose=np.array([5.0 * t, y, 0, 0, 0, 0]),
+        pose_cov=np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005])[np.triu_indices(6)] ** 2,
+        v_map=np.array([5.0, 0, 0]),
+        quality=LocalizationQuality(mode="map_matching"),
+        **({} if objects is None else {"objects": objects}),
+    )
+
+
 def test_world_is_seen_healthy_and_stops_cleanly_on_sigint(rendezvous, fleet_name, spawn, mapc, watch_liveliness):
     session, endpoint = rendezvous
     alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
@@ -202,16 +218,11 @@ def test_host_says_why_it_fuses_nothing_and_recovers(rendezvous, fleet_name, spa
         nonlocal seq
         t = round((time.time_ns() - epoch) * 1e-9 - lag_s, 1)
         p = np.array([[20.0, 0.0, 0.0]])
-        msg = VehiclePrior(
-            fleet=fleet_name,
-            sender="cv0",
-            seq=seq,
-            t_meas=t,
-            t_sent=t,
-            pose=np.array([5.0 * t, 0, 0, 0, 0, 0]),
-            pose_cov=np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005])[np.triu_indices(6)] ** 2,
-            v_map=np.array([5.0, 0, 0]),
-            quality=LocalizationQuality(mode="map_matching"),
+        msg = moving_prior(
+            fleet_name,
+            "cv0",
+            seq,
+            t,
             objects=ObjectObservations.from_metres(p, np.diag([0.2, 0.15, 0.05])[None] ** 2, [2]),
         )
         seq += 1
@@ -364,19 +375,7 @@ def test_a_flooding_sender_costs_only_itself_and_the_host_says_so(
 
     def prior(sender: str, t: float) -> bytes:
         seqs[sender] += 1
-        return encode(
-            VehiclePrior(
-                fleet=fleet_name,
-                sender=sender,
-                seq=seqs[sender],
-                t_meas=t,
-                t_sent=t,
-                pose=np.array([5.0 * t, 3.0 * (sender == "cv1"), 0, 0, 0, 0]),
-                pose_cov=np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005])[np.triu_indices(6)] ** 2,
-                v_map=np.array([5.0, 0, 0]),
-                quality=LocalizationQuality(mode="map_matching"),
-            )
-        )
+        return encode(moving_prior(fleet_name, sender, seqs[sender], t, y=3.0 * (sender == "cv1")))
 
     def now() -> float:
         return (time.time_ns() - epoch) * 1e-9
@@ -431,19 +430,7 @@ def test_a_signing_host_fuses_signed_priors_and_refuses_the_rest(
     sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
 
     def prior(sender: str, seq: int, t: float) -> bytes:
-        return encode(
-            VehiclePrior(
-                fleet=fleet_name,
-                sender=sender,
-                seq=seq,
-                t_meas=t,
-                t_sent=t,
-                pose=np.array([5.0 * t, 0, 0, 0, 0, 0]),
-                pose_cov=np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005])[np.triu_indices(6)] ** 2,
-                v_map=np.array([5.0, 0, 0]),
-                quality=LocalizationQuality(mode="map_matching"),
-            )
-        )
+        return encode(moving_prior(fleet_name, sender, seq, t))
 
     last = b""
     for k in range(20):
