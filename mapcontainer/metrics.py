@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 from scipy.optimize import linear_sum_assignment
+from scipy.special import chdtri
 
-__all__ = ["anees_band", "match_objects", "nees", "percentile", "rmse"]
+__all__ = ["anees_band", "chi2_quantile", "match_objects", "nees", "percentile", "rmse"]
+
+
+def chi2_quantile(p, dof):
+    """The chi-square quantile: x with P(X <= x) = p for X ~ chi2(dof) (``scipy.stats.chi2.ppf``, through
+    scipy.special: importing scipy.stats takes about 1.5 s, a third of a host's restart)."""
+    return chdtri(dof, 1.0 - np.asarray(p, dtype=float))
 
 
 def rmse(errors) -> float:
@@ -39,7 +45,7 @@ def anees_band(dof: int, n: int, confidence: float = 0.95) -> tuple[float, float
     if n <= 0:
         raise ValueError(f"n must be positive, got {n}")
     a = 1.0 - confidence
-    lo, hi = stats.chi2.ppf([a / 2, 1 - a / 2], n * dof) / n
+    lo, hi = chi2_quantile([a / 2, 1 - a / 2], n * dof) / n
     return float(lo), float(hi)
 
 

@@ -35,12 +35,12 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
 from scipy.optimize import linear_sum_assignment
 
 from schemas import ObjectClass
 
 from .. import geometry as geo
+from ..metrics import chi2_quantile
 from .buffer import time_key
 from .motion import accel_psd, cv_predict, speed_prior
 from .params import FusionParams
@@ -202,9 +202,9 @@ class Tracker:
     def __init__(self, params: FusionParams):
         self.params = params
         self.gate = params.gate_chi2
-        self.vehicle_gate = float(stats.chi2.ppf(params.vehicle_gate_probability, 3))
-        self.exclusion_gate = float(stats.chi2.ppf(params.birth_exclusion_probability, 3))
-        self.merge_gate = float(stats.chi2.ppf(params.merge_probability, 3))
+        self.vehicle_gate = float(chi2_quantile(params.vehicle_gate_probability, 3))
+        self.exclusion_gate = float(chi2_quantile(params.birth_exclusion_probability, 3))
+        self.merge_gate = float(chi2_quantile(params.merge_probability, 3))
         self._merge_streak: dict[tuple[int, int], int] = {}
         self.tracks: dict[int, Track] = {}  # by uid
         self._uid_of: dict[int, int] = {}  # global id -> uid

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from scipy import stats
+
+from ..metrics import chi2_quantile
 
 __all__ = ["FusionParams"]
 
@@ -185,4 +186,4 @@ class FusionParams(BaseModel):
     @property
     def gate_chi2(self) -> float:
         """Mahalanobis-squared gate for a 3-D position."""
-        return float(stats.chi2.ppf(self.gate_probability, 3))
+        return float(chi2_quantile(self.gate_probability, 3))
