@@ -231,11 +231,9 @@ def main(s: HostSettings) -> int:
         svc.health_check = check
         hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
         fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=hid))
-        primary = (
-            svc.watch_alive(topic("alive").key(fleet=s.fleet, role="host", id=s.standby_for))
-            if (s.standby_for)
-            else None
-        )
+        primary = None  # a standby: set while the host it stands in for is alive
+        if s.standby_for:
+            primary = svc.watch_alive(topic("alive").key(fleet=s.fleet, role="host", id=s.standby_for))
 
         def on_msg(msg: Received, where: dict[str, str], admission: Admission, name: str) -> None:
             src = where["src"]
