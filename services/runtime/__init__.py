@@ -1,0 +1,81 @@
+"""What every service process shares: the Zenoh session, health, counters and a clean shutdown.
+
+A role's ``main(settings)`` does::
+
+    with Service("vehicle", settings) as svc:          # session, health queryable, signals
+        pub = svc.publisher(topic("prior_tx").key(fleet=svc.fleet, src=svc.id))
+        svc.subscribe_queued(topic("sensors").key(...), on_frame)  # counted, errors recorded
+        svc.wait()  # declares the liveliness token; returns on SIGINT/SIGTERM/stop()/parent death
+    # the session is closed here: a process with callback subscribers that exits without
+    # closing its session hangs (ZENOH.md)
+
+Health: every service holds the liveliness token ``mc/{fleet}/alive/{role}/{id}`` and puts a
+:class:`schemas.HealthStatus` on ``mc/{fleet}/health/{role}/{id}`` once a second; a queryable on
+the same key answers with the current status. HealthStatus's envelope times (``t_meas``,
+``t_sent``) are Unix wall-clock seconds for this message (a service may not know scenario time).
+
+Wall-clock instrumentation travels in the Zenoh *attachment* (a small msgpack map, see
+:func:`make_attachment`), not in the payload, so that payload byte counts are exactly what the V2X
+link carries. Fields: ``t_wall_ns`` (when this hop published), ``epoch_wall_ns`` and
+``time_scale`` (the world's clock: scenario time ``t`` happened at wall time
+``epoch_wall_ns + t / time_scale * 1e9``). Each service passes the world's clock on, so that any
+service can map scenario time to wall time (:class:`SimClock`) — the evaluator's end-to-end
+latency is ``t_wall_ns(fused published) - wall(t_meas)``.
+"""
+
+from __future__ import annotations
+
+from .clock import SimClock, make_attachment, read_attachment
+from .config import (
+    ServiceSettings,
+    ZenohSettings,
+    add_service_args,
+    build_zenoh_config,
+    listening_locators,
+    open_session,
+    service_main,
+    service_settings_from_args,
+    setup_logging,
+    zenoh_config,
+    zenoh_error_text,
+)
+from .metrics import (
+    DEGRADING_REJECTS,
+    STATES,
+    LatencySamples,
+    RateCounter,
+    ServiceMetrics,
+    build_health,
+    flatten_figures,
+)
+from .service import EXIT_THREAD_DIED, CountingPublisher, Received, Service, sender_admission, write_json
+
+__all__ = [
+    "CountingPublisher",
+    "DEGRADING_REJECTS",
+    "EXIT_THREAD_DIED",
+    "LatencySamples",
+    "RateCounter",
+    "Received",
+    "STATES",
+    "Service",
+    "ServiceMetrics",
+    "ServiceSettings",
+    "SimClock",
+    "ZenohSettings",
+    "add_service_args",
+    "build_health",
+    "build_zenoh_config",
+    "flatten_figures",
+    "listening_locators",
+    "make_attachment",
+    "open_session",
+    "read_attachment",
+    "sender_admission",
+    "service_main",
+    "service_settings_from_args",
+    "setup_logging",
+    "write_json",
+    "zenoh_config",
+    "zenoh_error_text",
+]

@@ -1,0 +1,83 @@
+"""Wall-clock instrumentation in Zenoh attachments, and the world's clock as another service sees it."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import msgpack
+
+# ------------------------------------------------------------------------------ attachments
+
+
+def make_attachment(**fields: int | float | str | None) -> bytes:
+    """A msgpack map of instrumentation fields (None values left out)."""
+    return msgpack.packb({k: v for k, v in fields.items() if v is not None}, use_bin_type=True)
+
+
+def read_attachment(sample_or_bytes) -> dict[str, Any]:
+    """The attachment map of a sample (or raw attachment bytes); {} if absent or unreadable."""
+    att = getattr(sample_or_bytes, "attachment", sample_or_bytes)
+    if att is None:
+        return {}
+    try:
+        raw = att.to_bytes() if hasattr(att, "to_bytes") else bytes(att)
+        obj = msgpack.unpackb(raw, raw=False)
+    except Exception:  # instrumentation only: a bad attachment is ignored, never fatal
+        return {}
+    if not isinstance(obj, dict):
+        return {}
+    return {k: v for k, v in obj.items() if isinstance(k, str)}  # names only: fields are passed on as keywords
+
+
+class SimClock:
+    """The world's clock as seen from another service: scenario time <-> wall time.
+
+    The world puts ``epoch_wall_ns`` and ``time_scale`` into every attachment it sends; services
+    pass them on. ``t_scenario = (wall_ns - epoch_wall_ns) * 1e-9 * time_scale``. A clock outside
+    the world's own limits (``time_scale`` in [TIME_SCALE_MIN, TIME_SCALE_MAX], an epoch after 1970
+    that fits int64) is ignored: attachments are unauthenticated, and a time scale of 1e-300 made
+    every conversion overflow.
+    """
+
+    TIME_SCALE_MIN, TIME_SCALE_MAX = 1e-3, 100.0
+
+    def __init__(self) -> None:
+        self.epoch_wall_ns: int | None = None
+        self.time_scale: float | None = None
+
+    def update(self, att: Mapping[str, Any]) -> bool:
+        e, s = att.get("epoch_wall_ns"), att.get("time_scale")
+        if (
+            type(e) is int  # not bool
+            and 0 < e < 2**63
+            and type(s) in (int, float)
+            and self.TIME_SCALE_MIN <= s <= self.TIME_SCALE_MAX  # not inf, nan
+        ):
+            self.epoch_wall_ns, self.time_scale = e, float(s)
+            return True
+        return False
+
+    @property
+    def known(self) -> bool:
+        return self.epoch_wall_ns is not None
+
+    def now(self, wall_ns: int | None = None) -> float | None:
+        """Scenario time now (or at ``wall_ns``); None until a clock was seen."""
+        if self.epoch_wall_ns is None or self.time_scale is None:
+            return None
+        wall_ns = time.time_ns() if wall_ns is None else wall_ns
+        return (wall_ns - self.epoch_wall_ns) * 1e-9 * self.time_scale
+
+    def wall_ns(self, t: float) -> int | None:
+        """Wall time (ns) at which scenario time ``t`` happened."""
+        if self.epoch_wall_ns is None or self.time_scale is None:
+            return None
+        return self.epoch_wall_ns + int(round(t / self.time_scale * 1e9))
+
+    def fields(self) -> dict[str, Any]:
+        """The clock fields to forward in an attachment."""
+        return {"epoch_wall_ns": self.epoch_wall_ns, "time_scale": self.time_scale}
+
+
