@@ -164,6 +164,27 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_experiment_faults(args: argparse.Namespace) -> int:
+    from .experiments.faults import run_fault_experiment
+
+    try:
+        res = run_fault_experiment(
+            args.out,
+            seeds=args.seeds,
+            seed0=args.seed0,
+            duration_s=args.duration,
+            scenario=args.scenario,
+            workers=args.workers,
+            faults=args.faults,
+            progress=not args.quiet,
+        )
+    except ValueError as exc:
+        print(f"mapc: {exc}", file=sys.stderr)
+        return 2
+    print(jsonout.dumps({"out": str(args.out), **res["meta"], "summary": res["summary"]}))
+    return 0
+
+
 def _bounded(parse: type, low: float, strict: bool, unit: str = ""):
     """An argparse type: ``parse(text)``, finite (inf or nan used to fail deep inside a run) and
     above ``low`` (``strict``) or at least ``low``."""
@@ -313,6 +334,19 @@ def build_parser() -> argparse.ArgumentParser:
     en.add_argument("--scenario", default="paper-urban")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
+
+    ef = exp.add_parser(
+        "faults", help="each misbehaving-vehicle fault against a clean run: time to flag, false flags, others' RMSE"
+    )
+    ef.add_argument("--out", required=True, type=output_dir, help="output directory")
+    ef.add_argument("--seeds", type=positive_int, default=3, help="seeds per fault")
+    ef.add_argument("--seed0", type=non_negative_int, default=90_000, help="first seed (evaluation seeds from 90000)")
+    ef.add_argument("--duration", type=seconds, default=10.0, help="seconds per run (the fault starts at 3 s)")
+    ef.add_argument("--scenario", default="paper-urban")
+    ef.add_argument("--faults", type=lambda t: [x for x in t.split(",") if x], default=None, help="a,b,...")
+    ef.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    ef.add_argument("--quiet", action="store_true", help="no progress bar")
+    ef.set_defaults(func=_cmd_experiment_faults)
 
     sch = sub.add_parser("schemas", help="the wire contract").add_subparsers(dest="sub", required=True)
     ex = sch.add_parser("export", help="write JSON Schema files (default: schemas/json/)")
