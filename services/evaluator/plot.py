@@ -20,7 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
-from matplotlib.ticker import FormatStrFormatter, NullFormatter  # noqa: E402
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter  # noqa: E402
 
 from mapcontainer.hdmap.model import HDMap  # noqa: E402
 from schemas import ObjectClass  # noqa: E402
@@ -219,6 +219,7 @@ def render_errors(path: Path, ev: Evaluator, title: str) -> None:
             )
         if a.has_data() and len(t):  # log scale: decimetres and metres on one axis
             a.set_yscale("log")
+            a.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))  # labels within one decade too
             a.yaxis.set_major_formatter(FormatStrFormatter("%g"))
             a.yaxis.set_minor_formatter(NullFormatter())
         a.grid(True, which="both", alpha=0.3)
