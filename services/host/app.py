@@ -247,7 +247,8 @@ def main(s: HostSettings) -> int:
                     svc.metrics.reject(out.reason, f"{name} from {src}: {out.detail}", log)
                     return
                 payload = out.payload
-            sender = peek(payload).get("sender")
+            # signed: the verifier checked the sender against the key and the certificate already
+            sender = src if verifier is not None else peek(payload).get("sender")
             if sender is not None and sender != src:  # the key names the radio source; so must the message
                 svc.metrics.reject("sender_mismatch", f"a message of {sender!r} on {src}'s key", log)
                 return
