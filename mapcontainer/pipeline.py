@@ -98,10 +98,12 @@ class TickRecord:
     t: float
     truth: GroundTruth
     gnss: dict[str, np.ndarray]  # vid -> GNSS fix p_map
-    priors: dict[str, np.ndarray]  # vid -> self-localized pose (distributed mode)
+    priors: dict[str, np.ndarray]  # vid -> the pose the vehicle sends (per-frame map matching; distributed mode)
     prior_covs: dict[str, np.ndarray]  # vid -> 6x6
     fused: dict[str, FusedState]  # view name -> fused state at t
     loc_mode: dict[str, str] = field(default_factory=dict)  # vid -> "map_matching" | "fallback" (distributed)
+    onboard: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> the vehicle's filtered pose (distributed)
+    onboard_covs: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> 6x6
 
 
 @dataclass
@@ -203,6 +205,9 @@ def run_pipeline(
                 rec.priors[vid] = np.asarray(msg.pose, dtype=float)
                 rec.prior_covs[vid] = cov_from_upper(msg.pose_cov)
                 rec.loc_mode[vid] = msg.quality.mode
+                res = agents[vid].last_result
+                rec.onboard[vid] = np.asarray(res.pose_filtered, dtype=float)
+                rec.onboard_covs[vid] = np.asarray(res.cov_filtered, dtype=float)
             for m in faults[vid].apply(msg) if faults[vid] else [msg]:
                 message = encode(m)
                 payload = signers[vid].sign(message, SIGNING_EPOCH_S + t) if signing else message
