@@ -206,8 +206,9 @@ def run_pipeline(
                 rec.prior_covs[vid] = cov_from_upper(msg.pose_cov)
                 rec.loc_mode[vid] = msg.quality.mode
                 res = agents[vid].last_result
-                rec.onboard[vid] = np.asarray(res.pose_filtered, dtype=float)
-                rec.onboard_covs[vid] = np.asarray(res.cov_filtered, dtype=float)
+                if res.pose_filtered is not None:  # None until the localizer has initialised
+                    rec.onboard[vid] = np.asarray(res.pose_filtered, dtype=float)
+                    rec.onboard_covs[vid] = np.asarray(res.cov_filtered, dtype=float)
             for m in faults[vid].apply(msg) if faults[vid] else [msg]:
                 message = encode(m)
                 payload = signers[vid].sign(message, SIGNING_EPOCH_S + t) if signing else message
