@@ -5,7 +5,7 @@ on-board sources (``--local cv0``: the container runs on the ego vehicle, whose 
 cross the radio), ``mc/{fleet}/v2x/tx/{src}/prior`` directly. Every payload is handed to the fusion
 loop with its receive time in scenario seconds (from the world's clock carried in the
 attachments); the loop solves once per camera frame (10 Hz), when every known sender's message for
-the frame is in or ``--max-wait`` seconds after its first one (``worker.FrameGate``), and the
+the frame is in or ``--max-wait`` seconds after its first one (``mapcontainer.fusion.gate.FrameGate``), and the
 service publishes the FusedState on ``mc/{fleet}/host/{hid}/fused``. The attachment carries the
 world's clock and ``t_wall_ns``.
 

@@ -11,9 +11,10 @@ Protocol (tuples on the queues):
           | ("fused", payload: bytes, t: float, solve_s: float, stats: dict, results)
           | ("results", results)
   results: [(accepted: bool, reason: str | None, ingest_s: float), ...]
-The loop solves once per camera frame, at the frame's ``t_meas`` (as pipeline.py does, so the
-evaluator compares the state with the ground truth of that very frame), when :class:`FrameGate`
-says the frame is ready.
+The loop solves once per camera frame, at the frame's ``t_meas`` (so the evaluator compares the
+state with the ground truth of that very frame), when :class:`mapcontainer.fusion.gate.FrameGate`
+releases it: the same gate decides when :func:`mapcontainer.pipeline.run_pipeline` solves, there on
+simulated arrival times, here on this process's monotonic clock (``max_wait_s`` is wall seconds).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import time
 import traceback
 from typing import Any
 
-__all__ = ["FrameGate", "FusionSpec", "fusion_loop", "fusion_process", "make_core"]
+__all__ = ["FusionSpec", "fusion_loop", "fusion_process", "make_core"]
 
 FusionSpec = dict[str, Any]  # scenario, mode, fleet, host_id, known_senders, params, max_wait_s (picklable)
 
@@ -67,66 +68,19 @@ def fusion_process(spec: FusionSpec, inbox, outbox, parent_pid: int) -> None:
     fusion_loop(spec, inbox, outbox, parent_pid)
 
 
-class FrameGate:
-    """When to solve: once per camera frame, when the frame is complete or has waited long enough.
+def __getattr__(name: str):
+    """``FrameGate`` lives in mapcontainer.fusion.gate: imported on use, since importing
+    mapcontainer.fusion loads the solver, which the host's main process never needs."""
+    if name == "FrameGate":
+        from mapcontainer.fusion.gate import FrameGate
 
-    Frames are keyed by ``t_meas``. The frame ``t`` is *ready* when every expected sender has
-    delivered its message for ``t`` (the known senders; without a list, those heard from in the last
-    ``active_s``), or ``max_wait_s`` (wall) after its first message arrived. :meth:`due` returns the
-    newest ready frame newer than the last one solved; older unsolved frames are then dropped (their
-    messages are in the container and count in the next solve). Solving a frame before a vehicle's
-    message for it has arrived would publish that vehicle's previous pose as its pose at ``t`` (about
-    v * 0.1 s off), so the gate trades up to ``max_wait_s`` of latency for simultaneous states.
-    """
-
-    def __init__(self, expected: set[str] | None, max_wait_s: float, active_s: float = 2.0):
-        if max_wait_s < 0:
-            raise ValueError(f"max_wait_s must be >= 0, got {max_wait_s}")
-        self.expected = set(expected) if expected else None
-        self.max_wait_s = max_wait_s
-        self.active_s = active_s
-        self._frames: dict[int, tuple[float, float, set[str]]] = {}  # key -> (t_meas, first arrival, senders)
-        self._heard: dict[str, float] = {}
-        self._last_key: int | None = None
-        self.timed_out = 0
-        self.complete = 0
-
-    def arrived(self, sender: str, t_meas: float, now: float) -> None:
-        self._heard[sender] = now
-        key = int(round(t_meas * 1000))
-        if self._last_key is not None and key <= self._last_key:
-            return
-        frame = self._frames.setdefault(key, (t_meas, now, set()))
-        frame[2].add(sender)
-
-    def _expected(self, now: float) -> set[str]:
-        if self.expected is not None:
-            return self.expected
-        return {s for s, t in self._heard.items() if now - t <= self.active_s}
-
-    def due(self, now: float) -> float | None:
-        expected = self._expected(now)
-        ready = None
-        for key, (t, first, senders) in self._frames.items():
-            full = expected <= senders
-            if full or now - first >= self.max_wait_s:
-                if ready is None or key > ready[0]:
-                    ready = (key, t, full)
-        if ready is None:
-            return None
-        key, t, full = ready
-        self.complete += full
-        self.timed_out += not full
-        self._last_key = key
-        self._frames = {k: v for k, v in self._frames.items() if k > key}
-        return t
-
-    def next_deadline(self) -> float | None:
-        return min((first + self.max_wait_s for _, first, _ in self._frames.values()), default=None)
+        return FrameGate
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) -> None:
     """Run until ("stop",) arrives or the parent process is gone."""
+    from mapcontainer.fusion.gate import MAX_WAIT_S, FrameGate
     from schemas.codec import encode, peek
 
     try:
@@ -135,7 +89,7 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
         outbox.put(("error", traceback.format_exc()))
         return
     outbox.put(("ready", os.getpid()))
-    gate = FrameGate(set(spec["known_senders"] or ()) or None, spec.get("max_wait_s", 0.1))
+    gate = FrameGate(set(spec["known_senders"] or ()) or None, spec.get("max_wait_s", MAX_WAIT_S))
     results: list[tuple[bool, str | None, float]] = []
     last_flush = time.monotonic()
     while True:
