@@ -97,9 +97,11 @@ def _chord_yaw(d: np.ndarray, v: float) -> float:
 
 
 class LaneFollower(_PathActor):
-    """A vehicle on a lane centre line: s(t) = s0 + v t + (A T / 2 pi) sin(2 pi t / T + phase).
+    """A vehicle on a lane centre line: s(t) = s0 + v t + (A T / 2 pi) (sin(2 pi t / T + phase) - sin(phase)).
 
-    Its speed v + A cos(2 pi t / T + phase) varies slowly around v (never negative if A <= v).
+    Its speed v + A cos(2 pi t / T + phase) varies slowly around v (never negative if A <= v). With a
+    ``leader`` (the vehicle ahead in the same lane) it keeps ``min_gap_m`` behind it (centre to centre):
+    s(t) = min(s_free(t), s_leader(t) - min_gap_m), at the leader's speed while it follows.
     """
 
     cls = ObjectClass.VEHICLE
@@ -107,11 +109,18 @@ class LaneFollower(_PathActor):
     def __init__(self, actor_id, line, s0, speed, amp, period, phase, size):
         super().__init__(actor_id, line, size)
         self.s0, self.v, self.amp, self.period, self.phase = s0, speed, min(amp, speed), period, phase
+        self.leader: LaneFollower | None = None
+        self.min_gap_m = 0.0
 
     def arc(self, t: float) -> tuple[float, float]:
         w = 2 * np.pi / self.period
         s = self.s0 + self.v * t + self.amp / w * (np.sin(w * t + self.phase) - np.sin(self.phase))
-        return float(s), float(self.v + self.amp * np.cos(w * t + self.phase))
+        v = self.v + self.amp * np.cos(w * t + self.phase)
+        if self.leader is not None:
+            s_lead, v_lead = self.leader.arc(t)
+            if s > s_lead - self.min_gap_m:
+                return float(s_lead - self.min_gap_m), float(v_lead)
+        return float(s), float(v)
 
 
 class PathWalker(_PathActor):

@@ -13,13 +13,20 @@ from ..hdmap.generator import MapSpec
 
 __all__ = [
     "BodyConfig",
+    "CalibrationErrorConfig",
     "CameraConfig",
+    "ClassConfusionConfig",
+    "ClockConfig",
+    "ClutterConfig",
     "DetectorConfig",
+    "DetectorErrorConfig",
     "GnssConfig",
+    "MapErrorConfig",
     "OdometryConfig",
     "PedestrianSpec",
     "ScenarioConfig",
     "SensorConfig",
+    "TrafficConfig",
     "VehicleSpec",
     "list_scenarios",
     "load_scenario",
@@ -34,6 +41,19 @@ Probability = Annotated[float, Field(ge=0, le=1)]
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class CalibrationErrorConfig(_Strict):
+    """How far a vehicle's true camera is from the calibration it reports and believes (per vehicle, per
+    run): a rotation vector and a translation of T_body_cam with these 1-sigmas per axis, focal lengths
+    scaled by 1 + N(0, focal_sigma) each, the principal point moved by N(0, principal_point_sigma_px)
+    per axis. The camera renders with the true calibration; CameraInfo carries the nominal one."""
+
+    enabled: bool = False
+    rotation_sigma_rad: NonNeg = 0.0
+    translation_sigma_m: NonNeg = 0.0
+    focal_sigma: NonNeg = 0.0
+    principal_point_sigma_px: NonNeg = 0.0
 
 
 class CameraConfig(_Strict):
@@ -55,6 +75,7 @@ class CameraConfig(_Strict):
     lane_marking_width_m: Pos
     lane_pixel_sigma_px: NonNeg
     lane_dropout: Probability
+    calibration_error: CalibrationErrorConfig = CalibrationErrorConfig()
 
 
 class GnssConfig(_Strict):
@@ -80,6 +101,28 @@ class OdometryConfig(_Strict):
     yaw_rate_bias_sigma_radps: NonNeg
 
 
+class DetectorErrorConfig(_Strict):
+    """What makes the detector's errors differ from the white noise its covariance describes.
+
+    A share ``persistent_fraction`` of each axis' error variance is a first-order Gauss-Markov process per
+    (observer, target) with correlation time ``tau_s`` (the rest stays white, so the total variance is the
+    nominal one); the reported sigmas are off by a per-vehicle factor exp(N(0, reported_scale_sigma)), and
+    the covariance is evaluated at the measured position (the detector does not know the true one).
+    """
+
+    enabled: bool = False
+    persistent_fraction: Probability = 0.0
+    tau_s: Pos = 1.0
+    reported_scale_sigma: NonNeg = 0.0
+
+
+class ClassConfusionConfig(_Strict):
+    """A detection reports another class (uniform among the other object classes) with probability ``p``."""
+
+    enabled: bool = False
+    p: Probability = 0.0
+
+
 class DetectorConfig(_Strict):
     """Object detector: body-frame positions with range-dependent noise, misses and false alarms."""
 
@@ -91,6 +134,9 @@ class DetectorConfig(_Strict):
     p_detect_near: Probability
     p_detect_far: Probability
     false_alarms_per_frame: NonNeg
+    false_alarm_lifetime_s: NonNeg = 0.0
+    errors: DetectorErrorConfig = DetectorErrorConfig()
+    class_confusion: ClassConfusionConfig = ClassConfusionConfig()
 
 
 class BodyConfig(_Strict):
@@ -108,6 +154,42 @@ class BodyConfig(_Strict):
     pitch_dynamic_rad: NonNeg = 0.0
 
 
+class ClockConfig(_Strict):
+    """A vehicle's clock: its time stamps (t_meas, t_sent) are off by a constant N(0, offset_sigma_s) drawn
+    per vehicle per run."""
+
+    enabled: bool = False
+    offset_sigma_s: NonNeg = 0.0
+
+
+class ClutterConfig(_Strict):
+    """The switch of the false detections whose rates the camera and detector sections set
+    (clutter_points_per_frame, clutter_poles_per_frame, false_alarms_per_frame); off: none."""
+
+    enabled: bool = True
+
+
+class MapErrorConfig(_Strict):
+    """How the HD map the vehicles and the host carry differs from the world (drawn per run).
+
+    Displacement = a smooth field shared by every feature (survey drift: 1-sigmas ``field_sigma_m``
+    (horizontal per axis, vertical), squared-exponential correlation over ``field_length_m``) + for each
+    lane line its own smooth field over ``line_length_m`` (horizontal 1-sigma ``line_sigma_m`` per axis)
+    + for each landmark an independent offset ``landmark_sigma_m`` (horizontal per axis, vertical).
+    Each landmark is missing from the map with probability ``p_missing``; Poisson(``p_extra`` x landmarks)
+    landmarks that are not in the world are in the map.
+    """
+
+    enabled: bool = False
+    field_sigma_m: tuple[NonNeg, NonNeg] = (0.0, 0.0)
+    field_length_m: Pos = 30.0
+    line_sigma_m: NonNeg = 0.0
+    line_length_m: Pos = 15.0
+    landmark_sigma_m: tuple[NonNeg, NonNeg] = (0.0, 0.0)
+    p_missing: Probability = 0.0
+    p_extra: NonNeg = 0.0
+
+
 class SensorConfig(_Strict):
     """All sensors of a connected vehicle (configs/sensors/NAME.yaml)."""
 
@@ -117,6 +199,9 @@ class SensorConfig(_Strict):
     odometry: OdometryConfig
     detector: DetectorConfig
     body: BodyConfig = BodyConfig()
+    clock: ClockConfig = ClockConfig()
+    clutter: ClutterConfig = ClutterConfig()
+    hdmap: MapErrorConfig = MapErrorConfig()
 
 
 class VehicleSpec(_Strict):
@@ -127,6 +212,9 @@ class VehicleSpec(_Strict):
     speed_mps: float = Field(10.0, ge=0)
     speed_amp_mps: float = Field(1.0, ge=0, description="amplitude of a slow sinusoidal speed change")
     speed_period_s: float = Field(20.0, gt=0)
+    speed_phase_rad: float | None = Field(
+        None, description="phase of the speed change (None: spread evenly over the scenario's vehicles)"
+    )
     length_m: float = Field(4.6, gt=0)
     width_m: float = Field(1.9, gt=0)
     height_m: float = Field(1.5, gt=0)
@@ -141,6 +229,45 @@ class PedestrianSpec(_Strict):
     direction: Literal[1, -1] = 1
 
 
+class TrafficConfig(_Strict):
+    """How the traffic varies from run to run (drawn from the run's seed; off: exactly as listed).
+
+    Vehicles: the start moves along the lane by N(0, s0_sigma_m) (truncated at 2 sigma); the mean speed is
+    scaled by 1 + N(0, speed_sigma) (truncated at 2 sigma), the speed change's amplitude by
+    U(speed_amp_scale) and its period by U(speed_period_scale), its phase moves by N(0, speed_phase_sigma_rad)
+    (about pi: uniform). Vehicles in one lane start at least ``min_gap_m`` apart (centre to centre: a
+    vehicle drawn closer to the one behind it is pushed forward). A ``platoon``
+    draws all of that once for every vehicle (the scene moves together: order, gaps and relative phases
+    kept) and moves each vehicle by a further N(0, gap_sigma_m) (truncated at 2 sigma). Otherwise each
+    vehicle draws its own, and moves to the other lane of its direction with probability lane_swap_p.
+    Pedestrians: speed N(pedestrian_speed_mps) clipped to pedestrian_speed_range_mps, direction reversed
+    with probability pedestrian_reverse_p, start uniform along the path (pedestrian_s0_uniform) or as listed.
+    """
+
+    enabled: bool = False
+    platoon: bool = False
+    s0_sigma_m: NonNeg = 0.0
+    gap_sigma_m: NonNeg = 0.0
+    speed_sigma: NonNeg = 0.0
+    speed_amp_scale: tuple[NonNeg, NonNeg] = (1.0, 1.0)
+    speed_period_scale: tuple[Pos, Pos] = (1.0, 1.0)
+    speed_phase_sigma_rad: NonNeg = 0.0
+    min_gap_m: NonNeg = 0.0
+    lane_swap_p: Probability = 0.0
+    pedestrian_speed_mps: tuple[Pos, NonNeg] = (1.3, 0.0)
+    pedestrian_speed_range_mps: tuple[NonNeg, Pos] = (0.5, 2.5)
+    pedestrian_reverse_p: Probability = 0.0
+    pedestrian_s0_uniform: bool = False
+
+    @model_validator(mode="after")
+    def _ranges(self):
+        for name in ("speed_amp_scale", "speed_period_scale", "pedestrian_speed_range_mps"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"{name} must be (low, high) with low <= high, got {(lo, hi)}")
+        return self
+
+
 class ScenarioConfig(_Strict):
     name: str
     description: str = ""
@@ -151,6 +278,7 @@ class ScenarioConfig(_Strict):
     pedestrians: list[PedestrianSpec] = Field(default_factory=list)
     duration_s: float = Field(30.0, gt=0, description="default episode length")
     faults: list[Fault] = Field(default_factory=list, description="misbehaving vehicles (mapcontainer.faults)")
+    traffic: TrafficConfig = TrafficConfig()
 
     @model_validator(mode="after")
     def _indices(self):
@@ -174,12 +302,11 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
     """A preset by name (configs/scenarios/NAME.yaml) or a YAML file by path.
 
     The scenario's ``sensors`` entry may be a mapping of overrides on top of the sensor profile
-    named by ``sensor_profile`` (default: configs/sensors/default.yaml).
+    named by ``sensor_profile`` (default: configs/sensors/default.yaml). ``extends: NAME`` starts from
+    the preset NAME's file and merges this one over it (mappings merged, lists replaced).
     """
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = find_preset("scenarios", str(name_or_path), "scenario")
-    data = read_yaml(path)
+    path = _scenario_path(name_or_path)
+    data = _scenario_data(path, ())
     profile = data.pop("sensor_profile", "default")
     if not isinstance(profile, str):
         raise ConfigError(f"{path}: sensor_profile must be the name of a sensor profile, got {profile!r}")
@@ -191,6 +318,24 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
     if overrides:
         data = deep_merge(data, overrides)
     return validate_model(ScenarioConfig, data, path)
+
+
+def _scenario_path(name_or_path: str | Path) -> Path:
+    path = Path(name_or_path)
+    return path if path.suffix else find_preset("scenarios", str(name_or_path), "scenario")
+
+
+def _scenario_data(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
+    """The scenario file's mapping with its ``extends:`` chain resolved (base first, this file over it)."""
+    if path in chain:
+        raise ConfigError(f"{path}: scenarios extend each other in a cycle: {' -> '.join(str(p) for p in chain)}")
+    data = read_yaml(path)
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: extends must be the name of a scenario, got {base!r}")
+    return deep_merge(_scenario_data(_scenario_path(base), (*chain, path)), data)
 
 
 def load_sensor_config(name: str = "default") -> SensorConfig:

@@ -1,7 +1,9 @@
 """Simulated sensors of a connected vehicle: camera, GNSS, odometry and an object detector.
 
 Each sensor owns its random generator, so a vehicle's measurements depend only on the seed and
-the true trajectories. Parameters and their units: configs/sensors/default.yaml.
+the true trajectories; each error source (calibration, persistent detector error, class confusion)
+draws from a generator of its own, so switching one leaves the other streams as they were.
+Parameters and their units: configs/sensors/default.yaml.
 """
 
 from __future__ import annotations
@@ -11,14 +13,16 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from schemas import LandmarkClass
+from schemas import LandmarkClass, ObjectClass
 
 from .. import geometry as geo
 from ..hdmap.model import HDMap
 from .actors import ActorState, box_corners
-from .config import CameraConfig, DetectorConfig, GnssConfig, OdometryConfig
+from .config import CalibrationErrorConfig, CameraConfig, DetectorConfig, GnssConfig, OdometryConfig
 
-__all__ = ["Camera", "CameraObservation", "Gnss", "ObjectDetector", "Odometry", "occluded"]
+__all__ = ["Camera", "CameraObservation", "Gnss", "ObjectDetector", "Odometry", "occluded", "true_calibration"]
+
+_OBJECT_CLASSES = np.array([ObjectClass.PEDESTRIAN, ObjectClass.VEHICLE, ObjectClass.CYCLIST], dtype=np.uint8)
 
 _POLE_SAMPLES = 16
 _LANE_SPACING_M = 0.5
@@ -68,16 +72,61 @@ class CameraObservation:
     lane_mask: np.ndarray  # (H, W) uint8, 255 = lane marking
 
 
-class Camera:
-    """A calibrated pinhole camera with landmark and lane-marking detectors."""
+def true_calibration(
+    intr: geo.CameraIntrinsics, T_body_cam: np.ndarray, err: CalibrationErrorConfig, rng: np.random.Generator | None
+) -> tuple[geo.CameraIntrinsics, np.ndarray]:
+    """The true intrinsics and T_body_cam of a camera whose reported calibration is (intr, T_body_cam).
 
-    def __init__(self, cfg: CameraConfig, hdmap: HDMap, rng: np.random.Generator):
+    R_body_cam = R_body_cam_reported Exp(w), w ~ N(0, rotation_sigma^2 I) in the camera frame;
+    t_body_cam = t_reported + N(0, translation_sigma^2 I); f = f_reported (1 + N(0, focal_sigma^2)) for fx
+    and fy; (cx, cy) + N(0, principal_point_sigma_px^2 I). Ten draws from ``rng`` (also when the error is
+    off or zero, so that the stream stays aligned); (intr, T_body_cam) unchanged when off or rng is None.
+    """
+    if rng is None:
+        return intr, T_body_cam
+    z = rng.normal(size=10)
+    if not err.enabled:
+        return intr, T_body_cam
+    T = np.array(T_body_cam, dtype=float)
+    T[:3, :3] = T[:3, :3] @ geo.so3_exp(z[:3] * err.rotation_sigma_rad)
+    T[:3, 3] += z[3:6] * err.translation_sigma_m
+    true = geo.CameraIntrinsics(
+        intr.fx * (1 + err.focal_sigma * z[6]),
+        intr.fy * (1 + err.focal_sigma * z[7]),
+        intr.cx + err.principal_point_sigma_px * z[8],
+        intr.cy + err.principal_point_sigma_px * z[9],
+        intr.width,
+        intr.height,
+    )
+    return true, T
+
+
+class Camera:
+    """A pinhole camera with landmark and lane-marking detectors.
+
+    ``reported_intr`` and ``T_body_cam_reported`` are the calibration the vehicle believes (its
+    CameraInfo); ``intr`` and ``T_body_cam`` the true ones it renders with (equal without calibration
+    error: ``calib_rng`` None or ``cfg.calibration_error`` off). ``clutter`` False: no false landmarks.
+    """
+
+    def __init__(
+        self,
+        cfg: CameraConfig,
+        hdmap: HDMap,
+        rng: np.random.Generator,
+        calib_rng: np.random.Generator | None = None,
+        clutter: bool = True,
+    ):
         self.cfg = cfg
         self.rng = rng
-        self.intr = geo.CameraIntrinsics(
+        self.clutter = clutter
+        self.reported_intr = geo.CameraIntrinsics(
             cfg.f_px, cfg.f_px, (cfg.width - 1) / 2, (cfg.height - 1) / 2, cfg.width, cfg.height
         )
-        self.T_body_cam = geo.camera_extrinsic(*cfg.mount_xyz_m, pitch=cfg.pitch_rad)
+        self.T_body_cam_reported = geo.camera_extrinsic(*cfg.mount_xyz_m, pitch=cfg.pitch_rad)
+        self.intr, self.T_body_cam = true_calibration(
+            self.reported_intr, self.T_body_cam_reported, cfg.calibration_error, calib_rng
+        )
         cls_code = {"traffic_light": LandmarkClass.TRAFFIC_LIGHT, "sign": LandmarkClass.SIGN}
         self._pt_xyz = np.array([f.p_map for f in hdmap.points]).reshape(-1, 3)
         self._pt_cls = np.array([cls_code[f.cls] for f in hdmap.points], dtype=np.uint8)
@@ -151,12 +200,12 @@ class Camera:
                 pole_ids.append(self._pole_id[i])
 
         # Clutter.
-        n_cp = rng.poisson(c.clutter_points_per_frame)
+        n_cp = rng.poisson(c.clutter_points_per_frame if self.clutter else 0.0)
         if n_cp:
             pts = np.vstack([pts, rng.uniform((0, 0), (c.width - 1, c.height - 1), (n_cp, 2))])
             pts_cls = np.concatenate([pts_cls, rng.choice([LandmarkClass.TRAFFIC_LIGHT, LandmarkClass.SIGN], n_cp)])
             pts_id = np.concatenate([pts_id, -np.ones(n_cp, int)])
-        for _ in range(rng.poisson(c.clutter_poles_per_frame)):
+        for _ in range(rng.poisson(c.clutter_poles_per_frame if self.clutter else 0.0)):
             u, v = rng.uniform(0, c.width - 1), rng.uniform(0, c.height / 2)
             poles.append(np.array([u, v + rng.uniform(30, 200), u + rng.normal(0, 3), v]))
             pole_ids.append(-1)
@@ -184,7 +233,7 @@ class Camera:
         uv_a, uv_b = uv_a[front], uv_b[front]
         z = 0.5 * (z_a[front] + z_b[front])
         jitter = rng.normal(0.0, c.lane_pixel_sigma_px, (len(z), 2))
-        thick = np.clip(np.rint(c.f_px * c.lane_marking_width_m / z), 1, 40).astype(int)
+        thick = np.clip(np.rint(self.intr.fx * c.lane_marking_width_m / z), 1, 40).astype(int)
         pa = np.rint((uv_a + jitter) * 4).astype(np.int32)  # 2 fractional bits for cv2's shift
         pb = np.rint((uv_b + jitter) * 4).astype(np.int32)
         lim = 4 * 10 * max(c.width, c.height)
@@ -249,14 +298,47 @@ class ObjectDetector:
     """Body-frame object positions with range-dependent noise, misses, false alarms and occlusion.
 
     Noise model: along the line of sight sigma_r = a_r + b_r * r, across it sigma_t = a_t + b_t * r,
-    vertically sigma_z; the reported covariance is R diag(sigma_r^2, sigma_t^2, sigma_z^2) R^T with
-    R the rotation from line-of-sight axes to the body frame.
+    vertically sigma_z; C(p) = R diag(sigma_r^2, sigma_t^2, sigma_z^2) R^T with R the rotation from
+    line-of-sight axes to the body frame, L(p) its Cholesky factor. A detection of a target at p is
+
+        z = p' + L(p) (sqrt(1 - f) n + sqrt(f) u_k),   n ~ N(0, I) white,
+        u_k = phi u_{k-1} + sqrt(1 - phi^2) w,  phi = exp(-dt / tau),  u_0, w ~ N(0, I),
+
+    with p' = T_body_cam_reported T_cam_body p the position seen through a camera whose true extrinsic
+    differs from the reported one (``T_rep_true``; identity without calibration error), u the persistent
+    error of this (observer, target) pair (a first-order Gauss-Markov process, f = persistent_fraction)
+    and the reported covariance s^2 C(z) at the measured position (s = exp(N(0, reported_scale_sigma))
+    per vehicle). With ``cfg.errors`` off: f = 0, s = 1 and the covariance at the true position, C(p).
+    A detection's class is another one with probability ``cfg.class_confusion.p``.
+    False objects: ghosts born uniform in the field of view that stay where they appeared (map frame)
+    for an exponential lifetime (``false_alarm_lifetime_s``; 0: a new set every frame).
     """
 
-    def __init__(self, cfg: DetectorConfig, sensor_xyz_body, rng: np.random.Generator):
+    def __init__(
+        self,
+        cfg: DetectorConfig,
+        sensor_xyz_body,
+        rng: np.random.Generator,
+        err_rng: np.random.Generator | None = None,
+        confusion_rng: np.random.Generator | None = None,
+        T_rep_true: np.ndarray | None = None,
+        clutter: bool = True,
+    ):
         self.cfg = cfg
         self.rng = rng
+        self.err_rng = err_rng
+        self.confusion_rng = confusion_rng
+        self.clutter = clutter
         self.sensor_body = np.asarray(sensor_xyz_body, dtype=float)
+        self.T_rep_true = np.eye(4) if T_rep_true is None else np.asarray(T_rep_true, dtype=float)
+        errs = cfg.errors.enabled and err_rng is not None
+        z = err_rng.normal() if err_rng is not None else 0.0
+        self.persistent_fraction = cfg.errors.persistent_fraction if errs else 0.0
+        self.sigma_scale = float(np.exp(cfg.errors.reported_scale_sigma * z)) if errs else 1.0
+        self.cov_at_measurement = errs
+        self._persistent: dict[str, tuple[np.ndarray, float]] = {}  # target id -> (u, t of u)
+        self._ghosts: list[tuple[np.ndarray, int, float]] = []  # (p_map, class, end time)
+        self._t_last: float | None = None
 
     def covariance(self, p_body: np.ndarray) -> np.ndarray:
         """Nominal (N, 3, 3) covariance of detections at body positions p_body (N, 3)."""
@@ -274,8 +356,89 @@ class ObjectDetector:
             + np.diag([0.0, 0.0, c.sigma_vertical_m**2])
         )
 
-    def observe(self, observer: ActorState, targets: list[ActorState], occluders: list[ActorState]):
-        """Detections of ``targets`` by ``observer``: (p_body (K,3), cov (K,3,3), cls (K,), truth ids)."""
+    def _reported_cov(self, truth: np.ndarray, measured: np.ndarray) -> np.ndarray:
+        if self.cov_at_measurement:
+            return self.sigma_scale**2 * self.covariance(measured)
+        return self.covariance(truth)
+
+    def _persistent_part(self, ids: list[str], t: float | None) -> np.ndarray:
+        """u (K, 3) of the targets ``ids`` at time t, advanced from their last value (fresh without t)."""
+        out = np.zeros((len(ids), 3))
+        if self.persistent_fraction <= 0.0 or self.err_rng is None:
+            return out
+        tau = self.cfg.errors.tau_s
+        for i, tid in enumerate(ids):
+            w = self.err_rng.normal(size=3)
+            last = self._persistent.get(tid) if t is not None else None
+            if last is None:
+                u = w
+            else:
+                phi = np.exp(-max(t - last[1], 0.0) / tau)
+                u = phi * last[0] + np.sqrt(1.0 - phi**2) * w
+            if t is not None:
+                self._persistent[tid] = (u, t)
+            out[i] = u
+        return out
+
+    def _confuse(self, cls: np.ndarray) -> np.ndarray:
+        """Each class replaced by another object class with probability ``class_confusion.p``."""
+        if self.confusion_rng is None or not len(cls):
+            return cls
+        u = self.confusion_rng.random((len(cls), 2))
+        cc = self.cfg.class_confusion
+        if not cc.enabled or cc.p <= 0:
+            return cls
+        out = cls.copy()
+        for i in np.flatnonzero(u[:, 0] < cc.p):
+            others = _OBJECT_CLASSES[_OBJECT_CLASSES != cls[i]]
+            out[i] = others[min(int(u[i, 1] * len(others)), len(others) - 1)]
+        return out
+
+    def _uniform_in_view(self, n: int) -> np.ndarray:
+        """n body-frame points (n, 3) on the ground, uniform in range (3 m to range_m) and bearing."""
+        c, rng = self.cfg, self.rng
+        rr = rng.uniform(3.0, c.range_m, n)
+        bb = rng.uniform(-np.radians(c.fov_deg) / 2, np.radians(c.fov_deg) / 2, n)
+        return np.column_stack([rr * np.cos(bb), rr * np.sin(bb), np.zeros(n)]) + self.sensor_body * [1, 1, 0]
+
+    def _false_alarms(self, observer: ActorState, t: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """False objects of this frame: where they are (K, 3) and where they are measured (K, 3) in the
+        body frame, and their classes (K,). A new set every frame stands still (no noise of its own)."""
+        c, rng = self.cfg, self.rng
+        rate = c.false_alarms_per_frame if self.clutter else 0.0
+        life = c.false_alarm_lifetime_s
+        if life <= 0.0 or t is None:  # a new set every frame
+            n_fa = rng.poisson(rate)
+            if not n_fa:
+                return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.uint8)
+            fa = self._uniform_in_view(n_fa)
+            return fa, fa, rng.choice([1, 2], n_fa).astype(np.uint8)
+        # Ghosts: a stationary population of mean `rate`; births at rate / life per second.
+        T_map_body = geo.pose_to_matrix(observer.pose)
+        dt = 0.0 if self._t_last is None else max(t - self._t_last, 0.0)
+        n_new = rng.poisson(rate if self._t_last is None else rate * dt / life)
+        self._t_last = t
+        if n_new:
+            p_map = geo.transform_points(T_map_body, self._uniform_in_view(n_new)).reshape(-1, 3)
+            cls = rng.choice([1, 2], n_new)
+            ends = t + rng.exponential(life, n_new)
+            self._ghosts += [(p_map[i], int(cls[i]), float(ends[i])) for i in range(n_new)]
+        self._ghosts = [g for g in self._ghosts if g[2] > t]
+        if not self._ghosts:
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.uint8)
+        p_body = geo.transform_points(geo.inverse(T_map_body), np.array([g[0] for g in self._ghosts])).reshape(-1, 3)
+        p_body[:, 2] = 0.0
+        rel = p_body[:, :2] - self.sensor_body[:2]
+        r = np.linalg.norm(rel, axis=1)
+        inview = (r <= c.range_m) & (np.abs(np.arctan2(rel[:, 1], rel[:, 0])) <= np.radians(c.fov_deg) / 2)
+        cls = np.array([g[1] for g in self._ghosts], dtype=np.uint8)
+        p_body = p_body[inview]
+        L = np.linalg.cholesky(self.covariance(p_body))
+        return p_body, p_body + np.einsum("nij,nj->ni", L, rng.normal(size=p_body.shape)), cls[inview]
+
+    def observe(self, observer: ActorState, targets: list[ActorState], occluders: list[ActorState], t=None):
+        """Detections of ``targets`` by ``observer`` at time ``t`` (true scenario time; None: no persistent
+        error and no ghosts, each call stands alone): (p_body (K,3), cov (K,3,3), cls (K,), truth ids)."""
         c, rng = self.cfg, self.rng
         T_body_map = geo.inverse(geo.pose_to_matrix(observer.pose))
         sensor_map = geo.transform_points(geo.pose_to_matrix(observer.pose), self.sensor_body)
@@ -287,7 +450,7 @@ class ObjectDetector:
         vis = (r <= c.range_m) & (np.abs(bearing) <= np.radians(c.fov_deg) / 2)
         if vis.any():
             centres = p_tgt + np.array([[0.0, 0.0, 1.0]]) * np.array([s.size[2] / 2 for s in targets])[:, None]
-            exclude = np.array([[o.id in (t.id, observer.id) for o in occluders] for t in targets]).reshape(
+            exclude = np.array([[o.id in (tg.id, observer.id) for o in occluders] for tg in targets]).reshape(
                 len(targets), len(occluders)
             )
             blocked = occluded(sensor_map, centres[vis], occluders, exclude[vis])
@@ -295,17 +458,18 @@ class ObjectDetector:
         p_det = c.p_detect_near + (c.p_detect_far - c.p_detect_near) * np.clip(r / c.range_m, 0, 1)
         det = vis & (rng.random(len(targets)) < p_det)
         truth = p_body[det]
-        cov = self.covariance(truth)
-        noisy = truth + np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=truth.shape))
-        cls = np.array([targets[i].cls for i in np.flatnonzero(det)], dtype=np.uint8)
         ids: list[str | None] = [targets[i].id for i in np.flatnonzero(det)]
-        n_fa = rng.poisson(c.false_alarms_per_frame)
-        if n_fa:
-            rr = rng.uniform(3.0, c.range_m, n_fa)
-            bb = rng.uniform(-np.radians(c.fov_deg) / 2, np.radians(c.fov_deg) / 2, n_fa)
-            fa = np.column_stack([rr * np.cos(bb), rr * np.sin(bb), np.zeros(n_fa)]) + self.sensor_body * [1, 1, 0]
-            noisy = np.vstack([noisy, fa])
-            cov = np.concatenate([cov, self.covariance(fa)])
-            cls = np.concatenate([cls, rng.choice([1, 2], n_fa).astype(np.uint8)])
-            ids += [None] * n_fa
-        return noisy, cov, cls, ids
+        L = np.linalg.cholesky(self.covariance(truth))
+        f = self.persistent_fraction
+        e = np.sqrt(1.0 - f) * rng.normal(size=truth.shape) + np.sqrt(f) * self._persistent_part(ids, t)
+        seen = geo.transform_points(self.T_rep_true, truth).reshape(-1, 3)
+        noisy = seen + np.einsum("nij,nj->ni", L, e)
+        cov = self._reported_cov(truth, noisy)
+        cls = np.array([targets[i].cls for i in np.flatnonzero(det)], dtype=np.uint8)
+        fa, fa_noisy, fa_cls = self._false_alarms(observer, t)
+        if len(fa):
+            noisy = np.vstack([noisy, fa_noisy])
+            cov = np.concatenate([cov, self._reported_cov(fa, fa_noisy)])
+            cls = np.concatenate([cls, fa_cls])
+            ids += [None] * len(fa)
+        return noisy, cov, self._confuse(cls), ids

@@ -1,7 +1,10 @@
 """The simulated world: actors on an HD map, and each connected vehicle's sensors, tick by tick.
 
-Trajectories depend only on the scenario (as in the paper's Monte Carlo runs, where the same
-traffic is observed with independent noise); every noise stream is drawn from the seed.
+Two maps: ``true_map`` is the world (what the cameras see, where the actors drive); ``hdmap`` is the
+map the vehicles and the host carry (:func:`~mapcontainer.sim.errors.published_map`: the true one with
+the scenario's map error drawn for the seed). The traffic is the scenario's, varied per run from the
+seed when ``traffic`` is on (:mod:`.traffic`); every noise and error stream is drawn from the seed,
+each from a stream of its own.
 """
 
 from __future__ import annotations
@@ -20,13 +23,16 @@ from schemas import (
     SensorFrame,
 )
 
+from .. import geometry as geo
 from .. import lanemask
 from ..hdmap.generator import generate_map
 from ..hdmap.model import HDMap
 from .actors import ActorState, BodyMotion, LaneFollower, PathWalker
 from .config import ScenarioConfig
+from .errors import published_map, vehicle_error_streams
 from .sensors import Camera, CameraObservation, Gnss, ObjectDetector
 from .sensors import Odometry as OdometrySensor
+from .traffic import Traffic, draw_traffic
 
 __all__ = ["FrameDebug", "Tick", "World"]
 
@@ -50,14 +56,30 @@ class Tick:
 
 
 class _VehicleSensors:
-    def __init__(self, world: World, seed: np.random.SeedSequence):
+    """One vehicle's sensors: noise from ``seed``'s children, errors from ``errors``' children."""
+
+    def __init__(self, world: World, seed: np.random.SeedSequence, errors: np.random.SeedSequence):
         cfg = world.scenario.sensors
         cam_ss, gnss_ss, odo_ss, det_ss = seed.spawn(4)
-        self.camera = Camera(cfg.camera, world.hdmap, np.random.default_rng(cam_ss))
+        calib_rng, bias_rng, confusion_rng, clock_rng = (np.random.default_rng(ss) for ss in errors.spawn(4))
+        clutter = cfg.clutter.enabled
+        self.camera = Camera(cfg.camera, world.true_map, np.random.default_rng(cam_ss), calib_rng, clutter)
         self.gnss = Gnss(cfg.gnss, np.random.default_rng(gnss_ss))
         self.odometry = OdometrySensor(cfg.odometry, np.random.default_rng(odo_ss))
-        self.detector = ObjectDetector(cfg.detector, cfg.camera.mount_xyz_m, np.random.default_rng(det_ss))
-        intr = self.camera.intr
+        # The object detector looks through the same camera: its body-frame positions carry the extrinsic error.
+        T_rep_true = self.camera.T_body_cam_reported @ geo.inverse(self.camera.T_body_cam)
+        self.detector = ObjectDetector(
+            cfg.detector,
+            cfg.camera.mount_xyz_m,
+            np.random.default_rng(det_ss),
+            bias_rng,
+            confusion_rng,
+            T_rep_true,
+            clutter,
+        )
+        z = clock_rng.normal()
+        self.clock_offset_s = float(z * cfg.clock.offset_sigma_s) if cfg.clock.enabled else 0.0
+        intr = self.camera.reported_intr
         self.camera_info = CameraInfo(
             fx=intr.fx,
             fy=intr.fy,
@@ -65,24 +87,39 @@ class _VehicleSensors:
             cy=intr.cy,
             width=intr.width,
             height=intr.height,
-            T_body_cam=self.camera.T_body_cam,
+            T_body_cam=self.camera.T_body_cam_reported,
         )
 
 
+def _follow(followers: list[LaneFollower], specs, gap_m: float) -> None:
+    """Each vehicle follows the next one ahead in its lane (by start position; the front one is free)."""
+    for lane in {sp.lane for sp in specs}:
+        order = sorted((i for i, sp in enumerate(specs) if sp.lane == lane), key=lambda i: specs[i].s0_m)
+        for behind, ahead in zip(order, order[1:], strict=False):
+            followers[behind].leader = followers[ahead]
+            followers[behind].min_gap_m = gap_m
+
+
 class World:
-    """A scenario with its map, actors and the connected vehicles' sensors, for one seed."""
+    """A scenario with its maps, actors and the connected vehicles' sensors, for one seed.
+
+    ``true_map``: the world the cameras see and the actors drive in. ``hdmap``: the map the vehicles and
+    the host carry (the published map: ``true_map`` with the scenario's map error). ``traffic``: the
+    actors of this run.
+    """
 
     def __init__(self, scenario: ScenarioConfig, seed: int, fleet: str = "sim"):
         self.scenario = scenario
         self.seed = seed
         self.fleet = fleet
-        self.hdmap: HDMap = generate_map(scenario.map)
+        self.true_map: HDMap = generate_map(scenario.map)
+        self.hdmap: HDMap = published_map(scenario, seed, self.true_map)
         self.dt = 1.0 / scenario.sensors.rate_hz
-        lanes = [c.polyline for c in self.hdmap.centerlines]
-        areas = [w.polyline for w in self.hdmap.walkable]
+        lanes = [c.polyline for c in self.true_map.centerlines]
+        areas = [w.polyline for w in self.true_map.walkable]
+        self.traffic: Traffic = draw_traffic(scenario, seed, [a.length for a in areas], [a.length for a in lanes])
 
-        def follower(actor_id: str, spec, i: int, n: int) -> LaneFollower:
-            phase = 2 * np.pi * i / max(n, 1)
+        def follower(actor_id: str, spec) -> LaneFollower:
             return LaneFollower(
                 actor_id,
                 lanes[spec.lane],
@@ -90,21 +127,26 @@ class World:
                 spec.speed_mps,
                 spec.speed_amp_mps,
                 spec.speed_period_s,
-                phase,
+                spec.speed_phase_rad,
                 (spec.length_m, spec.width_m, spec.height_m),
             )
 
-        n_cv, n_ov = len(scenario.connected), len(scenario.obstacle_vehicles)
-        self.connected = [follower(f"cv{i}", s, i, n_cv) for i, s in enumerate(scenario.connected)]
-        obstacles = [follower(str(i + 1), s, i, n_ov) for i, s in enumerate(scenario.obstacle_vehicles)]
+        tr = self.traffic
+        n_cv, n_ov = len(tr.connected), len(tr.obstacle_vehicles)
+        self.connected = [follower(f"cv{i}", s) for i, s in enumerate(tr.connected)]
+        obstacles = [follower(str(i + 1), s) for i, s in enumerate(tr.obstacle_vehicles)]
+        if scenario.traffic.enabled and scenario.traffic.min_gap_m > 0:
+            _follow([*self.connected, *obstacles], [*tr.connected, *tr.obstacle_vehicles], scenario.traffic.min_gap_m)
         obstacles += [
             PathWalker(str(n_ov + i + 1), areas[p.area], p.s0_m, p.speed_mps, p.direction)
-            for i, p in enumerate(scenario.pedestrians)
+            for i, p in enumerate(tr.pedestrians)
         ]
         self.obstacles = obstacles
         root = np.random.SeedSequence(seed)
+        errors = vehicle_error_streams(seed, n_cv)
         self._sensors = {
-            a.id: _VehicleSensors(self, ss) for a, ss in zip(self.connected, root.spawn(n_cv), strict=True)
+            a.id: _VehicleSensors(self, ss, es)
+            for a, ss, es in zip(self.connected, root.spawn(n_cv), errors, strict=True)
         }
         self._last_k: dict[str, int] = {}  # the last frame each vehicle's sensors measured
         b = scenario.sensors.body
@@ -121,6 +163,13 @@ class World:
 
     def camera(self, vid: str) -> Camera:
         return self._sensors[vid].camera
+
+    def detector(self, vid: str) -> ObjectDetector:
+        return self._sensors[vid].detector
+
+    def clock_offset_s(self, vid: str) -> float:
+        """How far vehicle ``vid``'s time stamps are ahead of true time (s)."""
+        return self._sensors[vid].clock_offset_s
 
     def states(self, t: float) -> dict[str, ActorState]:
         return {a.id: a.state(t) for a in [*self.connected, *self.obstacles]}
@@ -157,13 +206,14 @@ class World:
         self._last_k[vid] = k
         p_gnss, sh, sv = sensors.gnss.measure(t, me.p_map, self.dt * skipped)
         speed, yaw_rate = sensors.odometry.measure(me.speed, me.yaw_rate)
-        p_obj, cov_obj, cls_obj, ids = sensors.detector.observe(me, others, others + [me])
+        p_obj, cov_obj, cls_obj, ids = sensors.detector.observe(me, others, others + [me], t)
+        t_vehicle = t + sensors.clock_offset_s  # the frame is stamped by the vehicle's clock
         frame = SensorFrame(
             fleet=self.fleet,
             sender=vid,
             seq=k,
-            t_meas=t,
-            t_sent=t,
+            t_meas=t_vehicle,
+            t_sent=t_vehicle,
             camera=sensors.camera_info,
             points_uv=cam.points_uv,
             points_cls=cam.points_cls,

@@ -14,21 +14,27 @@ from mapcontainer.sim.config import BodyConfig, load_sensor_config
 from mapcontainer.sim.sensors import Camera, ObjectDetector, occluded
 from schemas import ObjectClass, encode
 
+SITE = ("overlap", "blindspot-occluded", "blindspot-beyond")
+
 
 def test_presets_load_and_paper_counts():
-    assert {"paper-urban", "paper-suburban", "overlap", "blindspot-occluded", "blindspot-beyond"} <= set(
-        list_scenarios()
-    )
+    assert {"paper-urban", "paper-suburban", *SITE, *(f"{n}-sparse" for n in SITE)} <= set(list_scenarios())
+    paper = {"lamp": 14, "traffic_light": 4, "sign": 4}
     for name in ("paper-urban", "paper-suburban"):
         world = World(load_scenario(name), seed=0)
         assert len(world.vehicle_ids) == 4
         classes = [a.cls for a in world.obstacles]
         assert classes.count(ObjectClass.PEDESTRIAN) == 8
         assert classes.count(ObjectClass.VEHICLE) == 6
-        assert world.hdmap.feature_counts() == {"lamp": 14, "traffic_light": 4, "sign": 4}
-    for name in ("overlap", "blindspot-occluded", "blindspot-beyond"):
-        world = World(load_scenario(name), seed=0)
-        assert len(world.vehicle_ids) == 2 and len(world.obstacles) == 1
+        assert world.true_map.feature_counts() == paper  # the world; the vehicles' map lacks or adds a few
+    for name in SITE:  # the test site at the densified and at the paper's landmark density
+        dense, sparse = World(load_scenario(name), seed=0), World(load_scenario(f"{name}-sparse"), seed=0)
+        assert len(dense.vehicle_ids) == 2 and len(dense.obstacles) == 1
+        assert dense.true_map.feature_counts() == {"lamp": 40, "traffic_light": 4, "sign": 16}
+        assert sparse.true_map.feature_counts() == paper
+        assert (
+            sparse.scenario.connected == dense.scenario.connected and sparse.scenario.traffic == dense.scenario.traffic
+        )
 
 
 # A car's body on its suspension (1-sigmas; the profile of configs/sensors/default.yaml).
@@ -58,12 +64,17 @@ def _episode_digest(seed: int, frames: int = 15, overrides=None) -> tuple[str, s
     return sensors.hexdigest(), traffic.hexdigest(), body.hexdigest()
 
 
+TRAFFIC_OFF = {"traffic": {"enabled": False}}
+
+
 def test_same_seed_gives_identical_bytes_and_noise_depends_on_seed():
     a, b, c = _episode_digest(3), _episode_digest(3), _episode_digest(4)
     assert a == b
     assert a[0] != c[0], "sensor noise must depend on the seed"
-    assert a[1] == c[1], "the traffic is the same in every Monte Carlo run"
-    a, c = _episode_digest(3, 5, BODY_ON), _episode_digest(4, 5, BODY_ON)
+    assert a[1] != c[1], "the traffic is drawn per run"
+    a, c = _episode_digest(3, 5, TRAFFIC_OFF), _episode_digest(4, 5, TRAFFIC_OFF)
+    assert a[0] != c[0] and a[1] == c[1], "traffic variation off: the traffic as listed in every run"
+    a, c = _episode_digest(3, 5, {**BODY_ON, **TRAFFIC_OFF}), _episode_digest(4, 5, {**BODY_ON, **TRAFFIC_OFF})
     assert a[1] == c[1] and a[2] != c[2], "the bodies' suspension motion is drawn per run, like the sensor noise"
 
 
@@ -94,10 +105,11 @@ def test_body_motion_is_per_vehicle_about_nominal_and_off_is_rigid():
 
 
 def test_the_camera_sees_from_the_pitched_body():
-    """Detected points sit at their projection from the body's true (heaved, rolled, pitched) pose."""
+    """Detected points sit at their projection from the body's true (heaved, rolled, pitched) pose, through
+    the true camera, of the true (world's) landmarks."""
     world = World(load_scenario("paper-urban", BODY_ON), seed=5)
     cam = world.camera("cv0")
-    pts = {f.id: f.p_map for f in world.hdmap.points}
+    pts = {f.id: f.p_map for f in world.true_map.points}
     res_body, res_rigid, pitch = [], [], []
     for k in range(40):
         tick = world.tick(k)
