@@ -54,6 +54,7 @@ VERIFY_WINDOW_S = 5.0  # a signed message generated longer ago (or ahead) than t
 
 class HostSettings(ServiceSettings):
     scenario: str = "paper-urban"
+    seed: int = Field(0, ge=0, description="the run's seed: the HD map's error is drawn from it (as the world's)")
     mode: Literal["distributed", "centralized"] = "distributed"
     max_wait_s: float = Field(0.1, ge=0, le=2, description="wall seconds a frame waits for late senders")
     known_senders: list[str] | None = None
@@ -88,6 +89,9 @@ def _fusion_params(path: str | None) -> dict[str, Any] | None:
 def parse_args(argv: list[str] | None = None) -> HostSettings:
     p = argparse.ArgumentParser(prog="python -m services.host", description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="paper-urban", help="scenario whose HD map the host carries")
+    p.add_argument(
+        "--seed", type=int, default=0, help="the run's seed (the world's): the HD map's error is drawn from it"
+    )
     p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
     p.add_argument("--max-wait", type=float, default=0.1, help="seconds a frame waits for all senders")
     p.add_argument("--known-senders", default=None, help="comma-separated vehicle ids (default: anyone)")
@@ -106,6 +110,7 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
     return HostSettings(
         **service_settings_from_args(a).model_dump(),
         scenario=a.scenario,
+        seed=a.seed,
         mode=a.mode,
         max_wait_s=a.max_wait,
         known_senders=[x for x in a.known_senders.split(",") if x] if a.known_senders else None,
@@ -154,6 +159,7 @@ def main(s: HostSettings) -> int:
     log.info("settings: %s", s.model_dump_json())
     spec = {
         "scenario": s.scenario,
+        "seed": s.seed,  # with the scenario: the map the host carries, mapcontainer.sim.published_map
         "mode": s.mode,
         "fleet": s.fleet,
         "host_id": s.id,

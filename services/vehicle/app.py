@@ -23,9 +23,9 @@ from typing import Literal
 from pydantic import Field
 
 from mapcontainer.faults import FaultInjector
-from mapcontainer.hdmap.generator import generate_map
 from mapcontainer.security import Signer, load_credentials
 from mapcontainer.sim.config import load_scenario
+from mapcontainer.sim.errors import published_map
 from schemas import Rejection, SensorFrame, encode
 from schemas.topics import topic
 
@@ -44,7 +44,8 @@ __all__ = ["VehicleSettings", "main", "parse_args"]
 
 
 class VehicleSettings(ServiceSettings):
-    scenario: str = "paper-urban"  # the HD map comes from the scenario's map spec
+    scenario: str = "paper-urban"  # the HD map comes from the scenario's map spec and the seed
+    seed: int = Field(0, ge=0, description="the run's seed: the HD map's error is drawn from it (as the world's)")
     mode: Literal["distributed", "centralized"] = "distributed"
     # frames waiting before new ones are skipped (not matched or sent): 2 (0.2 s). A vehicle that
     # cannot keep up (a cold start's pose searches on a loaded machine) then works on fresh frames;
@@ -59,6 +60,9 @@ class VehicleSettings(ServiceSettings):
 def parse_args(argv: list[str] | None = None) -> VehicleSettings:
     p = argparse.ArgumentParser(prog="python -m services.vehicle", description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="paper-urban", help="scenario whose HD map the vehicle carries")
+    p.add_argument(
+        "--seed", type=int, default=0, help="the run's seed (the world's): the HD map's error is drawn from it"
+    )
     p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
     p.add_argument(
         "--queue",
@@ -70,7 +74,12 @@ def parse_args(argv: list[str] | None = None) -> VehicleSettings:
     add_service_args(p, "vehicle")
     a = p.parse_args(argv)
     return VehicleSettings(
-        **service_settings_from_args(a).model_dump(), scenario=a.scenario, mode=a.mode, queue=a.queue, keys=a.keys
+        **service_settings_from_args(a).model_dump(),
+        scenario=a.scenario,
+        seed=a.seed,
+        mode=a.mode,
+        queue=a.queue,
+        keys=a.keys,
     )
 
 
@@ -80,7 +89,7 @@ def main(s: VehicleSettings) -> int:
     log = setup_logging("vehicle", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
     scenario = load_scenario(s.scenario)
-    hdmap = generate_map(scenario.map)
+    hdmap = published_map(scenario, s.seed)  # the in-process pipeline's map for this scenario and seed
     agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode)
     faults = FaultInjector(s.id, scenario.faults)  # the scenario's faults of this vehicle, if any
     signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # ConfigError: exit 2 at start
