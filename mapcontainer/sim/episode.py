@@ -5,7 +5,8 @@ An episode directory holds:
 * ``episode.msgpack`` — a stream of msgpack arrays ``[t_meas, key, payload]``: ``key`` is the
   topic key the payload would be published on (``mc/{fleet}/sim/truth`` or
   ``mc/{fleet}/sim/{vid}/sensors``) and ``payload`` the message bytes from :func:`schemas.encode`;
-* ``map.geojson`` — the HD map (:mod:`mapcontainer.hdmap.io`);
+* ``map.geojson`` — the HD map the vehicles carry (:mod:`mapcontainer.hdmap.io`; with the map error of
+  the seed), ``map_true.geojson`` — the world's map the cameras saw;
 * ``scenario.json`` — the resolved scenario configuration and seed;
 * ``birdseye.png``, ``camera_<vid>.png`` — pictures; ``summary.json`` — the figures printed by the CLI.
 """
@@ -69,6 +70,7 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
     assert last is not None and middle is not None  # at least one frame, checked above
 
     save_map(world.hdmap, out_dir / "map.geojson")
+    save_map(world.true_map, out_dir / "map_true.geojson")
     (out_dir / "scenario.json").write_text(
         json.dumps(
             {
@@ -83,7 +85,7 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
     )
     render_birdseye(
         out_dir / "birdseye.png",
-        world.hdmap,
+        world.true_map,
         {k: np.array(v) for k, v in tracks.items()},
         last.states,
         world.vehicle_ids,
@@ -105,7 +107,8 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
         "frames": n_frames,
         "vehicles": len(world.vehicle_ids),
         "obstacles": obstacles,
-        "map_features": world.hdmap.feature_counts(),
+        "map_features": world.true_map.feature_counts(),
+        "published_map_features": world.hdmap.feature_counts(),
         "sensor_frame_bytes_mean": round(float(np.mean(frame_bytes)), 1),
         "detection_rmse_m": round(float(np.sqrt(np.mean(det_err2))), 3) if det_err2 else None,
         "gnss_rmse_m": round(float(np.sqrt(np.mean(gnss_err2))), 3),

@@ -38,7 +38,7 @@ def test_mapc_sim_writes_a_readable_episode(tmp_path):
     assert summary["obstacles"] == {"vehicle": 6, "pedestrian": 8}
     assert summary["map_features"] == {"lamp": 14, "traffic_light": 4, "sign": 4}
     assert summary["sensor_frame_bytes_mean"] > 0
-    for name in ["birdseye.png", "camera_cv0.png", "camera_cv3.png", "map.geojson", "summary.json"]:
+    for name in ["birdseye.png", "camera_cv0.png", "camera_cv3.png", "map.geojson", "map_true.geojson", "summary.json"]:
         assert (out / name).stat().st_size > 0, name
 
     records = list(read_episode(out))
@@ -47,7 +47,8 @@ def test_mapc_sim_writes_a_readable_episode(tmp_path):
     assert len(truths) == 10 and len(frames) == 40
     assert {f.sender for f in frames} == {"cv0", "cv1", "cv2", "cv3"}
     assert summary["sensor_frame_bytes_mean"] == round(float(np.mean([len(encode(f)) for f in frames])), 1)
-    assert load_map(out / "map.geojson").feature_counts() == summary["map_features"]
+    assert load_map(out / "map_true.geojson").feature_counts() == summary["map_features"]  # the world's
+    assert load_map(out / "map.geojson").feature_counts() == summary["published_map_features"]  # the vehicles' map
 
 
 def test_mapc_scenario_list_and_bad_scenario():
