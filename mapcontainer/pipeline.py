@@ -6,9 +6,15 @@ view is a host container that listens to a subset of the senders (e.g. the ego a
 which isolates what cooperation adds without simulating the world twice.
 
 Time: at every camera frame t_k the vehicles handle their sensor frames and send at t_k; the host
-vehicle's own message reaches its container directly (as in the paper, the container runs on the
-ego vehicle), the others go through the channel model; every delivery with arrival time <= t_k is
-ingested, then each view fuses at t_k.
+vehicle's own message reaches its container directly at t_k (as in the paper, the container runs on
+the ego vehicle), the others go through the channel model and arrive when it says. Each view
+ingests every message at its arrival time, in arrival order, and solves frame t_k when its
+:class:`~mapcontainer.fusion.gate.FrameGate` releases it, exactly as the live host does: once every
+sender of the view has delivered its message for t_k, or ``max_wait_s`` after the first of them
+arrived (the view then fuses at t_k with everything that has arrived by that release time;
+``TickRecord.released`` says when). A frame the gate drops (a newer one was complete first) has no
+fused state for that view, as the live host publishes none. On an ideal channel every message
+arrives at t_k and each view fuses at t_k with all of frame k.
 
 Start (``start``): "cold" — every vehicle initialises its localizer from GNSS, the map's driving
 directions and the camera (a vehicle switched on at t = 0; it may take frames, or fail, to lock
@@ -29,13 +35,15 @@ import numpy as np
 
 from schemas import FusedState, GroundTruth, Rejection, encode
 from schemas.arrays import cov_from_upper
+from schemas.codec import peek
 
 from . import geometry as geo
 from .channel import Channel, NetworkProfile, load_profile
+from .evaluation import relative_target_errors
 from .faults import FaultInjector
 from .fusion import FusionParams
+from .fusion.gate import MAX_WAIT_S, FrameGate
 from .host import make_host
-from .metrics import match_objects
 from .sim import World, load_scenario
 from .sim.config import ScenarioConfig
 from .vehicle import Mode, VehicleAgent
@@ -104,6 +112,7 @@ class TickRecord:
     loc_mode: dict[str, str] = field(default_factory=dict)  # vid -> "map_matching" | "fallback" (distributed)
     onboard: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> the vehicle's filtered pose (distributed)
     onboard_covs: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> 6x6
+    released: dict[str, float] = field(default_factory=dict)  # view name -> when its gate released this frame
 
 
 @dataclass
@@ -124,6 +133,7 @@ class PipelineResult:
     signing: bool = False
     tx_message_bytes: dict[str, int] = field(default_factory=lambda: defaultdict(int))  # the messages, unsigned
     security_rejected: dict[str, int] = field(default_factory=lambda: defaultdict(int))  # by the hosts' verifiers
+    gate_stats: dict[str, dict[str, int]] = field(default_factory=dict)  # view -> frames complete / timed out
 
 
 def run_pipeline(
@@ -137,6 +147,7 @@ def run_pipeline(
     fleet: str = "sim",
     start: Start = "cold",
     signing: bool = False,
+    max_wait_s: float = MAX_WAIT_S,
 ) -> PipelineResult:
     """Run one episode and return per-frame records for evaluation.
 
@@ -149,6 +160,9 @@ def run_pipeline(
     (:class:`~mapcontainer.security.Signer`, credentials from a CA made for the run), and each host view
     verifies it before ingesting it; Unix time in the signatures is ``SIGNING_EPOCH_S`` + scenario time.
     ``tx_bytes`` are then the signed bytes, ``tx_message_bytes`` the messages inside.
+
+    ``max_wait_s``: scenario seconds a view's frame waits for its late senders (the FrameGate's; the
+    live host's ``--max-wait`` is wall seconds, i.e. ``max_wait * time_scale`` scenario seconds).
     """
     if start not in ("cold", "warm"):
         raise ValueError(f"start must be 'cold' or 'warm', got {start!r}")
@@ -183,19 +197,58 @@ def run_pipeline(
     duration = sc.duration_s if duration_s is None else duration_s
     result = PipelineResult(sc.name, seed, mode, profile.name, ego, duration_s=duration, start=start, signing=signing)
 
+    gates = {name: FrameGate(senders, max_wait_s, reference=ego) for name, senders in listeners.items()}
+    records: dict[int, TickRecord] = {}  # frame index k (t = k dt) -> its record
+
     def ingest(name: str, src: str, payload: bytes, t_arrive: float) -> None:
+        """Into view ``name``'s host; an accepted message tells the view's gate (as the live host's loop)."""
         if signing:
             out = verifiers[name].verify(payload, SIGNING_EPOCH_S + t_arrive, expected_sender=src)
             if isinstance(out, Rejection):
                 result.security_rejected[out.reason] += 1
                 return
             payload = out.payload
-        hosts[name].ingest(payload, t_arrive)
+        r = hosts[name].ingest(payload, t_arrive)
+        if bool(getattr(r, "accepted", r)):
+            head = peek(payload)
+            gates[name].arrived(head["sender"], float(head["t_meas"]), t_arrive)
 
+    def release(name: str, now: float) -> bool:
+        t_frame = gates[name].due(now)
+        if t_frame is None:
+            return False
+        rec = records[int(round(t_frame / world.dt))]  # the frame's time is the ego's clock: ms off t_k
+        rec.fused[name] = hosts[name].fuse(t_frame)
+        rec.released[name] = now
+        return True
 
+    def timeouts(until: float) -> None:
+        """Release what times out by ``until`` (a deadline falls before an arrival at the same instant)."""
+        for name, gate in gates.items():
+            while (d := gate.next_deadline()) is not None and d <= until + 1e-9 and release(name, d):
+                pass
+
+    def advance(t_end: float, onboard: list[tuple[str, bytes]]) -> None:
+        """Every arrival up to ``t_end`` in time order (on-board messages at ``t_end``, before the
+        channel's of the same instant), each view's gate asked after each."""
+        events = [(t_end, 0, i, src, payload) for i, (src, payload) in enumerate(onboard)]
+        for i, d in enumerate(channel.deliver(t_end)):
+            result.deliveries.append((d.src, d.t_sent, d.t_arrive))
+            events.append((d.t_arrive, 1, i, d.src, d.payload))
+        events.sort(key=lambda e: e[:3])
+        for t_arrive, _, _, src, payload in events:
+            timeouts(t_arrive)
+            for name in hosts:
+                if src in listeners[name]:
+                    ingest(name, src, payload, t_arrive)
+                    release(name, t_arrive)
+        timeouts(t_end)
+
+    t_last = 0.0
     for tick in world.run(duration):
-        t = tick.t
+        t = t_last = tick.t
         rec = TickRecord(t, tick.truth, {}, {}, {}, {})
+        onboard: list[tuple[str, bytes]] = []
         for vid, frame in tick.frames.items():
             msg = agents[vid].handle(t, frame)
             if isinstance(msg, Rejection):  # the simulator's own frames: a bug, not bad input
@@ -213,24 +266,19 @@ def run_pipeline(
                 message = encode(m)
                 payload = signers[vid].sign(message, SIGNING_EPOCH_S + t) if signing else message
                 if vid == ego:
-                    for name in hosts:
-                        if vid in listeners[name]:
-                            ingest(name, vid, payload, t)
+                    onboard.append((vid, payload))
                 else:
                     result.tx_bytes[vid] += len(payload)
                     result.tx_message_bytes[vid] += len(message)
                     result.tx_msgs[vid] += 1
                     channel.send(vid, HOST_ID, payload, t)
-        for d in channel.deliver(t):
-            result.deliveries.append((d.src, d.t_sent, d.t_arrive))
-            for name in hosts:
-                if d.src in listeners[name]:
-                    ingest(name, d.src, d.payload, d.t_arrive)
-        for name, host in hosts.items():
-            rec.fused[name] = host.fuse(t)
+        records[int(round(t / world.dt))] = rec
         result.records.append(rec)
+        advance(t, onboard)
+    advance(t_last + max_wait_s, [])  # the last frames: their late messages and time-outs
     result.channel_stats = channel.stats()
     result.host_stats = {name: host.stats() for name, host in hosts.items()}
+    result.gate_stats = {name: {"complete": g.complete, "timed_out": g.timed_out} for name, g in gates.items()}
     return result
 
 
@@ -249,16 +297,7 @@ def _security(vehicles: list[str], views: list[str]) -> tuple[dict, dict]:
 
 def relative_errors(fused: FusedState, truth: GroundTruth, ego: str, radius_m: float):
     """Errors (N, 2) of target positions in the ego's body frame (the paper's rms2) for true targets
-    within ``radius_m`` of the ego, using the fused ego pose and fused target positions."""
-    if ego not in fused.vehicle_ids or ego not in truth.vehicle_ids:
-        return np.zeros((0, 2)), 0
-    T_true = geo.pose_to_matrix(np.asarray(truth.vehicle_pose[truth.vehicle_ids.index(ego)], float))
-    T_hat = geo.pose_to_matrix(np.asarray(fused.vehicle_pose[fused.vehicle_ids.index(ego)], float))
-    p_true_map = np.asarray(truth.obstacle_p_map, float)
-    near = np.linalg.norm(p_true_map[:, :2] - T_true[:2, 3], axis=1) <= radius_m
-    ti, fi = match_objects(fused.object_p_map, truth.obstacle_p_map)
-    keep = near[ti]
-    ti, fi = ti[keep], fi[keep]
-    rel_true = geo.transform_points(geo.inverse(T_true), p_true_map[ti])
-    rel_hat = geo.transform_points(geo.inverse(T_hat), np.asarray(fused.object_p_map, float)[fi])
-    return (rel_hat - rel_true)[:, :2], int(near.sum())
+    within ``radius_m`` of the ego, and their number: :func:`mapcontainer.evaluation.relative_target_errors`
+    without the ids."""
+    _, err, n_near = relative_target_errors(fused, truth, ego, radius_m)
+    return err, n_near

@@ -70,3 +70,24 @@ def test_the_host_worker_still_offers_it() -> None:
     from services.host import worker
 
     assert worker.FrameGate is FrameGate
+
+
+def test_groups_messages_stamped_by_clocks_a_few_ms_apart() -> None:
+    g = FrameGate({"cv0", "cv1", "cv2"}, reference="cv0")
+    g.arrived("cv1", 1.004, now=1.0)
+    g.arrived("cv2", 0.997, now=1.0)
+    assert g.due(1.0) is None and g.pending == 1  # one frame, cv0 missing
+    g.arrived("cv0", 1.002, now=1.01)
+    assert g.due(1.01) == pytest.approx(1.002) and g.complete == 1  # solved at the reference's time
+    g.arrived("cv1", 1.0, now=1.02)  # late for the released frame: ignored
+    g.arrived("cv1", 1.104, now=1.1)  # the next frame
+    assert g.pending == 1 and g.due(1.1 + MAX_WAIT_S) == pytest.approx(1.104)  # no reference: the first's time
+
+
+def test_frames_further_apart_than_the_tolerance_stay_apart() -> None:
+    g = FrameGate({"cv0", "cv1"}, tolerance_s=0.02)
+    g.arrived("cv0", 1.0, now=1.0)
+    g.arrived("cv1", 1.03, now=1.0)
+    assert g.pending == 2
+    with pytest.raises(ValueError, match="tolerance_s"):
+        FrameGate(None, tolerance_s=0.5)
