@@ -165,6 +165,7 @@ def main(s: HostSettings) -> int:
         "host_id": s.id,
         "known_senders": s.known_senders,
         "max_wait_s": s.max_wait_s,
+        "reference": s.local[0] if s.local else None,  # the frame gate solves at the on-board vehicle's clock
         "params": s.params,
     }
     verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None

@@ -28,7 +28,7 @@ from typing import Any
 
 __all__ = ["FusionSpec", "fusion_loop", "fusion_process", "make_core"]
 
-FusionSpec = dict[str, Any]  # scenario, mode, fleet, host_id, known_senders, params, max_wait_s (picklable)
+FusionSpec = dict[str, Any]  # scenario, mode, fleet, host_id, known_senders, params, max_wait_s, reference
 
 
 def make_core(spec: FusionSpec):
@@ -89,7 +89,9 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
         outbox.put(("error", traceback.format_exc()))
         return
     outbox.put(("ready", os.getpid()))
-    gate = FrameGate(set(spec["known_senders"] or ()) or None, spec.get("max_wait_s", MAX_WAIT_S))
+    gate = FrameGate(
+        set(spec["known_senders"] or ()) or None, spec.get("max_wait_s", MAX_WAIT_S), reference=spec.get("reference")
+    )
     results: list[tuple[bool, str | None, float]] = []
     last_flush = time.monotonic()
     while True:
