@@ -8,6 +8,13 @@ with ``IMWRITE_PNG_BILEVEL``, ``IMWRITE_PNG_COMPRESSION`` 1 and ``IMWRITE_PNG_ST
 same chunks, no row filter, the same zlib settings and header, byte for byte; any PNG decoder reads
 it. :func:`decode` reads that layout itself and hands every other PNG (other bit depths, colour, row
 filters, interlacing) to ``cv2.imdecode``.
+
+Resolution: the map matcher computes its lane distance transform at most ``lane_dt_max_width_px``
+wide (``MatcherParams``) and pools a wider mask by an integer factor first (:func:`pool`). A vehicle
+that sends its mask to the host (centralized mode) pools it with the same function before encoding
+(:func:`pool_png`), so the bytes on the air are the pixels the host uses: the host's poses are the
+same, and the mask is about a third of the size. The PNG's own header says the resolution
+(:func:`png_size`); a reader scales pixel coordinates by mask width / camera width.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ import zlib
 import cv2
 import numpy as np
 
-__all__ = ["decode", "encode"]
+__all__ = ["decode", "encode", "pool", "pool_factor", "pool_png", "png_size"]
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _IDAT_SIZE = 8192  # libpng's: the compressed data in chunks of at most this many bytes
@@ -108,3 +115,56 @@ def _decode_bilevel(png: bytes) -> np.ndarray | None:
     if rows[:, 0].any():  # a row filter: OpenCV's decoder undoes it
         return None
     return np.unpackbits(rows[:, 1:], axis=1, count=w) * np.uint8(255)
+
+
+def pool_factor(width_px: int, max_width_px: int) -> int:
+    """The smallest integer k with ``width_px / k <= max_width_px`` (1: the mask is used as it is)."""
+    if width_px <= 0 or max_width_px <= 0:
+        raise ValueError(f"widths must be positive, got width_px={width_px}, max_width_px={max_width_px}")
+    return -(-int(width_px) // int(max_width_px))
+
+
+def pool(mask: np.ndarray, max_width_px: int) -> np.ndarray:
+    """The mask at most ``max_width_px`` wide: max-pooled by k = :func:`pool_factor` (a k x k block with
+    any marking pixel is marking, 255; else 0). Rows and columns past the last whole block are dropped,
+    so the result is (H // k, W // k). A mask already narrow enough comes back unchanged (k = 1).
+
+    The map matcher pools with this function before its distance transform, and a vehicle before it
+    sends the mask (:func:`pool_png`): pooling a pooled mask again is the identity, so the host sees
+    the same pixels whichever of the two pooled it.
+    """
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"the lane mask must be 2-D, got shape {mask.shape}")
+    k = pool_factor(mask.shape[1], max_width_px)
+    if k == 1:
+        return mask
+    h, w = mask.shape[0] // k * k, mask.shape[1] // k * k
+    if h == 0:
+        raise ValueError(f"lane mask {mask.shape} has fewer rows than the pooling factor {k}")
+    small = cv2.resize(
+        np.ascontiguousarray(mask[:h, :w], dtype=np.uint8), (w // k, h // k), interpolation=cv2.INTER_AREA
+    )
+    return cv2.threshold(small, 0, 255, cv2.THRESH_BINARY)[1]  # the block's mean > 0: a marking pixel in it
+
+
+def png_size(png: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's header, without inflating anything; None if it has no IHDR first."""
+    if len(png) < 24 or not png.startswith(_SIGNATURE) or png[12:16] != b"IHDR":
+        return None
+    w, h = struct.unpack_from(">II", png, 16)
+    return int(w), int(h)
+
+
+def pool_png(png: bytes, max_width_px: int, max_pixels: int = _MAX_PIXELS) -> bytes:
+    """A lane-mask PNG at most ``max_width_px`` wide: :func:`pool` of its mask, re-encoded; the same
+    bytes if it is already narrow enough (or empty). Raises ValueError as :func:`decode` does."""
+    if not png:
+        return png
+    size = png_size(png)
+    if size is not None and pool_factor(size[0], max_width_px) == 1:
+        return png
+    mask = decode(png, max_pixels)
+    if pool_factor(mask.shape[1], max_width_px) == 1:
+        return png
+    return encode(pool(mask, max_width_px))

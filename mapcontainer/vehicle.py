@@ -4,7 +4,11 @@
 V2X link: a :class:`~schemas.VehiclePrior` in distributed mode (self-localization by HD-map
 matching, plus this frame's object detections in the body frame with covariance — not filtered
 tracks: the host treats each message as independent evidence), or a
-:class:`~schemas.RawObservations` in centralized mode (the host localizes the vehicle itself).
+:class:`~schemas.RawObservations` in centralized mode (the host localizes the vehicle itself). The
+raw message's lane mask is pooled to the width the host's map matcher uses
+(``MatcherParams.lane_dt_max_width_px``, :func:`mapcontainer.lanemask.pool`, the matcher's own
+pooling) and sent in ``lane_mask_pooled_png``: a wider one would cost bytes the host throws away on
+arrival.
 
 A frame the agent cannot use comes back as a :class:`~schemas.Rejection` and changes nothing:
 ``future`` (measured more than ``FUTURE_TOLERANCE_S`` after the time it is handled: a broken clock,
@@ -32,11 +36,20 @@ Mode = Literal["distributed", "centralized"]
 FUTURE_TOLERANCE_S = 1.0  # as the host's (FusionParams.future_tolerance_s)
 
 
+def _max_pixels(obs: Observations) -> int:
+    """A mask larger than the image is refused before it is inflated (a few kB of PNG can hold gigabytes)."""
+    return obs.camera.width * obs.camera.height
+
+
 def camera_frame(obs: Observations) -> CameraFrame:
-    """The matcher's view of a SensorFrame / RawObservations (decodes the lane-mask PNG)."""
+    """The matcher's view of a SensorFrame / RawObservations (decodes the lane-mask PNG).
+
+    The mask is ``lane_mask_pooled_png`` if the message has one (pooled by an integer factor, e.g.
+    640x360 of a 1280x720 camera), else ``lane_mask_png`` (the camera's resolution, as every message
+    before the pooled field): the matcher scales pixel coordinates by the mask's width over the camera's."""
     cam = obs.camera
-    # a mask larger than the image is refused before it is inflated (a few kB of PNG can hold gigabytes)
-    mask = lanemask.decode(obs.lane_mask_png, cam.width * cam.height) if obs.lane_mask_png else None
+    png = obs.lane_mask_pooled_png or obs.lane_mask_png
+    mask = lanemask.decode(png, _max_pixels(obs)) if png else None
     return CameraFrame(
         intr=CameraIntrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height),
         T_body_cam=np.asarray(cam.T_body_cam, dtype=float),
@@ -58,15 +71,24 @@ class VehicleAgent:
         mode: Mode = "distributed",
         params: LocalizerParams | None = None,
         initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
+        raw_mask_max_width_px: int | None = None,
     ):
         """``initial_pose``: (pose (6,), covariance 6x6) known at start, see :meth:`Localizer.reset`;
-        without it the vehicle initialises from GNSS, the map's driving directions and the camera."""
+        without it the vehicle initialises from GNSS, the map's driving directions and the camera.
+        ``raw_mask_max_width_px``: the widest lane mask sent in centralized mode (None: the matcher's
+        ``lane_dt_max_width_px``, the width the host's matcher pools any wider mask to)."""
         if mode not in ("distributed", "centralized"):
             raise ValueError(f"mode must be 'distributed' or 'centralized', got {mode!r}")
         self.vehicle_id = vehicle_id
         self.fleet = fleet
         self.mode = mode
         self.localizer = Localizer(hdmap, params or LocalizerParams(report="frame"), initial_pose=initial_pose)
+        width = raw_mask_max_width_px
+        if width is None:
+            width = self.localizer.params.matcher.lane_dt_max_width_px
+        if width <= 0:
+            raise ValueError(f"raw_mask_max_width_px must be positive, got {raw_mask_max_width_px}")
+        self.raw_mask_max_width_px = int(width)
         self._seq = 0
         self.last: VehiclePrior | None = None
         self.last_result: LocalizationResult | None = None  # the localizer's, with its filtered estimate
@@ -103,13 +125,27 @@ class VehicleAgent:
         late = self._future(t, frame)
         if late is not None:
             return late
+        try:
+            mask = self._raw_mask(frame)
+        except ValueError as exc:
+            return Rejection("bad_input", f"lane mask: {exc}"[:200])
         return RawObservations(
-            **frame.model_dump(exclude={"fleet", "sender", "seq", "t_sent"}),
+            **frame.model_dump(exclude={"fleet", "sender", "seq", "t_sent", "lane_mask_png", "lane_mask_pooled_png"}),
+            **mask,
             fleet=self.fleet,
             sender=self.vehicle_id,
             seq=self._next_seq(),
             t_sent=t,
         )
+
+    def _raw_mask(self, frame: Observations) -> dict:
+        """The raw message's lane-mask fields: the frame's mask pooled to ``raw_mask_max_width_px``
+        (:func:`lanemask.pool_png`) in ``lane_mask_pooled_png``, or, narrow enough already, as it came."""
+        png = frame.lane_mask_pooled_png or frame.lane_mask_png
+        sent = lanemask.pool_png(png, self.raw_mask_max_width_px, _max_pixels(frame))
+        if sent is frame.lane_mask_png:  # not pooled: at the camera's resolution, in its own field
+            return {"lane_mask_png": sent, "lane_mask_pooled_png": None}
+        return {"lane_mask_png": b"", "lane_mask_pooled_png": sent}
 
     def skip(self, t: float, frame: Observations) -> Rejection | None:
         """Keep what a frame the vehicle has no time to match still says: its odometry and GNSS fix.

@@ -235,6 +235,14 @@ class Observations(Envelope):
     gnss: GnssFix | None = None
     odometry: Odometry | None = None
     objects: ObjectObservations = Field(default_factory=ObjectObservations)
+    lane_mask_pooled_png: bytes | None = Field(
+        None,
+        max_length=MAX_MASK_BYTES,
+        description="the lane segmentation max-pooled by an integer factor k >= 1 (a pixel is marking if any of "
+        "the k x k camera pixels it covers is): a PNG of (width // k) x (height // k) pixels of the camera, as its "
+        "header says; image coordinates scale by its width / the camera's width. Sent instead of lane_mask_png "
+        "(then b''), pooled to the width the receiver's map matcher uses; absent if not pooled",
+    )
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -243,9 +251,28 @@ class Observations(Envelope):
             raise ValueError(f"more than {MAX_LANDMARKS} landmark detections")
         if len(self.points_cls) != n:
             raise ValueError(f"{n} point detections but {len(self.points_cls)} classes")
-        if self.lane_mask_png and not self.lane_mask_png.startswith(b"\x89PNG\r\n\x1a\n"):
+        if self.lane_mask_png and not self.lane_mask_png.startswith(_PNG_SIGNATURE):
             raise ValueError("lane_mask_png is not a PNG")
+        if self.lane_mask_pooled_png is not None:
+            if self.lane_mask_png:
+                raise ValueError("a lane mask in both lane_mask_png and lane_mask_pooled_png")
+            _check_pooled(self.lane_mask_pooled_png, self.camera.width, self.camera.height)
         return self
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _check_pooled(png: bytes, width: int, height: int) -> None:
+    """Raise ValueError unless ``png`` is a PNG of (width // k) x (height // k) pixels for an integer k >= 1."""
+    if not png.startswith(_PNG_SIGNATURE) or len(png) < 24 or png[12:16] != b"IHDR":
+        raise ValueError("lane_mask_pooled_png is not a PNG")
+    w, h = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+    k = width // w if 0 < w <= width else 0  # the only k with width // k == w, if there is one
+    if k < 1 or width // k != w or height // k != h:
+        raise ValueError(
+            f"lane_mask_pooled_png of {w}x{h} pixels is not a {width}x{height} camera pooled by an integer"
+        )
 
 
 class SensorFrame(Observations):

@@ -128,7 +128,9 @@ TAGS: dict[str, int] = {
     "t_gen_us": 92,
     # FusedState (added)
     "flagged": 93,
-    # new fields: next tag 94
+    # SensorFrame / RawObservations (added)
+    "lane_mask_pooled_png": 94,
+    # new fields: next tag 95
 }
 
 

@@ -51,6 +51,7 @@ from scipy.spatial import cKDTree
 
 from schemas.models import LandmarkClass
 
+from .. import lanemask
 from ..geometry import CameraIntrinsics, project_points_grid, project_points_jac, rpy_to_matrix_jac, wrap_angle
 from ..hdmap.model import HDMap
 
@@ -479,14 +480,8 @@ class MapMatcher:
             scale = mask.shape[1] / intr.width
             if abs(mask.shape[0] - intr.height * scale) > 1.0:
                 raise ValueError(f"lane_mask shape {mask.shape} does not match the image {intr.width}x{intr.height}")
-            k = -(-mask.shape[1] // p.lane_dt_max_width_px)
-            if k > 1:  # pool by k: a block with any marking pixel (mean > 0) is marking
-                h, w = mask.shape[0] // k * k, mask.shape[1] // k * k
-                small = cv2.resize(
-                    np.ascontiguousarray(mask[:h, :w], dtype=np.uint8), (w // k, h // k), interpolation=cv2.INTER_AREA
-                )
-                mask = cv2.threshold(small, 0, 255, cv2.THRESH_BINARY)[1]
-                scale = mask.shape[1] / intr.width
+            mask = lanemask.pool(mask, p.lane_dt_max_width_px)  # the vehicle pools with it before sending
+            scale = mask.shape[1] / intr.width
             top = self._road_top_row(x0, P0, T_bc, intr, scale, mask.shape[0])
             if top is not None:
                 row0 = top

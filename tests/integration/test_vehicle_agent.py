@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from mapcontainer import geometry as geo
+from mapcontainer import lanemask
 from mapcontainer.metrics import rmse
 from mapcontainer.sim import World, load_scenario
 from mapcontainer.vehicle import VehicleAgent
@@ -65,8 +66,11 @@ def test_centralized_mode_forwards_the_raw_observations():
     tick = world.tick(0)
     raw = agent.handle(0.05, tick.frames["cv1"])
     assert isinstance(raw, RawObservations) and raw.sender == "cv1" and raw.t_sent == 0.05
-    assert raw.lane_mask_png == tick.frames["cv1"].lane_mask_png
-    assert len(encode(raw)) > 5 * 400
+    # the lane mask pooled to the width the host's matcher uses (tests/unit/test_lane_mask_resolution.py)
+    assert raw.lane_mask_png == b"" and raw.lane_mask_pooled_png == lanemask.pool_png(
+        tick.frames["cv1"].lane_mask_png, agent.localizer.params.matcher.lane_dt_max_width_px
+    )
+    assert len(encode(raw)) > 3 * 400
     with pytest.raises(ValueError, match="given a frame from cv0"):
         agent.handle(0.0, tick.frames["cv0"])
 
