@@ -53,6 +53,7 @@ __all__ = [
     "anees",
     "fraction_in_band",
     "frame_row",
+    "frame_row_fields",
     "gospa",
     "gospa_parts",
     "horizontal_sq_error",
@@ -390,6 +391,18 @@ def frame_row(s: FrameScore) -> dict[str, float | int]:
         "gospa_missed_m2": s.gospa.missed,
         "gospa_false_m2": s.gospa.false,
     }
+
+
+def frame_row_fields() -> list[str]:
+    """The keys of :func:`frame_row`, in order (a CSV header)."""
+    return list(_FRAME_ROW_FIELDS)
+
+
+_FRAME_ROW_FIELDS = (
+    "t_meas", "vehicle_pairs", "vehicle_sq_sum_m2", "vehicle_nees_sum", "object_pairs", "object_sq_sum_m2",
+    "object_nees_sum", "obstacles", "objects", "false_tracks", "gospa_localization_m2", "gospa_missed_m2",
+    "gospa_false_m2",
+)  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- a run

@@ -4,14 +4,16 @@ Subscribes ground truth, every host's fused state, the vehicles' ``v2x/tx`` (byt
 sends) and the channel's ``v2x/rx`` (what arrived); the figures are defined in
 :mod:`services.evaluator.core`. Once a second it publishes :class:`schemas.EvalMetrics` on the
 registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). On stop it writes
-``eval_summary.json``, ``birdseye.png`` (truth vs fused, covariance ellipses) and ``errors.png``
-(error over scenario time) to ``--out`` (:mod:`services.evaluator.plot`).
+``eval_summary.json``, ``eval_frames.csv`` (one row per scored fused state,
+:func:`mapcontainer.evaluation.frame_row`), ``birdseye.png`` (truth vs fused, covariance ellipses)
+and ``errors.png`` (error over scenario time) to ``--out`` (:mod:`services.evaluator.plot`).
 Callbacks only enqueue; one worker thread decodes and evaluates.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import queue
 import time
 from pathlib import Path
@@ -37,7 +39,7 @@ from ..runtime import (
 )
 from .core import Evaluator
 
-__all__ = ["EvaluatorSettings", "main", "parse_args"]
+__all__ = ["EvaluatorSettings", "main", "parse_args", "write_frames"]
 
 
 class EvaluatorSettings(ServiceSettings):
@@ -68,6 +70,16 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
         window_s=a.window,
         burnin_s=a.burnin,
     )
+
+
+def write_frames(path: Path, rows) -> None:
+    """The per-frame rows as CSV (a header only when there are none)."""
+    from mapcontainer.evaluation import frame_row_fields
+
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=frame_row_fields())
+        w.writeheader()
+        w.writerows(rows)
 
 
 def _seq(payload: bytes) -> int | None:
@@ -161,6 +173,7 @@ def main(s: EvaluatorSettings) -> int:
         out = Path(s.out)
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "eval_summary.json", ev.summary())
+        write_frames(out / "eval_frames.csv", ev.frames)
         try:
             from .plot import render_birdseye, render_errors
 

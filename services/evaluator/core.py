@@ -1,15 +1,19 @@
 """The evaluator's core: live accuracy, latency and bandwidth of a running fleet (pure: time is an argument).
 
 Accuracy. Each FusedState is compared with the GroundTruth of the same ``t_meas`` (the host solves
-at camera-frame times; truth is kept for ``truth_keep_s`` and matched within ``t_tol_s``).
-Vehicles are paired by id; objects with true obstacles by the Hungarian algorithm on horizontal
-distance with a gate (``mapcontainer.metrics.match_objects``). Errors are horizontal
-(x, y in the map frame): RMSE = sqrt(mean ||e||^2) over every pair in the window (the paper's
-rms1 for vehicles; its map-frame counterpart for objects). The whole-run summary gives each figure
-over the whole run and in steady state, over the fused states with ``t_meas >= burnin_s`` (the
-vehicles start cold, from GNSS). Steady state also counts coverage, the fraction of true obstacles
-(all of the scenario's, seen by a vehicle or not) matched by a fused object, and the false-track
-fraction, the fused objects that match no obstacle within the gate.
+at camera-frame times; truth is kept for ``truth_keep_s`` and matched within ``t_tol_s``) and
+scored by :func:`mapcontainer.evaluation.score_frame`, the code the in-process experiments use, so
+the same states and truth give the same numbers: vehicles paired by id, objects with the true
+obstacles (all of the scenario's, seen by a vehicle or not) by the GOSPA assignment on horizontal
+distance (cutoff 3 m). RMSE = sqrt(mean ||e_xy||^2) over every pair in the window (the paper's rms1
+for vehicles; its map-frame counterpart for objects). The whole-run summary
+(:class:`mapcontainer.evaluation.Totals`) gives each figure over the whole run and in steady state,
+over the fused states with ``t_meas >= burnin_s`` (the vehicles start cold, from GNSS): beside every
+RMSE the coverage (matched obstacles / obstacles), false tracks (per frame and as a fraction of the
+fused objects), GOSPA in its localization, missed and false parts, and the consistency of the
+6-DoF vehicle poses and 3-D object positions (ANEES with its band, fraction of cells inside their
+own 95 % band). Every scored state also leaves a row of :func:`mapcontainer.evaluation.frame_row`
+in :attr:`Evaluator.frames` (the service writes them to ``eval_frames.csv``).
 
 Latency. End to end = wall time the fused state was published (``t_wall_ns`` in the host's
 attachment) minus the wall time its ``t_meas`` happened on the world's clock
@@ -30,15 +34,40 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mapcontainer.evaluation import GATE_M, GOSPA_ALPHA, GOSPA_C_M, GOSPA_P, Totals, frame_row, score_frame
 from mapcontainer.metrics import match_objects
 from schemas import EvalMetrics, FusedState, GroundTruth
 
-__all__ = ["Evaluator"]
+__all__ = ["SCORE_KEYS", "Evaluator", "match_objects", "steady_name"]
 
-GATE_M = 3.0
 MAX_SOURCES = 256  # distinct V2X sources counted; more are a flood of names (counted in sources_refused)
 MAX_E2E_LATENCY_MS = 60_000.0  # a longer (or negative) end-to-end latency is a forged or broken clock
 TRACE_MAX = 100_000  # entries kept per picture trace (10 Hz: almost 3 hours)
+SCORE_KEYS = (  # of mapcontainer.evaluation.Totals.summary, in the whole-run summary
+    "frames",
+    "vehicle_rmse_m",
+    "vehicle_pairs",
+    "vehicle_rmse_by_id_m",
+    "object_rmse_m",
+    "object_pairs",
+    "coverage",
+    "false_tracks_per_frame",
+    "false_track_fraction",
+    "gospa_m",
+    "gospa_localization_m2",
+    "gospa_missed_m2",
+    "gospa_false_m2",
+    "vehicle_nees",
+    "object_nees",
+)
+
+
+def steady_name(key: str) -> str:
+    """The steady-state figure's name: ``_steady`` before the unit (vehicle_rmse_m -> vehicle_rmse_steady_m)."""
+    for unit in ("_by_id_m", "_m2", "_m"):
+        if key.endswith(unit):
+            return key[: -len(unit)] + "_steady" + unit
+    return key + "_steady"
 
 
 def _trace(traces: dict, key) -> deque:
@@ -74,8 +103,9 @@ class Evaluator:
         self._truth: dict[int, GroundTruth] = {}
         self._pending: deque[tuple[FusedState, int | None, int | None, float]] = deque()
         self._samples: deque[_Sample] = deque()
-        self._sum_v = self._sum_o = 0.0
-        self._n_v = self._n_o = 0
+        self.totals = Totals()  # every scored state
+        self.totals_steady = Totals()  # those with t_meas >= burnin_s
+        self.frames: deque[dict] = deque(maxlen=TRACE_MAX)  # frame_row of every scored state
         self.evaluated = 0
         self.no_truth = 0
         self.latency_refused = 0
@@ -92,10 +122,6 @@ class Evaluator:
         self.tx_bytes_total: dict[str, int] = {}
         self.tx_msgs_total: dict[str, int] = {}
         self._lat_all: list[float] = []
-        self._by_vehicle: dict[str, list] = {}  # vid -> [sum of squared errors, pairs]
-        self._steady_by_vehicle: dict[str, list] = {}  # the same, t_meas >= burnin_s
-        # steady state: object [sum of squared errors, pairs], obstacles [matched, true], fused [false, all]
-        self._steady = {"object": [0.0, 0], "coverage": [0, 0], "false": [0, 0]}
         self._seq = 0
         # picture material, in scenario time (bounded): truth every plot_every_s, every fused state
         self.truth_vehicles: dict[str, deque[tuple[float, float, float]]] = {}  # vid -> (t, x, y)
@@ -154,32 +180,15 @@ class Evaluator:
         self._pending = keep
 
     def _evaluate(self, fused: FusedState, truth: GroundTruth, pub_ns, meas_ns, now_wall: float) -> None:
-        steady = fused.t_meas >= self.burnin_s
-        v_sq = []
-        v_err: dict[str, float] = {}
-        tid = {v: i for i, v in enumerate(truth.vehicle_ids)}
-        for i, vid in enumerate(fused.vehicle_ids):
-            if vid in tid:
-                p_hat = np.asarray(fused.vehicle_pose[i][:2], float)
-                e = p_hat - np.asarray(truth.vehicle_pose[tid[vid]][:2], float)
-                v_sq.append(float(e @ e))
-                v_err[vid] = float(np.sqrt(e @ e))
-                for by in (self._by_vehicle, self._steady_by_vehicle) if steady else (self._by_vehicle,):
-                    acc = by.setdefault(vid, [0.0, 0])
-                    acc[0] += float(e @ e)
-                    acc[1] += 1
+        score = score_frame(fused, truth, self.gate_m)
+        self.totals.add(score)
+        if fused.t_meas >= self.burnin_s:
+            self.totals_steady.add(score)
+        self.frames.append(frame_row(score))
+        v_sq = [float(x) for x in score.vehicle_sq]
+        v_err = {vid: float(np.sqrt(x)) for vid, x in zip(score.vehicle_ids, v_sq, strict=True)}
+        o_sq = [float(x) for x in score.object_sq]
         p_f = np.asarray(fused.object_p_map, float).reshape(-1, 3)
-        p_t = np.asarray(truth.obstacle_p_map, float).reshape(-1, 3)
-        ti, fi = match_objects(p_f, p_t, self.gate_m)
-        o_sq = [float(x) for x in np.sum((p_f[fi, :2] - p_t[ti, :2]) ** 2, axis=1)]
-        if steady:
-            for key, (a, b) in {
-                "object": (sum(o_sq), len(o_sq)),
-                "coverage": (len(ti), len(p_t)),
-                "false": (len(p_f) - len(fi), len(p_f)),
-            }.items():
-                self._steady[key][0] += a
-                self._steady[key][1] += b
         lat = (pub_ns - meas_ns) * 1e-6 if pub_ns is not None and meas_ns is not None else None
         if lat is not None and not 0.0 <= lat <= MAX_E2E_LATENCY_MS:
             self.latency_refused += 1  # e.g. t_wall_ns = 1 in the host's attachment
@@ -188,21 +197,15 @@ class Evaluator:
         if lat is not None:
             self._lat_all.append(lat)
             del self._lat_all[:-100_000]
-        self._sum_v += sum(v_sq)
-        self._n_v += len(v_sq)
-        self._sum_o += sum(o_sq)
-        self._n_o += len(o_sq)
         self.evaluated += 1
         self.t_meas = fused.t_meas
-        self.last = {"objects_fused": len(p_f), "objects_matched": len(ti), "obstacles_truth": len(p_t)}
+        self.last = {"objects_fused": len(p_f), "objects_matched": score.n_matched, "obstacles_truth": score.n_truth}
         self.last_fused = fused
         self.last_truth = truth  # the truth at the last fused state's t_meas (for the picture)
         t = fused.t_meas
         for vid in fused.flagged:
             self.flagged_first.setdefault(vid, t)
-        self.errors.append(
-            (t, v_err, float(np.sqrt(np.mean(o_sq))) if o_sq else None, len(ti) / len(p_t) if len(p_t) else None)
-        )
+        self.errors.append((t, v_err, float(np.sqrt(np.mean(o_sq))) if o_sq else None, score.coverage))
         for i, vid in enumerate(fused.vehicle_ids):
             _trace(self.tracks_fused, vid).append((t, float(fused.vehicle_pose[i][0]), float(fused.vehicle_pose[i][1])))
         for vid, pts in self.tracks_fused.items():  # absent from this state: the drawn line breaks here
@@ -265,6 +268,7 @@ class Evaluator:
         span = self.window_s
         self._seq += 1
         t_meas = 0.0 if self.t_meas is None else self.t_meas
+        total = self.totals.summary()
         return EvalMetrics(
             fleet=self.fleet,
             sender=self.evaluator_id,
@@ -278,8 +282,8 @@ class Evaluator:
             no_truth=self.no_truth,
             vehicle_rmse_m=float(np.sqrt(np.mean(v))) if v else None,
             object_rmse_m=float(np.sqrt(np.mean(o))) if o else None,
-            vehicle_rmse_total_m=float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,
-            object_rmse_total_m=float(np.sqrt(self._sum_o / self._n_o)) if self._n_o else None,
+            vehicle_rmse_total_m=total["vehicle_rmse_m"],
+            object_rmse_total_m=total["object_rmse_m"],
             e2e_latency_ms_p50=float(np.percentile(lat, 50)) if lat else None,
             e2e_latency_ms_p99=float(np.percentile(lat, 99)) if lat else None,
             tx_bytes_per_s={k: sum(n for _, n in q) / span for k, q in sorted(self._tx.items())},
@@ -290,20 +294,14 @@ class Evaluator:
         )
 
     def summary(self) -> dict:
-        """Whole-run and steady-state figures for the final report."""
+        """Whole-run and steady-state figures for the final report (``*_steady``: t_meas >= burnin_s).
+
+        Each of :data:`SCORE_KEYS` comes from :meth:`mapcontainer.evaluation.Totals.summary` (its
+        ``coverage`` as ``object_coverage``), once over the whole run and once in steady state
+        (named by :func:`steady_name`).
+        """
         lat = self._lat_all
-
-        def rmse(by: dict[str, list]) -> dict[str, float]:
-            return {k: float(np.sqrt(a / n)) for k, (a, n) in sorted(by.items()) if n}
-
-        def root_mean(pair: list) -> float | None:
-            return float(np.sqrt(pair[0] / pair[1])) if pair[1] else None
-
-        def fraction(pair: list) -> float | None:
-            return pair[0] / pair[1] if pair[1] else None
-
-        steady_v = [sum(col) for col in zip(*self._steady_by_vehicle.values(), strict=True)] or [0.0, 0]
-        return {
+        out = {
             "evaluated": self.evaluated,
             "no_truth": self.no_truth,
             "latency_refused": self.latency_refused,
@@ -311,21 +309,22 @@ class Evaluator:
             "flagged_first_t": dict(sorted(self.flagged_first.items())),
             "t_meas_last": self.t_meas,
             "burnin_s": self.burnin_s,
-            "vehicle_rmse_m": float(np.sqrt(self._sum_v / self._n_v)) if self._n_v else None,
-            "object_rmse_m": float(np.sqrt(self._sum_o / self._n_o)) if self._n_o else None,
-            "vehicle_pairs": self._n_v,
-            "vehicle_rmse_by_id_m": rmse(self._by_vehicle),
-            "object_pairs": self._n_o,
-            "vehicle_rmse_steady_m": root_mean(steady_v),
-            "vehicle_rmse_steady_by_id_m": rmse(self._steady_by_vehicle),
-            "object_rmse_steady_m": root_mean(self._steady["object"]),
-            "object_coverage_steady": fraction(self._steady["coverage"]),
-            "false_track_fraction_steady": fraction(self._steady["false"]),
-            "e2e_latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
-            "e2e_latency_ms_p99": float(np.percentile(lat, 99)) if lat else None,
-            "tx_bytes_total": dict(sorted(self.tx_bytes_total.items())),
-            "tx_msgs_total": dict(sorted(self.tx_msgs_total.items())),
-            "tx_bytes_per_msg": {k: self.tx_bytes_total[k] / n for k, n in sorted(self.tx_msgs_total.items()) if n},
-            "directed_messages_settled": self.sent_total,
-            "delivered_fraction": self.delivered_total / self.sent_total if self.sent_total else None,
+            "gospa": {"p": GOSPA_P, "c_m": GOSPA_C_M, "alpha": GOSPA_ALPHA},
         }
+        whole, steady = self.totals.summary(), self.totals_steady.summary()
+        for key in SCORE_KEYS:
+            name = "object_coverage" if key == "coverage" else key
+            out[name] = whole[key]
+            out[steady_name(name)] = steady[key]
+        out.update(
+            {
+                "e2e_latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
+                "e2e_latency_ms_p99": float(np.percentile(lat, 99)) if lat else None,
+                "tx_bytes_total": dict(sorted(self.tx_bytes_total.items())),
+                "tx_msgs_total": dict(sorted(self.tx_msgs_total.items())),
+                "tx_bytes_per_msg": {k: self.tx_bytes_total[k] / n for k, n in sorted(self.tx_msgs_total.items()) if n},
+                "directed_messages_settled": self.sent_total,
+                "delivered_fraction": self.delivered_total / self.sent_total if self.sent_total else None,
+            }
+        )
+        return out

@@ -250,3 +250,8 @@ def test_rmse_vs_time_buckets_runs_then_averages():
     assert ev.rmse_vs_time([], [], []).t_start.size == 0
     with pytest.raises(ValueError):
         ev.rmse_vs_time([0.0], [1.0, 2.0], [0])
+
+
+def test_frame_row_fields_are_the_rows_keys():
+    s = ev.score_frame(fused_state(objects=[[0, 0, 0]]), truth_state(obstacles=[[0.1, 0, 0]]))
+    assert list(ev.frame_row(s)) == ev.frame_row_fields()
