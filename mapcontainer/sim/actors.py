@@ -101,7 +101,9 @@ class LaneFollower(_PathActor):
 
     Its speed v + A cos(2 pi t / T + phase) varies slowly around v (never negative if A <= v). With a
     ``leader`` (the vehicle ahead in the same lane) it keeps ``min_gap_m`` behind it (centre to centre):
-    s(t) = min(s_free(t), s_leader(t) - min_gap_m), at the leader's speed while it follows.
+    s(t) = min(s_free(t), s_leader(t) + leader_offset_m - min_gap_m), at the leader's speed while it
+    follows. On a ring the front vehicle follows the last one a lap ahead (``leader_offset_m``, the lane's
+    length), by that one's free motion (``leader_free``), which ends the chain.
     """
 
     cls = ObjectClass.VEHICLE
@@ -110,17 +112,24 @@ class LaneFollower(_PathActor):
         super().__init__(actor_id, line, size)
         self.s0, self.v, self.amp, self.period, self.phase = s0, speed, min(amp, speed), period, phase
         self.leader: LaneFollower | None = None
+        self.leader_offset_m = 0.0
+        self.leader_free = False
         self.min_gap_m = 0.0
 
-    def arc(self, t: float) -> tuple[float, float]:
+    def free_arc(self, t: float) -> tuple[float, float]:
+        """Arc length and speed without a leader."""
         w = 2 * np.pi / self.period
         s = self.s0 + self.v * t + self.amp / w * (np.sin(w * t + self.phase) - np.sin(self.phase))
-        v = self.v + self.amp * np.cos(w * t + self.phase)
+        return float(s), float(self.v + self.amp * np.cos(w * t + self.phase))
+
+    def arc(self, t: float) -> tuple[float, float]:
+        s, v = self.free_arc(t)
         if self.leader is not None:
-            s_lead, v_lead = self.leader.arc(t)
+            s_lead, v_lead = self.leader.free_arc(t) if self.leader_free else self.leader.arc(t)
+            s_lead += self.leader_offset_m
             if s > s_lead - self.min_gap_m:
-                return float(s_lead - self.min_gap_m), float(v_lead)
-        return float(s), float(v)
+                return s_lead - self.min_gap_m, v_lead
+        return s, v
 
 
 class PathWalker(_PathActor):

@@ -91,13 +91,18 @@ class _VehicleSensors:
         )
 
 
-def _follow(followers: list[LaneFollower], specs, gap_m: float) -> None:
-    """Each vehicle follows the next one ahead in its lane (by start position; the front one is free)."""
+def _follow(followers: list[LaneFollower], specs, gap_m: float, lane_lengths: list[float]) -> None:
+    """Each vehicle follows the next one ahead in its lane (by start position); the front one follows the
+    last one a lap ahead (its free motion, which ends the chain)."""
     for lane in {sp.lane for sp in specs}:
         order = sorted((i for i, sp in enumerate(specs) if sp.lane == lane), key=lambda i: specs[i].s0_m)
-        for behind, ahead in zip(order, order[1:], strict=False):
+        if len(order) < 2:
+            continue
+        for behind, ahead in zip(order, [*order[1:], order[0]], strict=True):
             followers[behind].leader = followers[ahead]
             followers[behind].min_gap_m = gap_m
+        followers[order[-1]].leader_offset_m = lane_lengths[lane]
+        followers[order[-1]].leader_free = True
 
 
 class World:
@@ -136,7 +141,8 @@ class World:
         self.connected = [follower(f"cv{i}", s) for i, s in enumerate(tr.connected)]
         obstacles = [follower(str(i + 1), s) for i, s in enumerate(tr.obstacle_vehicles)]
         if scenario.traffic.enabled and scenario.traffic.min_gap_m > 0:
-            _follow([*self.connected, *obstacles], [*tr.connected, *tr.obstacle_vehicles], scenario.traffic.min_gap_m)
+            vehicles, specs = [*self.connected, *obstacles], [*tr.connected, *tr.obstacle_vehicles]
+            _follow(vehicles, specs, scenario.traffic.min_gap_m, [a.length for a in lanes])
         obstacles += [
             PathWalker(str(n_ov + i + 1), areas[p.area], p.s0_m, p.speed_mps, p.direction)
             for i, p in enumerate(tr.pedestrians)
