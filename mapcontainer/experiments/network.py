@@ -32,8 +32,15 @@ Row keys (``NETWORK_COLUMNS``; the live-fleet sweep writes rows with the same ke
   vehicles (and its 95th percentile).
 
 Queue: each link's serialization queue holds at most ``queue_s`` (0.5 s) of traffic at its
-capacity (at least 1500 bytes), i.e. a radio that drops data older than half the fusion window
-instead of delivering it late; a message larger than the queue bound is never sent.
+capacity, i.e. a radio that drops data older than half the fusion window instead of delivering it
+late, and never less than ``MIN_QUEUE_BYTES`` (3072 bytes): a message larger than the queue bound is
+never sent, and half a second at 20 kbit/s (1250 bytes) is smaller than most centralized messages
+(1445 bytes signed on average, up to 2022), so with a floor below the largest message the
+lowest-capacity point would refuse them by construction. The floor holds the largest signed message of either mode (a centralized message with
+its certificate: 2022 bytes over paper-urban seeds 90000-90004, 10 s each; 1930 on paper-suburban;
+``mapcontainer.experiments.bytes``) with half of it to spare, so loss there is congestion. It only
+binds at the 20 kbit/s point (3072 bytes are 1.2 s of traffic there, which distributed messages may
+now wait in the queue); every other point's half second is larger.
 """
 
 from __future__ import annotations
@@ -56,6 +63,7 @@ from .scoring import age_of_information, horizontal_sq_error, obstacle_errors, r
 
 __all__ = [
     "BANDWIDTHS_BPS",
+    "MIN_QUEUE_BYTES",
     "SMOKE_TEST_NOTE",
     "LATENCIES_MS",
     "LOSSES",
@@ -73,7 +81,9 @@ BANDWIDTHS_BPS = (6e6, 1e6, 1e5, 2e4)
 QUICK_GRID = {"latencies_ms": (0.0, 200.0), "losses": (0.0, 0.3), "bandwidths_bps": (6e6, 2e4)}
 MODES = ("distributed", "centralized")
 QUEUE_S = 0.5
-MIN_QUEUE_BYTES = 1500
+# The queue's floor: the largest message either mode sends with half of it to spare (module docstring);
+# tests/unit/test_network_queue.py checks every sweep point's queue against measured messages.
+MIN_QUEUE_BYTES = 3072
 
 NETWORK_COLUMNS = (
     "source",
@@ -112,7 +122,8 @@ NETWORK_COLUMNS = (
 def sweep_profile(
     latency_ms: float, loss: float, bandwidth_bps: float | None, queue_s: float = QUEUE_S, jitter_ms: float = 0.0
 ) -> NetworkProfile:
-    """The link of one sweep point: per-link capacity, a queue of ``queue_s`` of traffic, Bernoulli loss."""
+    """The link of one sweep point: per-link capacity, a queue of ``queue_s`` of traffic but at least
+    ``MIN_QUEUE_BYTES`` (the largest message), Bernoulli loss."""
     queue = 65536 if bandwidth_bps is None else max(MIN_QUEUE_BYTES, int(math.ceil(bandwidth_bps * queue_s / 8.0)))
     bw = "inf" if bandwidth_bps is None else f"{bandwidth_bps / 1e3:g}k"
     return NetworkProfile.custom(
@@ -262,6 +273,7 @@ def run_network_sweep(
         "start": "cold",
         "workers": workers,
         "queue_s": QUEUE_S,
+        "min_queue_bytes": MIN_QUEUE_BYTES,
         "wall_s": round(time.perf_counter() - t0, 1),
     }
     write_network_outputs(rows, out_dir, meta)
@@ -388,8 +400,9 @@ def _links_text(rows: list[dict], m: dict) -> str:
     jitter = sorted({_num(r.get("jitter_ms")) for r in rows if math.isfinite(_num(r.get("jitter_ms")))})
     jit = "no jitter" if not jitter or jitter == [0.0] else "jitter per row (column jitter_ms: U[0, 2 jitter_ms])"
     return (
-        f"{scored} Per-link capacity with a queue of {m.get('queue_s', QUEUE_S)} s of traffic (at least "
-        f"{MIN_QUEUE_BYTES} bytes); Bernoulli loss; {jit}."
+        f"{scored} Per-link capacity with a queue of {m.get('queue_s', QUEUE_S)} s of traffic, at least "
+        f"{m.get('min_queue_bytes', MIN_QUEUE_BYTES)} bytes (the largest message of either mode fits, so a "
+        f"drop at the lowest capacity is congestion, not a message too large for the queue); Bernoulli loss; {jit}."
     )
 
 
@@ -410,10 +423,7 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         w.writerow(cols)
         for r in rows:
             w.writerow([_cell(r.get(c)) for c in cols])
-    paths["json"].write_text(
-        jsonout.dumps({"meta": meta or {}, "columns": cols, "rows": rows}, indent=1)
-        + "\n"
-    )
+    paths["json"].write_text(jsonout.dumps({"meta": meta or {}, "columns": cols, "rows": rows}, indent=1) + "\n")
     short = [
         ("mode", "mode"),
         ("latency_ms", "latency (ms)"),
