@@ -33,14 +33,15 @@ Row keys (``NETWORK_COLUMNS``; the live-fleet sweep writes rows with the same ke
 
 Queue: each link's serialization queue holds at most ``queue_s`` (0.5 s) of traffic at its
 capacity, i.e. a radio that drops data older than half the fusion window instead of delivering it
-late, and never less than ``MIN_QUEUE_BYTES`` (3072 bytes): a message larger than the queue bound is
-never sent, and half a second at 20 kbit/s (1250 bytes) is smaller than most centralized messages
-(1445 bytes signed on average, up to 2022), so with a floor below the largest message the
-lowest-capacity point would refuse them by construction. The floor holds the largest signed message of either mode (a centralized message with
-its certificate: 2022 bytes over paper-urban seeds 90000-90004, 10 s each; 1930 on paper-suburban;
-``mapcontainer.experiments.bytes``) with half of it to spare, so loss there is congestion. It only
-binds at the 20 kbit/s point (3072 bytes are 1.2 s of traffic there, which distributed messages may
-now wait in the queue); every other point's half second is larger.
+late, and never less than ``MIN_QUEUE_BYTES`` (3072 bytes). A message larger than the queue bound
+is never sent, and half a second at 20 kbit/s (1250 bytes) is smaller than most centralized
+messages (1450 bytes signed on average, up to 2031): with a floor below the largest message, the
+lowest-capacity point would refuse them by construction. The floor holds the largest signed
+message of either mode (a centralized message with its certificate: 2031 bytes over paper-urban
+seeds 90000-90004, 10 s each; 1930 on paper-suburban; ``mapcontainer.experiments.bytes``) with
+half of it to spare, so loss there is congestion. It binds only at the 20 kbit/s point, where 3072
+bytes are 1.2 s of traffic (a distributed message may wait that long in the queue); at every
+other point half a second of traffic is more.
 """
 
 from __future__ import annotations
