@@ -101,7 +101,8 @@ def match_vehicles(est_ids: Sequence[str], true_ids: Sequence[str]) -> tuple[np.
 
 def within_radius(p, center, radius_m: float) -> np.ndarray:
     """Boolean mask of the rows of ``p`` (N, >=2) within ``radius_m`` of ``center`` horizontally."""
-    p = np.asarray(p, dtype=float).reshape(len(p), -1)
+    p = np.asarray(p, dtype=float)
+    p = p.reshape(len(p), -1) if p.size else np.zeros((0, 2))
     return np.linalg.norm(p[:, :2] - np.asarray(center, dtype=float)[:2], axis=1) <= radius_m
 
 

@@ -28,12 +28,12 @@ import numpy as np
 from .. import jsonout
 from ..metrics import match_objects
 from ..pipeline import run_pipeline
+from ..seeds import EVAL_SEED0, seed_kind
 from ..sim import load_scenario
 from .runner import run_all
 
 __all__ = ["EVAL_SEED0", "FAULTS", "FAULT_START_S", "run_fault_experiment", "run_fault_seed"]
 
-EVAL_SEED0 = 90_000
 FAULT_START_S = 3.0
 FAULTS: dict[str, dict[str, Any]] = {
     "pose_bias_1m": {"kind": "pose_bias", "bias_m": [0.0, 1.0]},
@@ -192,7 +192,7 @@ def _markdown(summary: dict, meta: dict) -> str:
         "",
         f"{meta['scenario']}, warm start, signed messages, {meta['duration_s']:g} s per run, cv1 misbehaves from "
         f"{meta['fault_start_s']:g} s; RMSE from {meta['score_from_s']:g} s; seeds {meta['seeds']} "
-        f"({'evaluation' if min(meta['seeds']) >= EVAL_SEED0 else 'development'} seeds).",
+        f"({seed_kind(min(meta['seeds']))} seeds).",
         "",
         f"Clean runs: {clean['runs']}, of which {clean['runs_with_false_flags']} flagged "
         f"somebody; others' RMSE {clean['others_rmse_m']:.3f} m, objects {clean['objects_rmse_m']:.3f} m.",

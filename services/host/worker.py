@@ -34,13 +34,14 @@ FusionSpec = dict[str, Any]  # scenario, mode, fleet, host_id, known_senders, pa
 def make_core(spec: FusionSpec):
     """The host's core: ``mapcontainer.host.make_host`` (distributed or centralized container)."""
     from mapcontainer.fusion import FusionParams
-    from mapcontainer.hdmap.generator import generate_map
     from mapcontainer.host import make_host
     from mapcontainer.sim.config import load_scenario
+    from mapcontainer.sim.errors import published_map
 
     params = FusionParams(**spec["params"]) if spec.get("params") else FusionParams()
     known = set(spec["known_senders"]) if spec.get("known_senders") else None
-    hdmap = generate_map(load_scenario(spec["scenario"]).map)  # the centralized mode localizes against it
+    # the centralized mode localizes against the run's published map (the vehicles' own, HD-map error included)
+    hdmap = published_map(load_scenario(spec["scenario"]), spec.get("seed", 0))
     return make_host(hdmap, params, spec["fleet"], spec["host_id"], spec["mode"], known_senders=known)
 
 

@@ -11,6 +11,7 @@ import sys
 import pytest
 
 from mapcontainer.experiments import NETWORK_COLUMNS
+from mapcontainer.sim.errors import ERROR_SOURCES
 
 
 def _mapc(*args: str, timeout: float = 600, check: bool = True) -> subprocess.CompletedProcess:
@@ -27,52 +28,47 @@ def _finite(x) -> bool:
 def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
     out = tmp_path / "paper"
     proc = _mapc(
-        "experiment", "paper", "--runs", "2", "--seed", "2", "--workers", "2", "--duration", "1.6",
-        "--rv-runs", "1", "--rv-duration", "2.5", "--out", str(out), "--check", check=False,
+        "experiment", "paper", "--runs", "2", "--seed", "2", "--workers", "2", "--duration", "2.5", "--burnin", "1.5",
+        "--rv-runs", "1", "--sensitivity-runs", "1", "--out", str(out), "--check", check=False,
     )  # fmt: skip
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert summary["runs"] == 2 and len(summary["targets"]) == 7
-    assert set(summary["targets"].values()) <= {"PASS", "FAIL"}
+    assert summary["runs"] == 2 and set(summary["targets"].values()) <= {"PASS", "FAIL"}
+    assert len(summary["targets"]) == 17  # res1 x 2 densities, res2 x 2 x 2 x 2, consistency x 2 x 2, bytes
     assert proc.returncode == (1 if "FAIL" in summary["targets"].values() else 0)  # --check
     assert "experiment paper [" in proc.stderr  # the progress bar
 
     res = json.loads((out / "results.json").read_text())
-    sim_shape = {"ego_rmse_m": {"gnss", "map_matching", "cooperative"}, "target_rmse_m": {"ego_only", "cooperative"}}
+    assert res["seeds"] == "development" and res["settings"]["start"] == "cold"
     for key in ("urban", "suburban"):
-        for group, names in sim_shape.items():
-            assert set(res["simulation"][key][group]) == names
-            assert all(_finite(res["simulation"][key][group][n]) for n in names), (key, group)
-    assert all(_finite(res["overlap"][k]) for k in ("ego_car_m", "connected_car_m", "fused_m"))
-    for key in ("ii", "iii"):
-        assert all(_finite(res["blindspot"][key][k]) for k in ("connected_car_m", "obstacle_m")), key
-    an = res["anees"]
-    assert _finite(an["value"]) and an["dof"] == 3 and an["n"] == 2
-    assert len(an["band"]) == 2 and an["band"][0] < an["dof"] < an["band"][1]
-    assert all(_finite(res["bytes_per_message"][k]) for k in ("distributed", "centralized"))
-    assert res["runs"] == 2 and res["seed"] == 2
-    assert res["settings"]["start"] == "warm" and res["settings"]["warm_start_sigma"]["yaw_deg"] == 1.0
-    for key in ("urban", "suburban"):
-        cs = res["cold_start"][key]
-        assert cs["runs"] == 2 and cs["vehicles"] == 8 and set(cs["at"]) == {"1", "2"}
-        assert all(0.0 <= cs["at"]["2"][k] <= 1.0 for k in ("map_matching", "locked", "gross", "ever_map_matching"))
-
-    # accuracy sanity on 2 runs x 6 scored frames (loose bounds that catch a broken pipeline)
-    urban = res["simulation"]["urban"]
-    assert 0.5 < urban["ego_rmse_m"]["gnss"] < 6.0
-    assert urban["ego_rmse_m"]["map_matching"] < 0.5 * urban["ego_rmse_m"]["gnss"]
-    assert urban["ego_rmse_m"]["cooperative"] < 0.5 * urban["ego_rmse_m"]["gnss"]
-    assert urban["target_rmse_m"]["cooperative"] < 1.0
-    assert res["overlap"]["fused_m"] < 1.0
-    assert 100 < res["bytes_per_message"]["distributed"] < res["bytes_per_message"]["centralized"]
+        sim = res["simulation"][key]
+        assert set(sim["ego_rmse_m"]) == {"gnss", "onboard", "map_matching", "cooperative"}
+        assert all(_finite(v) for v in sim["ego_rmse_m"].values()), key
+        assert all(_finite(sim["target_rmse_m"][v]) for v in ("ego_only", "cooperative")), key
+        for view in ("ego_only", "cooperative"):
+            o = sim["objects"][view]
+            assert 0.0 <= o["coverage"] <= 1.0 and o["false_per_frame"] >= 0.0 and o["gospa_m"] >= 0.0
+        c = sim["consistency"]["vehicles_cooperative_6dof"]
+        assert c["dof"] == 6 and c["runs"] == 2 and c["band"][0] < 6 < c["band"][1]
+        assert set(sim["over_time"]) >= {"cv0:onboard", "targets:cooperative"}
+        assert [row[0] for row in sim["over_time"]["cv0:gnss"]] == [0.0, 1.0, 2.0]
+        assert set(sim["startup"]["at"]) == {"1", "2"}
+    for density in ("dense", "sparse"):
+        assert _finite(res["overlap"][density]["fused_m"]), density
+        for key in ("ii", "iii"):
+            b = res["blindspot"][key][density]
+            assert _finite(b["connected_car_m"]) and _finite(b["connected_car_onboard_m"]), (key, density)
+    assert set(res["sensitivity"]) == {"all", "none", *(f"no_{s}" for s in ERROR_SOURCES)}
+    assert all(_finite(v) for v in res["sensitivity"]["none"].values() if v == v)
+    assert res["bytes"]["ratio"] > 1.0 and res["bytes"]["measured"]["seeds"] == [2, 3]
 
     report = (out / "report.md").read_text()
-    assert "Table res1" in report and "0.23" in report and "| ours" in report
-    assert "**Start**: warm" in report and "## Cold start" in report
-    assert "PASS" in report or "FAIL" in report
-    for png in ("exp_sim.png", "exp_sim_runs.png", "real_vehicle.png", "anees.png"):
+    for heading in ("## Method", "Table res1", "Table res2", "## Consistency", "## Sensitivity", "## Bandwidth"):
+        assert heading in report, heading
+    assert "development seeds" in report and "0.23" in report and "| ours, sparse" in report
+    for png in ("exp_sim.png", "over_time.png", "real_vehicle.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
     runs = list(csv.DictReader((out / "runs.csv").open()))
-    assert sum(r["kind"] == "sim" for r in runs) == 4
+    assert sum(r["kind"] == "sim" and r["variant"] == "all" for r in runs) == 4
 
 
 @pytest.mark.slow

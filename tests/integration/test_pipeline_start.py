@@ -1,12 +1,12 @@
 """run_pipeline(start=...): warm start from a noisy known pose (deterministic per seed, map matching
-from the first frames) and the cold-start summary of the paper experiment (fast: a few frames)."""
+from the first frames) (fast: a few frames)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mapcontainer.experiments.paper import PaperSettings, cold_start_summary
+from mapcontainer.experiments.paper import PaperSettings
 from mapcontainer.experiments.scoring import horizontal_sq_error, vehicle_pose
 from mapcontainer.pipeline import WARM_START_SIGMA, run_pipeline, warm_start_poses
 from mapcontainer.sim import World, load_scenario
@@ -71,23 +71,6 @@ def test_cold_start_is_the_default_and_start_is_checked():
         run_pipeline("paper-urban", seed=0, duration_s=0.1, views=(), start="hot")
     with pytest.raises(ValueError, match="distributed"):
         run_pipeline("paper-urban", seed=0, duration_s=0.1, views=(), mode="centralized", start="warm")
-    assert PaperSettings().start == "warm"
+    assert PaperSettings().start == "cold"
     with pytest.raises(ValueError, match="start"):
         PaperSettings(start="lukewarm")
-
-
-def test_cold_start_summary_counts_vehicles_at_whole_seconds():
-    def run(rows_by_t):
-        return {"frames": [(t, row) for t, row in rows_by_t]}
-
-    ts = [round(0.1 * k, 1) for k in range(21)]
-    # a: map matching from 0.5 s, accurate; b: map matching from 1.5 s but 2 m off; c: never, 4 m off
-    r = run((t, {"a": (t >= 0.5, 0.1), "b": (t >= 1.5, 2.0), "c": (False, 4.0)}) for t in ts)
-    out = cold_start_summary([r, r])
-    assert out["runs"] == 2 and out["vehicles"] == 6 and set(out["at"]) == {"1", "2"}
-    one, two = out["at"]["1"], out["at"]["2"]
-    assert one["map_matching"] == pytest.approx(1 / 3, abs=1e-4) and one["locked"] == pytest.approx(1 / 3, abs=1e-4)
-    assert two["map_matching"] == pytest.approx(2 / 3, abs=1e-4) and two["locked"] == pytest.approx(1 / 3, abs=1e-4)
-    assert two["ever_map_matching"] == pytest.approx(2 / 3, abs=1e-4) and two["gross"] == pytest.approx(1 / 3, abs=1e-4)
-    assert out["first_map_matching_s"]["reached"] == 4 and out["first_map_matching_s"]["max"] == 1.5
-    assert cold_start_summary([])["runs"] == 0

@@ -312,7 +312,7 @@ def test_bad_command_line_values_are_configuration_errors_before_any_work(tmp_pa
         ["sim", "paper-urban", "--duration", "inf", "--out", str(tmp_path / "s")],
         ["sim", "paper-urban", "--duration", "0.01", "--out", str(tmp_path / "s")],  # no frame at 10 Hz
         ["bench", "localization", "--duration", "nan"],
-        ["experiment", "paper", "--warmup", "-1", "--out", str(tmp_path / "p")],
+        ["experiment", "paper", "--burnin", "-1", "--out", str(tmp_path / "p")],
         ["experiment", "network", "--duration", "inf", "--out", str(tmp_path / "n")],
         ["experiment", "network", "--mode", "centralized", "--out", str(tmp_path / "n")],  # live only
         ["experiment", "network", "--live", "--quick", "--out", str(tmp_path / "n")],

@@ -1,0 +1,185 @@
+"""Reproduce the paper's results (sections "Simulation Validation" and "Test Vehicle Evaluation"), honestly.
+
+Every run is one :func:`mapcontainer.pipeline.run_pipeline` call on the simulated clock, ideal V2X
+channel, distributed mode, with every realistic error source of the simulator on
+(:mod:`mapcontainer.sim.errors`) and traffic drawn per run from its seed. Runs start cold and last
+``duration_s`` (10 s); everything from ``burnin_s`` (3 s) on is scored, and the error against time
+of the whole run is drawn so that no window hides anything. Seeds come from the evaluation range.
+
+* **simulation** (figure exp_sim): ``runs`` runs of paper-urban and paper-suburban, two host views
+  each: "cooperative" (every vehicle's messages) and "ego_only" (the ego's own, the same estimator).
+  Vehicle poses against four estimates: GNSS alone, the vehicle's filtered on-board estimate (the
+  vehicle alone), the per-frame map-matching pose it sends, and the host's fused pose. Targets: the
+  paper's rms2 (ego frame, within ``radius_m``) with coverage, false tracks and GOSPA.
+* **test site** (Tables res1, res2): overlap and blind spots (ii), (iii), each at both landmark
+  densities, ``rv_runs`` runs.
+* **consistency**: per scenario, object NEES (3-D) and vehicle pose NEES (6-DoF) in both forms.
+* **sensitivity**: the headline figures with each error source off in turn, with all off, and all on,
+  on the first ``sensitivity_runs`` seeds (the same seeds for every setting).
+* **bytes**: distributed vs centralized payloads from real encoded messages.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from ... import jsonout
+from ...seeds import EVAL_SEED0, seed_kind
+from ..runner import run_all
+from .figures import (
+    consistency,
+    evaluate_claims,
+    evaluate_targets,
+    group,
+    rv_figures,
+    sim_figures,
+    startup_summary,
+    time_series,
+)
+from .runs import VARIANTS, run_task, tasks
+from .settings import BLINDSPOT_SCENARIOS, DENSITIES, EGO, PAPER, SIM_SCENARIOS, PaperSettings
+
+__all__ = [
+    "PAPER",
+    "PaperSettings",
+    "consistency",
+    "evaluate_claims",
+    "evaluate_targets",
+    "run_paper_experiment",
+    "run_task",
+]
+
+
+def _rv(by: dict, variant: str, burnin_s: float, seeds: set[int] | None = None) -> tuple[dict, dict]:
+    overlap, blindspot = {}, {k: {} for k in BLINDSPOT_SCENARIOS}
+    for density in DENSITIES:
+        rs = [r for r in by.get(("overlap", f"overlap/{density}", variant), []) if seeds is None or r["seed"] in seeds]
+        if rs:
+            overlap[density] = rv_figures("overlap", rs, burnin_s)
+        for key in BLINDSPOT_SCENARIOS:
+            rs = [
+                r for r in by.get(("blindspot", f"{key}/{density}", variant), []) if seeds is None or r["seed"] in seeds
+            ]
+            if rs:
+                blindspot[key][density] = rv_figures("blindspot", rs, burnin_s)
+    return overlap, blindspot
+
+
+def _headline(sim: dict, overlap: dict, blindspot: dict) -> dict[str, float]:
+    """The figures the sensitivity table follows."""
+    out = {}
+    for key in SIM_SCENARIOS:
+        f = sim.get(key)
+        if not f:
+            continue
+        for m in ("onboard", "map_matching", "cooperative"):
+            out[f"{key}: ego {m.replace('_', ' ')}"] = f["ego_rmse_m"][m]
+        for m in ("ego_only", "cooperative"):
+            out[f"{key}: targets {m.replace('_', ' ')}"] = f["target_rmse_m"][m]
+            out[f"{key}: target coverage {m.replace('_', ' ')}"] = f["objects"][m].get("coverage", float("nan"))
+    if "dense" in overlap:
+        out["overlap: fused obstacle"] = overlap["dense"]["fused_m"]
+    for key in BLINDSPOT_SCENARIOS:
+        b = blindspot[key].get("dense")
+        if b:
+            out[f"blind spot ({key}): connected car"] = b["connected_car_m"]
+            out[f"blind spot ({key}): obstacle"] = b["obstacle_m"]
+    return out
+
+
+def aggregate(results: list[dict], s: PaperSettings, wall_s: float, bytes_figures: dict | None = None) -> dict:
+    """Every figure of the experiment from its runs (see the module docstring)."""
+    by = group(results)
+    b = s.burnin_s
+    simulation = {}
+    for key in SIM_SCENARIOS:
+        rs = by.get(("sim", key, "all"), [])
+        if rs:
+            simulation[key] = sim_figures(rs, b)
+            names = [f"{EGO}:{m}" for m in ("gnss", "onboard", "map_matching", "cooperative")]
+            names += ["targets:ego_only", "targets:cooperative"]
+            simulation[key]["over_time"] = {n: time_series(rs, n) for n in names}
+            simulation[key]["startup"] = startup_summary(rs, s.duration_s)
+    overlap, blindspot = _rv(by, "all", b)
+    sens_seeds = {s.seed + i for i in range(s.sensitivity_run_count)}
+    sensitivity = {}
+    if s.sensitivity_run_count:
+        for variant in VARIANTS:
+            sim_v = {
+                key: sim_figures([r for r in by.get(("sim", key, variant), []) if r["seed"] in sens_seeds], b)
+                for key in SIM_SCENARIOS
+                if by.get(("sim", key, variant))
+            }
+            sensitivity[variant] = _headline(sim_v, *_rv(by, variant, b, sens_seeds))
+    walls: dict[str, list[float]] = {}
+    cpus: dict[str, list[float]] = {}
+    for r in results:
+        k = f"{r['kind']}:{r['key']}"
+        walls.setdefault(k, []).append(r["wall_s"])
+        cpus.setdefault(k, []).append(r["cpu_s"])
+    out: dict[str, Any] = {
+        "simulation": simulation,
+        "overlap": overlap,
+        "blindspot": blindspot,
+        "sensitivity": sensitivity,
+        "bytes": bytes_figures or {},
+        "runs": s.runs,
+        "seed": s.seed,
+        "seeds": seed_kind(s.seed),
+        "settings": {
+            **asdict(s),
+            "real_vehicle_runs": s.real_vehicle_runs,
+            "sensitivity_runs": s.sensitivity_run_count,
+            "evaluation_seeds_from": EVAL_SEED0,
+        },
+        "wall_s": round(wall_s, 1),
+        "cpu_s_per_run": {k: round(sum(v) / len(v), 2) for k, v in sorted(cpus.items())},
+        "wall_s_per_run": {k: round(sum(v) / len(v), 2) for k, v in sorted(walls.items())},
+        "cpu_s_total": round(sum(r["cpu_s"] for r in results), 1),
+        "host": {"python": platform.python_version(), "machine": platform.machine()},
+    }
+    if len(simulation) == len(SIM_SCENARIOS):
+        out["claims"] = evaluate_claims(simulation)
+    out["targets"] = evaluate_targets(out)
+    return out
+
+
+def byte_figures(s: PaperSettings) -> dict:
+    """Bytes per message and per second of both modes from real encoded messages of paper-urban runs
+    (:func:`mapcontainer.experiments.bytes.measure_bytes`, the first min(runs, 5) seeds); ``ratio`` is
+    the headline: centralized (lane mask at the matcher's resolution) over distributed, per message."""
+    from ..bytes import measure_bytes
+
+    seeds = [s.seed + i for i in range(min(s.runs, 5))]
+    m = measure_bytes(SIM_SCENARIOS["urban"], seeds, s.duration_s, signing=True, workers=s.workers)
+    return {"ratio": m["ratio"]["with_lane_mask_per_message"], "measured": m}
+
+
+def run_paper_experiment(out_dir: str | Path, settings: PaperSettings | None = None, progress: bool = True) -> dict:
+    """Run everything; write results.json, report.md, runs.csv and the PNG plots into ``out_dir``."""
+    from .report import plots, report, runs_csv
+
+    s = settings or PaperSettings()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    results = run_all(
+        run_task,
+        tasks(s),
+        s.workers,
+        "experiment paper",
+        lambda r: f"{r['key']} {r['variant']} seed {r['seed']}",
+        progress,
+    )
+    res = aggregate(results, s, time.perf_counter() - t0, byte_figures(s))
+    res["wall_s"] = round(time.perf_counter() - t0, 1)
+    (out / "results.json").write_text(jsonout.dumps(res, indent=2) + "\n")
+    (out / "runs.csv").write_text(runs_csv(results, s.burnin_s))
+    files = plots(res, results, out)
+    (out / "report.md").write_text(report(res))
+    res["files"] = [str(p) for p in [out / "results.json", out / "report.md", out / "runs.csv", *files]]
+    return res

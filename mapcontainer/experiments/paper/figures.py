@@ -1,0 +1,363 @@
+"""From the runs' raw per-frame figures to the experiment's numbers: steady-state RMSE, error against
+time, multi-object figures, consistency, start-up, the paper's claims and targets, sensitivity."""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from typing import Any
+
+import numpy as np
+
+from ...metrics import anees_band
+from .settings import BLINDSPOT_SCENARIOS, CONNECTED, DENSITIES, EGO, GROSS_ERROR_M, LOCKED_M, SIM_SCENARIOS
+
+__all__ = [
+    "consistency",
+    "evaluate_claims",
+    "evaluate_targets",
+    "group",
+    "objects_summary",
+    "rmse",
+    "rv_figures",
+    "sim_figures",
+    "startup_summary",
+    "time_series",
+]
+
+ESTIMATES = ("gnss", "onboard", "map_matching", "cooperative")  # a vehicle's pose: the baselines and the fused one
+MIN_RUNS_PER_CELL = 5  # per-cell NEES: cells estimated in at least this many runs
+
+
+def _r(x: float, nd: int = 4) -> float:
+    return float(round(x, nd)) if x is not None and math.isfinite(x) else float("nan")
+
+
+def group(results: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
+    """Runs by (kind, key, variant), each list ordered by seed."""
+    out: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
+    for r in results:
+        out[(r["kind"], r["key"], r["variant"])].append(r)
+    for v in out.values():
+        v.sort(key=lambda r: r["seed"])
+    return dict(out)
+
+
+def _scored(rows, burnin_s: float) -> np.ndarray:
+    a = np.asarray(rows, dtype=float)
+    return a[a[:, 0] >= burnin_s - 1e-9] if a.size else np.zeros((0, 2))
+
+
+def rmse(rs: list[dict], name: str, burnin_s: float) -> float:
+    """sqrt(mean squared error) of series ``name`` over every run's frames from ``burnin_s`` on."""
+    sq = [_scored(r["series"].get(name, []), burnin_s)[:, 1] for r in rs]
+    a = np.concatenate(sq) if sq else np.zeros(0)
+    return _r(float(np.sqrt(a.mean()))) if a.size else float("nan")
+
+
+def run_rmse(r: dict, name: str, burnin_s: float) -> float:
+    a = _scored(r["series"].get(name, []), burnin_s)
+    return float(np.sqrt(a[:, 1].mean())) if len(a) else float("nan")
+
+
+def time_series(rs: list[dict], name: str, bucket_s: float = 1.0) -> list[list[float]]:
+    """RMSE against time: for each ``bucket_s`` bucket [t0, t0 + bucket_s), each run's RMSE in it, then
+    [t0, mean over runs, 5th and 95th percentile over runs, runs] (the whole run, burn-in included)."""
+    per_bucket: dict[int, list[float]] = defaultdict(list)
+    for r in rs:
+        a = np.asarray(r["series"].get(name, []), dtype=float)
+        if not a.size:
+            continue
+        b = np.floor(a[:, 0] / bucket_s + 1e-9).astype(int)
+        for k in np.unique(b):
+            per_bucket[int(k)].append(float(np.sqrt(a[b == k, 1].mean())))
+    return [
+        [
+            _r(k * bucket_s, 2),
+            _r(float(np.mean(v))),
+            _r(float(np.percentile(v, 5))),
+            _r(float(np.percentile(v, 95))),
+            len(v),
+        ]
+        for k, v in sorted(per_bucket.items())
+    ]
+
+
+def objects_summary(rs: list[dict], name: str, burnin_s: float) -> dict[str, float]:
+    """Coverage, false tracks and GOSPA of a view's objects over the scored frames.
+
+    Rows per frame: [t, true in scope, matched, fused in scope, GOSPA^2, localization, missed, false]
+    (the three parts add up to GOSPA^2, in m^2). ``coverage`` = matched / true; ``false_per_frame`` =
+    unmatched fused objects per frame; ``false_fraction`` = unmatched / fused; ``gospa_m`` =
+    sqrt(mean GOSPA^2) and its parts as the mean of each part (m^2).
+    """
+    rows = [_scored(r["objects"].get(name, []), burnin_s) for r in rs]
+    a = np.vstack([x for x in rows if len(x)]) if any(len(x) for x in rows) else np.zeros((0, 8))
+    if not len(a):
+        return {"frames": 0}
+    n_true, matched, fused = a[:, 1].sum(), a[:, 2].sum(), a[:, 3].sum()
+    false = fused - matched
+    return {
+        "coverage": _r(matched / n_true) if n_true else float("nan"),
+        "false_per_frame": _r(false / len(a)),
+        "false_fraction": _r(false / fused) if fused else float("nan"),
+        "gospa_m": _r(float(np.sqrt(a[:, 4].mean()))),
+        "gospa_localization_m2": _r(float(a[:, 5].mean())),
+        "gospa_missed_m2": _r(float(a[:, 6].mean())),
+        "gospa_false_m2": _r(float(a[:, 7].mean())),
+        "frames": int(len(a)),
+    }
+
+
+def consistency(rs: list[dict], name: str, dof: int, burnin_s: float) -> dict[str, Any]:
+    """Both forms of the NEES check of series ``name`` (dimension ``dof``) over the scored frames.
+
+    * per run: each run's mean NEES is one sample; ANEES = their mean, with the 95 % band of
+      :func:`~mapcontainer.metrics.anees_band` for n = runs (samples within a run are correlated in
+      time, so this band is the lenient form: a value outside it is a real inconsistency);
+    * per cell: for every (frame, object or vehicle) estimated in >= MIN_RUNS_PER_CELL runs, the
+      average NEES over those m independent runs against the band of m samples; the fraction of cells
+      inside (0.95 expected for a consistent estimator).
+    """
+    per_run, cells = [], defaultdict(list)
+    for r in rs:
+        a = _scored(r["nees"].get(name, []), burnin_s)
+        if not len(a):
+            continue
+        per_run.append(float(a[:, 2].mean()))
+        for c, v in zip(a[:, 1].astype(np.int64), a[:, 2], strict=True):
+            cells[int(c)].append(float(v))
+    out: dict[str, Any] = {"dof": dof, "runs": len(per_run)}
+    if not per_run:
+        return out
+    lo, hi = anees_band(dof, len(per_run))
+    value = float(np.mean(per_run))
+    used = inside = 0
+    for vals in cells.values():
+        if len(vals) >= MIN_RUNS_PER_CELL:
+            a, b = anees_band(dof, len(vals))
+            used += 1
+            inside += a <= float(np.mean(vals)) <= b
+    out.update(
+        anees=_r(value),
+        band=[_r(lo), _r(hi)],
+        inside=bool(lo <= value <= hi),
+        per_run_p5_p50_p95=[_r(float(np.percentile(per_run, q))) for q in (5, 50, 95)],
+        cells=used,
+        cells_inside_fraction=_r(inside / used) if used else float("nan"),
+    )
+    return out
+
+
+def _failures(rs: list[dict], vids, burnin_s: float) -> int:
+    """Runs in which a vehicle of ``vids`` lost lock: its filtered on-board pose off by more than
+    GROSS_ERROR_M in a scored frame."""
+    n = 0
+    for r in rs:
+        worst = max(
+            (
+                float(np.sqrt(_scored(r["series"].get(f"{v}:onboard", []), burnin_s)[:, 1].max(initial=0.0)))
+                for v in vids
+            ),
+            default=0.0,
+        )
+        n += worst > GROSS_ERROR_M
+    return n
+
+
+def sim_figures(rs: list[dict], burnin_s: float) -> dict[str, Any]:
+    """The simulation figures of one scenario: ego and all-vehicle pose RMSE of every estimate, the
+    targets of both views with their multi-object figures, consistency, failures."""
+    vids = rs[0]["vehicles"] if rs else []
+    out: dict[str, Any] = {
+        "ego_rmse_m": {m: rmse(rs, f"{EGO}:{m}", burnin_s) for m in ESTIMATES},
+        "vehicles_rmse_m": {m: _pooled(rs, [f"{v}:{m}" for v in vids], burnin_s) for m in ESTIMATES},
+        "per_vehicle_rmse_m": {v: {m: rmse(rs, f"{v}:{m}", burnin_s) for m in ESTIMATES} for v in vids},
+        "target_rmse_m": {m: rmse(rs, f"targets:{m}", burnin_s) for m in ("ego_only", "cooperative")},
+        "target_rmse_common_m": {m: rmse(rs, f"targets_common:{m}", burnin_s) for m in ("ego_only", "cooperative")},
+        "objects": {m: objects_summary(rs, f"objects:{m}", burnin_s) for m in ("ego_only", "cooperative")},
+        "consistency": {
+            "objects_cooperative_3d": consistency(rs, "objects:cooperative", 3, burnin_s),
+            **{
+                f"vehicles_{m}_6dof": _pooled_consistency(rs, [f"{v}:{m}" for v in vids], burnin_s)
+                for m in ("cooperative", "onboard", "map_matching")
+            },
+        },
+        "lost_lock_runs": {"ego": _failures(rs, [EGO], burnin_s), "any_vehicle": _failures(rs, vids, burnin_s)},
+        "runs": len(rs),
+    }
+    return out
+
+
+def _pooled(rs: list[dict], names: list[str], burnin_s: float) -> float:
+    merged = [{"series": {"x": [row for n in names for row in r["series"].get(n, [])]}} for r in rs]
+    return rmse(merged, "x", burnin_s)
+
+
+def _pooled_consistency(rs: list[dict], names: list[str], burnin_s: float) -> dict[str, Any]:
+    """6-DoF pose NEES of several vehicles as one series (cells kept apart per vehicle)."""
+    merged = []
+    for r in rs:
+        rows = []
+        for j, n in enumerate(names):
+            rows += [[t, c * 100 + j, v] for t, c, v in r["nees"].get(n, [])]
+        merged.append({"nees": {"x": rows}})
+    return consistency(merged, "x", 6, burnin_s)
+
+
+def rv_figures(kind: str, rs: list[dict], burnin_s: float) -> dict[str, Any]:
+    """Table res1 (overlap) or res2 (blind spot) figures of one scenario at one density."""
+    if kind == "overlap":
+        names = ("ego_car", "connected_car", "fused")
+        out: dict[str, Any] = {f"{n}_m": rmse(rs, f"obstacle:{n}", burnin_s) for n in names}
+        out["objects"] = {n: objects_summary(rs, f"obstacle:{n}", burnin_s) for n in names}
+        a, b = out["ego_car_m"], out["connected_car_m"]
+        out["independent_fusion_m"] = _r((a**-2 + b**-2) ** -0.5) if a > 0 and b > 0 else float("nan")
+    else:
+        out = {
+            "connected_car_m": rmse(rs, f"{CONNECTED}:cooperative", burnin_s),
+            "connected_car_onboard_m": rmse(rs, f"{CONNECTED}:onboard", burnin_s),
+            "connected_car_map_matching_m": rmse(rs, f"{CONNECTED}:map_matching", burnin_s),
+            "obstacle_m": rmse(rs, "obstacle:cooperative", burnin_s),
+            "ego_only_obstacle_m": rmse(rs, "obstacle:ego_only", burnin_s),
+            "objects": {n: objects_summary(rs, f"obstacle:{n}", burnin_s) for n in ("ego_only", "cooperative")},
+        }
+    out["lost_lock_runs"] = _failures(rs, [EGO, CONNECTED], burnin_s)
+    out["runs"] = len(rs)
+    return out
+
+
+def startup_summary(rs: list[dict], duration_s: float) -> dict[str, Any]:
+    """Start-up of every vehicle of the runs, at each whole second t: the fraction in map matching,
+    ``locked`` (map matching and the filtered pose within LOCKED_M of the truth) and ``gross`` (filtered
+    pose off by more than GROSS_ERROR_M; a vehicle without a pose yet is neither); and when each vehicle
+    first locked (median, 90th percentile, never within the run)."""
+    at: dict[str, dict] = {}
+    first: list[float] = []
+    never = n_veh = 0
+    for r in rs:
+        a = np.asarray(r["locks"], dtype=float).reshape(-1, 4)
+        for i in np.unique(a[:, 1]).astype(int):
+            v = a[a[:, 1] == i]
+            n_veh += 1
+            ok = (v[:, 2] > 0) & (v[:, 3] <= LOCKED_M)
+            if ok.any():
+                first.append(float(v[np.argmax(ok), 0]))
+            else:
+                never += 1
+    marks = range(1, int(math.floor(duration_s - 1e-6)) + 1)
+    for m in marks:
+        rows = [row for r in rs for row in r["locks"] if abs(row[0] - m) < 1e-6]
+        if not rows:
+            continue
+        a = np.asarray(rows, dtype=float)
+        at[str(m)] = {
+            "map_matching": _r(float(a[:, 2].mean())),
+            "locked": _r(float(((a[:, 2] > 0) & (a[:, 3] <= LOCKED_M)).mean())),
+            "gross": _r(float((a[:, 3] > GROSS_ERROR_M).mean())),
+            "vehicles": len(a),
+        }
+    return {
+        "at": at,
+        "first_locked_s": {
+            "median": _r(float(np.median(first))) if first else float("nan"),
+            "p90": _r(float(np.percentile(first, 90))) if first else float("nan"),
+            "never": never,
+            "vehicles": n_veh,
+        },
+    }
+
+
+def evaluate_claims(sim: dict[str, dict]) -> list[dict]:
+    """The paper's qualitative claims (figure exp_sim) on the steady-state figures, against the fair
+    baselines: the vehicle alone is its filtered on-board estimate. A target claim holds only if the
+    cooperative view covers at least as many targets as the ego-only one."""
+    rows = []
+    for key in SIM_SCENARIOS:
+        e = sim[key]["ego_rmse_m"]
+        rows.append(
+            {
+                "claim": f"{key}: ego positioning cooperative < vehicle alone (on-board) < GNSS",
+                "holds": bool(e["cooperative"] < e["onboard"] < e["gnss"]),
+                "values": [e["cooperative"], e["onboard"], e["gnss"]],
+            }
+        )
+        per = sim[key]["per_vehicle_rmse_m"]
+        worse = [v for v, f in per.items() if not f["cooperative"] <= f["onboard"]]
+        rows.append(
+            {
+                "claim": f"{key}: cooperation never hurts a vehicle (fused <= on-board, every vehicle)",
+                "holds": not worse,
+                "values": [[v, per[v]["cooperative"], per[v]["onboard"]] for v in per],
+            }
+        )
+    for key in SIM_SCENARIOS:
+        t, o = sim[key]["target_rmse_m"], sim[key]["objects"]
+        cov = [o["cooperative"].get("coverage", float("nan")), o["ego_only"].get("coverage", float("nan"))]
+        rows.append(
+            {
+                "claim": f"{key}: targets cooperative < ego only (at no less coverage)",
+                "holds": bool(t["cooperative"] < t["ego_only"] and cov[0] >= cov[1]),
+                "values": [t["cooperative"], t["ego_only"], *cov],
+            }
+        )
+    u, s = sim["urban"], sim["suburban"]
+    for name, grp, m in (
+        ("ego on-board", "ego_rmse_m", "onboard"),
+        ("ego cooperative", "ego_rmse_m", "cooperative"),
+        ("targets cooperative", "target_rmse_m", "cooperative"),
+    ):
+        rows.append(
+            {
+                "claim": f"urban better than suburban: {name}",
+                "holds": bool(u[grp][m] < s[grp][m]),
+                "values": [u[grp][m], s[grp][m]],
+            }
+        )
+    return rows
+
+
+def evaluate_targets(res: dict) -> list[dict]:
+    """Pass/fail targets: the paper's Table res1/res2 figures at both landmark densities, consistency
+    in both forms, and the byte ratio."""
+    rows = []
+    for density in DENSITIES:
+        ov = res["overlap"].get(density)
+        if ov:
+            bound = 1.1 * ov["independent_fusion_m"]
+            rows.append(_row(f"overlap ({density}): fused <= 1.1 (1/a^2 + 1/b^2)^-1/2", ov["fused_m"], _r(bound), "<="))
+        for key in BLINDSPOT_SCENARIOS:
+            b = res["blindspot"].get(key, {}).get(density)
+            if b:
+                rows.append(
+                    _row(f"blind spot ({key}, {density}): connected car <= 0.18 m", b["connected_car_m"], 0.18, "<=")
+                )
+                rows.append(_row(f"blind spot ({key}, {density}): obstacle <= 0.35 m", b["obstacle_m"], 0.35, "<="))
+    for key in SIM_SCENARIOS:
+        c = res["simulation"][key]["consistency"]["objects_cooperative_3d"]
+        if "anees" in c:
+            rows.append(
+                {
+                    "target": f"{key}: ANEES of objects (3-D, per run) inside its 95 % band",
+                    "value": c["anees"],
+                    "threshold": c["band"],
+                    "pass": bool(c["inside"]),
+                }
+            )
+            rows.append(
+                _row(
+                    f"{key}: per-cell object NEES inside its band, fraction >= 0.90",
+                    c["cells_inside_fraction"],
+                    0.9,
+                    ">=",
+                )
+            )
+    by = res.get("bytes") or {}
+    if "ratio" in by:
+        rows.append(_row("distributed bytes/message >= 10x smaller than centralized", by["ratio"], 10.0, ">="))
+    return rows
+
+
+def _row(target: str, value: float, threshold: float, op: str) -> dict:
+    ok = value <= threshold if op == "<=" else value >= threshold
+    return {"target": target, "value": value, "threshold": threshold, "pass": bool(ok and math.isfinite(value))}
