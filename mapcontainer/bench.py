@@ -12,6 +12,7 @@ from schemas.arrays import cov_from_upper
 from . import geometry as geo
 from .metrics import percentile, rmse
 from .sim import World, load_scenario
+from .sim.errors import enabled_error_sources, with_error_sources
 from .vehicle import VehicleAgent
 
 __all__ = ["WARMUP_S", "bench_localization"]
@@ -20,8 +21,13 @@ __all__ = ["WARMUP_S", "bench_localization"]
 WARMUP_S = 2.0  # seconds of an episode not scored (initialisation from GNSS)
 
 
-def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, warmup_s: float = WARMUP_S) -> dict:
+def bench_localization(
+    scenario: str, seeds: int = 3, duration_s: float = 20.0, warmup_s: float = WARMUP_S, ideal: bool = False
+) -> dict:
     """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes.
+
+    ``ideal``: every error source of the simulator off (exact map, calibration and clocks:
+    :func:`mapcontainer.sim.errors.with_error_sources`); otherwise the scenario's own (realistic) ones.
 
     The vehicle's estimate is the localizer's filtered pose (what the vehicle knows of itself);
     position errors are horizontal, lateral / longitudinal along the true heading. The map-matching
@@ -42,8 +48,11 @@ def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, 
     e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched = [], [], [], [], [], [], [], [], []
     e_prior, nees_prior, e_all, e_all_yaw, nees_axes = [], [], [], [], []
     frames = 0
+    sc = load_scenario(scenario)
+    if ideal:
+        sc = with_error_sources(sc, ())
     for seed in range(seeds):
-        world = World(load_scenario(scenario), seed=seed)
+        world = World(sc, seed=seed)
         agents = {v: VehicleAgent(world.hdmap, v, world.fleet) for v in world.vehicle_ids}
         for tick in world.run(duration_s):
             for vid, frame in tick.frames.items():
@@ -74,6 +83,7 @@ def bench_localization(scenario: str, seeds: int = 3, duration_s: float = 20.0, 
                 nees_prior.append(float(err_p @ np.linalg.solve(cov_from_upper(prior.pose_cov), err_p)))
     return {
         "scenario": scenario,
+        "error_sources": enabled_error_sources(sc),
         "seeds": seeds,
         "duration_s": duration_s,
         "warmup_s": warmup_s,

@@ -83,7 +83,7 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
 
     if not args.duration > WARMUP_S:
         raise ConfigError(f"--duration must be longer than the {WARMUP_S:g} s warm-up, got {args.duration:g}")
-    print(jsonout.dumps(bench_localization(args.scenario, args.seeds, args.duration)))
+    print(jsonout.dumps(bench_localization(args.scenario, args.seeds, args.duration, ideal=args.ideal)))
     return 0
 
 
@@ -268,6 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--scenario", default="paper-urban")
     bl.add_argument("--seeds", type=positive_int, default=3, help="independent episodes")
     bl.add_argument("--duration", type=seconds, default=20.0, help="seconds per episode (the first 2 are not scored)")
+    bl.add_argument(
+        "--ideal", action="store_true", help="every simulator error source off (exact map, calibration, clocks)"
+    )
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
     bf.add_argument("--vehicles", type=positive_int, default=4)

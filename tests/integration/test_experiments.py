@@ -112,8 +112,16 @@ def test_bench_localization_prints_accuracy_consistency_and_speed():
     for key in ("gnss_rmse_m", "all_frames_rmse_m", "nees_mean", "ms_per_frame_p50", "prior_rmse_m"):
         assert _finite(result[key]), key
     assert set(result["nees_axes_mean"]) == {"x", "y", "z", "roll", "pitch", "yaw"}
-    # seed 0: map matching locks on within the warm-up and beats GNSS by an order of magnitude
-    assert result["converged_fraction"] > 0.7 and result["mapmatch_rmse_m"] < 0.3 < result["gnss_rmse_m"]
+    assert result["error_sources"] == list(ERROR_SOURCES)  # the scenario's realistic errors, all on
+    # with them, seed 0's vehicles lock on in about half of the scored frames (the cold-start search
+    # misses with map and calibration errors: issue 20), and where they do, they beat GNSS
+    assert result["converged_fraction"] > 0.3 and result["mapmatch_rmse_m"] < 0.3 < result["gnss_rmse_m"]
+    proc = _mapc("bench", "localization", "--scenario", "paper-urban", "--seeds", "1", "--duration", "4", "--ideal")
+    ideal = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert ideal["error_sources"] == []
+    # exact map and sensors: where it locks (0.61 of the frames: the traffic drawn for seed 0 keeps a vehicle
+    # searching, issue 20) map matching beats GNSS by more than an order of magnitude
+    assert ideal["converged_fraction"] > 0.5 and ideal["mapmatch_rmse_m"] < 0.1 < 0.3 < ideal["gnss_rmse_m"]
     bad = subprocess.run(
         [sys.executable, "-m", "mapcontainer.cli", "bench", "localization", "--duration", "1"],
         capture_output=True,
