@@ -241,17 +241,18 @@ def project_points(intr: CameraIntrinsics, T_cam_map: np.ndarray, p_map):
     return np.stack([u, v], axis=1), z
 
 
-def project_points_jac(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_map):
+def project_points_jac(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_map, rot_jac=None):
     """Projection of map points by a camera on a body at ``pose`` = [x, y, z, roll, pitch, yaw].
 
     pi_P(p_map, pose): p_body = R^T (p_map - t), p_cam = R_body_cam^T (p_body - t_body_cam),
     u = fx X/Z + cx, v = fy Y/Z + cy.
 
-    Returns ``uv`` (N, 2), ``z_cam`` (N,) and ``J_pose`` (N, 2, 6) = d uv / d pose.
+    Returns ``uv`` (N, 2), ``z_cam`` (N,) and ``J_pose`` (N, 2, 6) = d uv / d pose. ``rot_jac``: the
+    pose's :func:`rpy_to_matrix_jac`, if the caller has it already (the map matcher does, per evaluation).
     """
     pose = np.asarray(pose, dtype=float)
     p_map = np.asarray(p_map, dtype=float).reshape(-1, 3)
-    R, dR_roll, dR_pitch, dR_yaw = rpy_to_matrix_jac(*pose[3:])
+    R, dR_roll, dR_pitch, dR_yaw = rpy_to_matrix_jac(*pose[3:]) if rot_jac is None else rot_jac
     R_cb = T_body_cam[:3, :3].T
     d = p_map - pose[:3]
     p_body = d @ R

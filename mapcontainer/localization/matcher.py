@@ -41,6 +41,7 @@ the prediction again.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import cv2
@@ -261,15 +262,23 @@ def lane_distance_transform(mask: np.ndarray) -> np.ndarray | None:
 
 
 def bilinear_with_grad(img: np.ndarray, uv: np.ndarray):
-    """Bilinear interpolation of img at uv (N, 2) (inside [0, W-1) x [0, H-1)) and its exact gradient."""
+    """Bilinear interpolation of img at uv (N, 2) (inside [0, W-1) x [0, H-1)) and its exact gradient.
+
+    With the cell's corners d_00, d_01 (right), d_10 (below), d_11 and fractions f_u, f_v:
+    ``top = d_00 + f_u (d_01 - d_00)``, ``bot = d_10 + f_u (d_11 - d_10)``, value ``top + f_v (bot - top)``,
+    d/du ``(1 - f_v)(d_01 - d_00) + f_v (d_11 - d_10)``, d/dv ``bot - top``.
+    """
     u, v = uv[:, 0], uv[:, 1]
-    u0 = np.floor(u).astype(np.intp)
-    v0 = np.floor(v).astype(np.intp)
+    u0 = np.floor(u)
+    v0 = np.floor(v)
     fu, fv = u - u0, v - v0
-    d00 = img[v0, u0].astype(np.float64)
-    d01 = img[v0, u0 + 1]
-    d10 = img[v0 + 1, u0]
-    d11 = img[v0 + 1, u0 + 1]
+    w = img.shape[1]
+    corner = v0.astype(np.intp) * w + u0.astype(np.intp)  # the flat index of d_00
+    flat = img.reshape(-1)
+    d00 = flat[corner].astype(np.float64)
+    d01 = flat[corner + 1]
+    d10 = flat[corner + w]
+    d11 = flat[corner + (w + 1)]
     top = d00 + fu * (d01 - d00)
     bot = d10 + fu * (d11 - d10)
     val = top + fv * (bot - top)
@@ -344,7 +353,6 @@ class RoundData:
 class _Eval:
     e: np.ndarray  # whitened residuals (m,); the last 6 rows are the prediction prior
     J: np.ndarray  # (m, 6)
-    J_info: np.ndarray  # (m, 6): J for the information matrix (see MatcherParams.lane_along_track)
     w: np.ndarray  # IRLS weights (m,)
     cost: float  # robust cost of all rows (the LM objective)
     meas_rho: float  # robust cost of landmark rows + lane rows within the cap
@@ -352,6 +360,22 @@ class _Eval:
     pt_chi2: np.ndarray
     pole_chi2: np.ndarray
     n_lane_in: int
+    lane_rows: slice  # the lane samples' rows
+    yaw: float  # of the pose evaluated
+    lane_along_track: bool = True
+
+    @cached_property
+    def J_info(self) -> np.ndarray:
+        """J for the information matrix (see MatcherParams.lane_along_track): without it, the lane rows'
+        position columns lose their component along the heading h, ``J_xy - (J_xy h) h^T``. Only the
+        covariances need it, so it is made when first asked for."""
+        rows = self.lane_rows
+        if rows.stop == rows.start or self.lane_along_track:
+            return self.J
+        J_info = self.J.copy()
+        heading = np.array([np.cos(self.yaw), np.sin(self.yaw)])
+        J_info[rows, :2] -= np.outer(J_info[rows, :2] @ heading, heading)
+        return J_info
 
 
 class MapMatcher:
@@ -391,6 +415,8 @@ class MapMatcher:
         self._lane_width = np.concatenate(widths) if widths else np.zeros(0)
         self._lane_tree = cKDTree(self._lane_xyz[:, :2]) if len(self._lane_xyz) else None
         self._lever = np.array(self.params.gnss_lever_arm_m, dtype=float)
+        self._ground_J_attitude = np.eye(6)[3:5] / self.params.sigma_roll_pitch_rad  # r_n's roll, pitch rows
+        self._ground_J_attitude.flags.writeable = False
 
     # ------------------------------------------------------------------ public API
 
@@ -814,65 +840,46 @@ class MapMatcher:
         """Every whitened residual block at x with its Jacobian (rows, 6), before robust weighting.
 
         Keys: ``points`` (D_P, 2 rows per landmark), ``poles`` (D_L, 2 rows per pole), ``lanes`` (EDT,
-        1 row per sample), ``ground`` (r_n), ``gnss``, ``prior``. Also ``depth``: (min depth of each
-        point landmark, of each pole) to detect landmarks that moved behind the camera.
+        1 row per sample), ``ground`` (r_n), ``gnss``, ``anchor``, ``prior``. Also ``depth``: (min depth
+        of each point landmark, of each pole) to detect landmarks that moved behind the camera, and
+        ``lanes_under_cap``. One rotation and one projection of all the round's map points serve every block.
         """
         p = self.params
         x = np.asarray(x, dtype=float)
-        R, dRr, dRp, dRy = rpy_to_matrix_jac(*x[3:])
+        rot = rpy_to_matrix_jac(*x[3:])
         out: dict[str, Any] = {}
         nP, nL, nS = len(rd.pt_xyz), len(rd.pole_A), len(rd.lane_xyz)
         if len(rd.xyz):
-            uv, z, J = project_points_jac(fd.intr, x, fd.T_bc, rd.xyz)
+            uv, z, J = project_points_jac(fd.intr, x, fd.T_bc, rd.xyz, rot)
         else:
             uv, z, J = np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2, 6))
         # D_P
         s = p.point_sigma_px
         out["points"] = ((uv[:nP] - rd.pt_uv).reshape(-1) / s, J[:nP].reshape(-1, 6) / s)
         # D_L: d_k = n . (m_k - M_1), d d_k / dx = n^T dm_k/dx, whitened by W.
-        a, b = slice(nP, nP + nL), slice(nP + nL, nP + 2 * nL)
-        n = rd.pole_n
-        dist = np.stack(
-            [np.einsum("ki,ki->k", uv[a] - rd.pole_M1, n), np.einsum("ki,ki->k", uv[b] - rd.pole_M1, n)],
-            axis=1,
-        )
-        Jd = np.stack([np.einsum("ki,kij->kj", n, J[a]), np.einsum("ki,kij->kj", n, J[b])], axis=1)
-        out["poles"] = (np.einsum("kij,kj->ki", rd.pole_W, dist).reshape(-1), (rd.pole_W @ Jd).reshape(-1, 6))
-        out["depth"] = (z[:nP], np.minimum(z[a], z[b]))
-        # EDT lane residual.
-        ls = slice(nP + 2 * nL, nP + 2 * nL + nS)
-        val = np.full(nS, rd.lane_cap)
-        du, dv = np.zeros(nS), np.zeros(nS)
-        if nS:
-            uvl = self._to_mask(uv[ls], fd)
-            inside = self._in_mask(uvl, z[ls], fd)
-            if inside.any():
-                val[inside], du[inside], dv[inside] = bilinear_with_grad(fd.dt, uvl[inside] - [0.0, fd.dt_row0])
-            under = val < rd.lane_cap
-            val = np.minimum(val, rd.lane_cap)
-            du[~under] = 0.0
-            dv[~under] = 0.0
-            Jl = (du[:, None] * J[ls, 0, :] + dv[:, None] * J[ls, 1, :]) * fd.lane_scale
+        if nL:
+            a, b = slice(nP, nP + nL), slice(nP + nL, nP + 2 * nL)
+            n = rd.pole_n
+            dist = np.stack(
+                [np.einsum("ki,ki->k", uv[a] - rd.pole_M1, n), np.einsum("ki,ki->k", uv[b] - rd.pole_M1, n)],
+                axis=1,
+            )
+            Jd = np.stack([np.einsum("ki,kij->kj", n, J[a]), np.einsum("ki,kij->kj", n, J[b])], axis=1)
+            out["poles"] = (np.einsum("kij,kj->ki", rd.pole_W, dist).reshape(-1), (rd.pole_W @ Jd).reshape(-1, 6))
+            out["depth"] = (z[:nP], np.minimum(z[a], z[b]))
         else:
-            under = np.zeros(0, bool)
-            Jl = np.zeros((0, 6))
-        out["lanes"] = (val / rd.lane_sigma, Jl / rd.lane_sigma[:, None])
-        out["lanes_under_cap"] = under
-        # r_n
-        t = fd.T_bc[:3, 3]
-        rows_e = [
-            (x[3] - p.nominal_roll_pitch_rad[0]) / p.sigma_roll_pitch_rad,
-            (x[4] - p.nominal_roll_pitch_rad[1]) / p.sigma_roll_pitch_rad,
-        ]
-        rows_J = [np.eye(6)[3] / p.sigma_roll_pitch_rad, np.eye(6)[4] / p.sigma_roll_pitch_rad]
-        if rd.z_ground is not None:
-            H = p.body_height_m + t[2]
-            rows_e.append((x[2] + R[2] @ t - rd.z_ground - H) / p.sigma_height_m)
-            rows_J.append(np.array([0.0, 0.0, 1.0, dRr[2] @ t, dRp[2] @ t, dRy[2] @ t]) / p.sigma_height_m)
-        out["ground"] = (np.array(rows_e), np.array(rows_J))
+            out["poles"] = (np.zeros(0), np.zeros((0, 6)))
+            out["depth"] = (z[:nP], np.zeros(0))
+        # EDT lane residual.
+        if nS:
+            out["lanes"], out["lanes_under_cap"] = self._lane_residuals(uv, z, J, slice(nP + 2 * nL, None), fd, rd)
+        else:
+            out["lanes"], out["lanes_under_cap"] = (np.zeros(0), np.zeros((0, 6))), np.zeros(0, bool)
+        out["ground"] = self._ground_residuals(x, rot, fd, rd)
         # GNSS
         if fd.gnss is not None:
             g, sig = fd.gnss
+            R, dRr, dRp, dRy = rot
             lv = self._lever
             Jg = np.zeros((3, 6))
             Jg[:, :3] = np.eye(3)
@@ -885,17 +892,56 @@ class MapMatcher:
             A, h = rd.anchor
             da = x - h
             da[5] = wrap_angle(da[5])
-            out["anchor"] = (A @ da, A.copy())
+            out["anchor"] = (A @ da, A)
         else:
             out["anchor"] = (np.zeros(0), np.zeros((0, 6)))
         # Prediction prior.
         dx = x - fd.x_prior
         dx[5] = wrap_angle(dx[5])
-        out["prior"] = (fd.L_prior.T @ dx, fd.L_prior.T.copy())
+        out["prior"] = (fd.L_prior.T @ dx, fd.L_prior.T)
         return out
 
+    def _lane_residuals(self, uv, z, J, rows: slice, fd: FrameData, rd: RoundData):
+        """The EDT block (residuals, Jacobian) from the projections' ``rows``, and which samples are under the cap."""
+        uvl = self._to_mask(uv[rows], fd)
+        inside = self._in_mask(uvl, z[rows], fd)
+        if inside.all():
+            val, du, dv = bilinear_with_grad(fd.dt, uvl - [0.0, fd.dt_row0])
+        else:
+            n = len(uvl)
+            val, du, dv = np.full(n, rd.lane_cap), np.zeros(n), np.zeros(n)
+            if inside.any():
+                val[inside], du[inside], dv[inside] = bilinear_with_grad(fd.dt, uvl[inside] - [0.0, fd.dt_row0])
+        under = val < rd.lane_cap
+        val = np.minimum(val, rd.lane_cap)
+        du = np.where(under, du, 0.0)  # capped samples have no gradient
+        dv = np.where(under, dv, 0.0)
+        Jl = (du[:, None] * J[rows, 0, :] + dv[:, None] * J[rows, 1, :]) * fd.lane_scale
+        return (val / rd.lane_sigma, Jl / rd.lane_sigma[:, None]), under
+
+    def _ground_residuals(self, x, rot, fd: FrameData, rd: RoundData):
+        """r_n: ``(roll - roll_0, pitch - pitch_0, C_z - (z_lane + H)) / sigma`` (the last row if the lane height
+        is known) with its Jacobian."""
+        p = self.params
+        sig_rp = p.sigma_roll_pitch_rad
+        rows_e = [(x[3] - p.nominal_roll_pitch_rad[0]) / sig_rp, (x[4] - p.nominal_roll_pitch_rad[1]) / sig_rp]
+        if rd.z_ground is None:
+            return np.array(rows_e), self._ground_J_attitude
+        R, dRr, dRp, dRy = rot
+        t = fd.T_bc[:3, 3]
+        H = p.body_height_m + t[2]
+        rows_e.append((x[2] + R[2] @ t - rd.z_ground - H) / p.sigma_height_m)
+        J = np.empty((3, 6))
+        J[:2] = self._ground_J_attitude
+        J[2] = np.array([0.0, 0.0, 1.0, dRr[2] @ t, dRp[2] @ t, dRy[2] @ t]) / p.sigma_height_m
+        return np.array(rows_e), J
+
     def _evaluate(self, x, fd: FrameData, rd: RoundData) -> _Eval | None:
-        """Residuals, Jacobian, IRLS weights and costs at x; None if a landmark went behind the camera."""
+        """Residuals, Jacobian, IRLS weights and costs at x; None if a landmark went behind the camera.
+
+        Rows: landmarks (points, poles; Huber-weighted per landmark on its 2-row norm), lanes, then
+        ground, GNSS, anchor, and the prediction prior last.
+        """
         p = self.params
         b = self.residual_blocks(x, fd, rd)
         z_pt, z_pole = b["depth"]
@@ -903,38 +949,35 @@ class MapMatcher:
             return None
         e_pt, J_pt = b["points"]
         e_pl, J_pl = b["poles"]
-        pt_chi2 = np.einsum("ki,ki->k", e_pt.reshape(-1, 2), e_pt.reshape(-1, 2))
-        pole_chi2 = np.einsum("ki,ki->k", e_pl.reshape(-1, 2), e_pl.reshape(-1, 2))
-        rho_pt, w_pt = _huber(np.sqrt(pt_chi2), p.huber_k)
-        rho_pl, w_pl = _huber(np.sqrt(pole_chi2), p.huber_k)
         e_ln, J_ln = b["lanes"]
         under = b["lanes_under_cap"]
-        rest = [b["ground"], b["gnss"], b["anchor"], b["prior"]]
-        e = np.concatenate([e_pt, e_pl, e_ln] + [r[0] for r in rest])
-        J = np.vstack([J_pt, J_pl, J_ln] + [r[1] for r in rest])
+        blocks = [b["points"], b["poles"], b["lanes"], b["ground"], b["gnss"], b["anchor"], b["prior"]]
+        e = np.concatenate([blk[0] for blk in blocks])
+        J = np.concatenate([blk[1] for blk in blocks])
+        n_pt, n_lm = len(e_pt) // 2, (len(e_pt) + len(e_pl)) // 2  # landmarks
+        e_lm = e[: 2 * n_lm].reshape(-1, 2)
+        chi2 = np.einsum("ki,ki->k", e_lm, e_lm)
+        rho, w_lm = _huber(np.sqrt(chi2), p.huber_k)
         w = np.ones(len(e))
-        w[: len(e_pt)] = np.repeat(w_pt, 2)
-        w[len(e_pt) : len(e_pt) + len(e_pl)] = np.repeat(w_pl, 2)
-        landmark_rho = float(rho_pt.sum() + rho_pl.sum())
-        cost = landmark_rho + float(e[len(e_pt) + len(e_pl) :] @ e[len(e_pt) + len(e_pl) :])
+        w[: 2 * n_lm] = np.repeat(w_lm, 2)
+        landmark_rho = float(rho[:n_pt].sum() + rho[n_pt:].sum())
+        cost = landmark_rho + float(e[2 * n_lm :] @ e[2 * n_lm :])
         lane_in = float(e_ln[under] @ e_ln[under])
-        J_info = J
-        if len(e_ln) and not p.lane_along_track:
-            J_info = J.copy()
-            rows = slice(len(e_pt) + len(e_pl), len(e_pt) + len(e_pl) + len(e_ln))
-            heading = np.array([np.cos(x[5]), np.sin(x[5])])
-            J_info[rows, :2] -= np.outer(J_info[rows, :2] @ heading, heading)
+        n_under = int(np.count_nonzero(under))
+        lane_rows = slice(2 * n_lm, 2 * n_lm + len(e_ln))
         return _Eval(
             e,
             J,
-            J_info,
             w,
             cost,
             landmark_rho + lane_in,
-            len(e_pt) + len(e_pl) + int(under.sum()),
-            pt_chi2,
-            pole_chi2,
-            int(under.sum()),
+            2 * n_lm + n_under,
+            chi2[:n_pt],
+            chi2[n_pt:],
+            n_under,
+            lane_rows,
+            float(x[5]),
+            p.lane_along_track,
         )
 
     # ------------------------------------------------------------------ solver
