@@ -39,7 +39,6 @@ from schemas.codec import peek
 
 from . import geometry as geo
 from .channel import Channel, NetworkProfile, load_profile
-from .evaluation import relative_target_errors
 from .faults import FaultInjector
 from .fusion import FusionParams
 from .fusion.gate import MAX_WAIT_S, FrameGate
@@ -55,7 +54,6 @@ __all__ = [
     "Start",
     "TickRecord",
     "View",
-    "relative_errors",
     "run_pipeline",
     "warm_start_poses",
 ]
@@ -293,11 +291,3 @@ def _security(vehicles: list[str], views: list[str]) -> tuple[dict, dict]:
     ca = make_ca("pipeline-ca", now=now, validity_s=30 * 86400.0)
     signers = {v: Signer(issue(ca, v, 30 * 86400.0, now)) for v in vehicles}
     return signers, {name: Verifier(ca.certificate, window_s=5.0) for name in views}
-
-
-def relative_errors(fused: FusedState, truth: GroundTruth, ego: str, radius_m: float):
-    """Errors (N, 2) of target positions in the ego's body frame (the paper's rms2) for true targets
-    within ``radius_m`` of the ego, and their number: :func:`mapcontainer.evaluation.relative_target_errors`
-    without the ids."""
-    _, err, n_near = relative_target_errors(fused, truth, ego, radius_m)
-    return err, n_near

@@ -58,9 +58,9 @@ import numpy as np
 
 from .. import jsonout
 from ..channel import NetworkProfile
+from ..evaluation import age_of_information, horizontal_sq_error, obstacle_errors, rmse_sq, vehicle_pose
 from ..pipeline import View, run_pipeline
 from .runner import run_all
-from .scoring import age_of_information, horizontal_sq_error, obstacle_errors, rmse_sq, vehicle_pose
 
 __all__ = [
     "BANDWIDTHS_BPS",

@@ -11,28 +11,34 @@ import math
 import numpy as np
 import pytest
 
+from mapcontainer.evaluation import age_of_information, relative_target_errors, rmse_sq
 from mapcontainer.experiments import NETWORK_COLUMNS, Progress, run_network_point, sweep_profile, write_network_outputs
 from mapcontainer.experiments.network import MIN_QUEUE_BYTES
-from mapcontainer.experiments.scoring import age_of_information, relative_target_errors, rmse_sq
-from mapcontainer.pipeline import View, relative_errors, run_pipeline
+from schemas import FusedState, GroundTruth
+from schemas.arrays import cov_to_upper
 
 
-@pytest.fixture(scope="module")
-def short_run():
-    return run_pipeline("paper-urban", seed=3, duration_s=1.5, views=(View("cooperative"), View("ego_only", ("cv0",))))
-
-
-def test_relative_target_errors_match_the_pipelines(short_run):
-    compared = 0
-    for rec in short_run.records[8:]:
-        for view in ("cooperative", "ego_only"):
-            ids, err, n_near = relative_target_errors(rec.fused[view], rec.truth, "cv0", 50.0)
-            ref, n_ref = relative_errors(rec.fused[view], rec.truth, "cv0", 50.0)
-            assert n_near == n_ref and len(ids) == len(err)
-            np.testing.assert_allclose(err, ref, atol=1e-9)
-            assert set(ids.tolist()) <= set(np.asarray(rec.truth.obstacle_id).tolist())
-            compared += len(err)
-    assert compared > 0
+def test_relative_target_errors_are_in_the_ego_frame_within_the_radius():
+    """The ego at (10, 0) heading north (fused 0.2 m north of it): a target 5 m ahead, fused 0.3 m east
+    of the truth + the ego's offset, errs 0.3 m to the ego's right; a target 80 m away is out of range."""
+    head = [0.0, 0.0, 0.0, 0.0, 0.0, math.pi / 2]
+    common = {"fleet": "t", "seq": 0, "t_meas": 1.0, "t_sent": 1.0}
+    truth = GroundTruth(
+        sender="world", **common, vehicle_ids=["cv0"], vehicle_pose=np.array([[10.0, 0, 0, *head[3:]]]),
+        vehicle_v_map=np.zeros((1, 3)), obstacle_id=np.array([7, 8], np.uint32),
+        obstacle_cls=np.array([1, 1], np.uint8),
+        obstacle_p_map=np.array([[10.0, 5.0, 0.0], [10.0, 80.0, 0.0]]), obstacle_v_map=np.zeros((2, 3)),
+        obstacle_yaw=np.zeros(2),
+    )  # fmt: skip
+    fused = FusedState(
+        sender="host", **common, vehicle_ids=["cv0"], vehicle_pose=np.array([[10.0, 0.2, 0, *head[3:]]]),
+        vehicle_pose_cov=np.tile(cov_to_upper(np.eye(6) * 0.01), (1, 1)), object_id=np.array([1, 2], np.uint32),
+        object_cls=np.array([1, 1], np.uint8), object_p_map=np.array([[10.3, 5.2, 0.0], [10.0, 80.0, 0.0]]),
+        object_v_map=np.zeros((2, 3)), object_cov=np.tile(cov_to_upper(np.eye(3) * 0.01), (2, 1)),
+    )  # fmt: skip
+    ids, err, n_near = relative_target_errors(fused, truth, "cv0", 50.0)
+    assert ids.tolist() == [7] and n_near == 1
+    np.testing.assert_allclose(err, [[0.0, -0.3]], atol=1e-6)  # x forward (north), y left (west)
     assert rmse_sq([]) != rmse_sq([]) and rmse_sq([9.0, 16.0]) == pytest.approx(math.sqrt(12.5))
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mapcontainer.evaluation import horizontal_sq_error, vehicle_pose
 from mapcontainer.experiments.paper import PaperSettings
-from mapcontainer.experiments.scoring import horizontal_sq_error, vehicle_pose
 from mapcontainer.pipeline import WARM_START_SIGMA, run_pipeline, warm_start_poses
 from mapcontainer.sim import World, load_scenario
 
