@@ -34,6 +34,7 @@ __all__ = [
     "project_points",
     "project_points_grid",
     "project_points_jac",
+    "project_points_pose",
     "rot_x",
     "rot_y",
     "rot_z",
@@ -241,40 +242,55 @@ def project_points(intr: CameraIntrinsics, T_cam_map: np.ndarray, p_map):
     return np.stack([u, v], axis=1), z
 
 
+def _camera_points(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_map, R: np.ndarray):
+    """d = p_map - t, p_cam (N, 3) and uv (N, 2) of :func:`project_points_jac` (shared, so that
+    :func:`project_points_pose` agrees with it to the bit)."""
+    d = np.asarray(p_map, dtype=float).reshape(-1, 3) - pose[:3]
+    p_cam = (d @ R - T_body_cam[:3, 3]) @ T_body_cam[:3, :3]
+    X, Y, Z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = 1.0 / Z
+        uv = np.stack([intr.fx * X * inv_z + intr.cx, intr.fy * Y * inv_z + intr.cy], axis=1)
+    return d, p_cam, inv_z, uv
+
+
+def project_points_pose(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_map):
+    """``uv`` (N, 2) and ``z_cam`` (N,) of :func:`project_points_jac`, without the Jacobian."""
+    pose = np.asarray(pose, dtype=float)
+    _, p_cam, _, uv = _camera_points(intr, pose, T_body_cam, p_map, rpy_to_matrix(*pose[3:]))
+    return uv, p_cam[:, 2]
+
+
 def project_points_jac(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, p_map, rot_jac=None):
     """Projection of map points by a camera on a body at ``pose`` = [x, y, z, roll, pitch, yaw].
 
     pi_P(p_map, pose): p_body = R^T (p_map - t), p_cam = R_body_cam^T (p_body - t_body_cam),
     u = fx X/Z + cx, v = fy Y/Z + cy.
 
-    Returns ``uv`` (N, 2), ``z_cam`` (N,) and ``J_pose`` (N, 2, 6) = d uv / d pose. ``rot_jac``: the
-    pose's :func:`rpy_to_matrix_jac`, if the caller has it already (the map matcher does, per evaluation).
+    Returns ``uv`` (N, 2), ``z_cam`` (N,) and ``J_pose`` (N, 2, 6) = d uv / d pose
+    = (d uv / d p_cam) R_body_cam^T (d p_body / d pose). ``rot_jac``: the pose's
+    :func:`rpy_to_matrix_jac`, if the caller has it already (the map matcher does, per evaluation).
     """
     pose = np.asarray(pose, dtype=float)
-    p_map = np.asarray(p_map, dtype=float).reshape(-1, 3)
     R, dR_roll, dR_pitch, dR_yaw = rpy_to_matrix_jac(*pose[3:]) if rot_jac is None else rot_jac
-    R_cb = T_body_cam[:3, :3].T
-    d = p_map - pose[:3]
-    p_body = d @ R
-    p_cam = (p_body - T_body_cam[:3, 3]) @ R_cb.T
-    X, Y, Z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = 1.0 / Z
-        uv = np.stack([intr.fx * X * inv_z + intr.cx, intr.fy * Y * inv_z + intr.cy], axis=1)
-        n = len(p_map)
+    d, p_cam, inv_z, uv = _camera_points(intr, pose, T_body_cam, p_map, R)
+    n = len(d)
+    X, Y = p_cam[:, 0], p_cam[:, 1]
+    with np.errstate(invalid="ignore"):
         J_proj = np.zeros((n, 2, 3))
         J_proj[:, 0, 0] = intr.fx * inv_z
         J_proj[:, 0, 2] = -intr.fx * X * inv_z**2
         J_proj[:, 1, 1] = intr.fy * inv_z
         J_proj[:, 1, 2] = -intr.fy * Y * inv_z**2
-    # d p_body / d [t, roll, pitch, yaw]  (N, 3, 6)
-    dpb = np.empty((n, 3, 6))
-    dpb[:, :, :3] = -R.T
-    dpb[:, :, 3] = d @ dR_roll
-    dpb[:, :, 4] = d @ dR_pitch
-    dpb[:, :, 5] = d @ dR_yaw
-    J_cam = R_cb @ dpb  # (N, 3, 6)
-    return uv, Z, J_proj @ J_cam
+    # d p_body / d [t, roll, pitch, yaw], laid out (3, N, 6): R_body_cam^T applies to all points in one product.
+    dpb = np.empty((3, n, 6))
+    dpb[:, :, :3] = -R.T[:, None, :]
+    dpb[:, :, 3] = (d @ dR_roll).T
+    dpb[:, :, 4] = (d @ dR_pitch).T
+    dpb[:, :, 5] = (d @ dR_yaw).T
+    J_cam = (T_body_cam[:3, :3].T @ dpb.reshape(3, 6 * n)).reshape(3, n, 6).transpose(1, 0, 2)  # (N, 3, 6)
+    with np.errstate(invalid="ignore"):
+        return uv, p_cam[:, 2], J_proj @ J_cam
 
 
 def project_points_grid(intr: CameraIntrinsics, pose, T_body_cam: np.ndarray, offsets, yaws, p_map):

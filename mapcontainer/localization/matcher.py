@@ -53,7 +53,14 @@ from scipy.spatial import cKDTree
 from schemas.models import LandmarkClass
 
 from .. import lanemask
-from ..geometry import CameraIntrinsics, project_points_grid, project_points_jac, rpy_to_matrix_jac, wrap_angle
+from ..geometry import (
+    CameraIntrinsics,
+    project_points_grid,
+    project_points_jac,
+    project_points_pose,
+    rpy_to_matrix_jac,
+    wrap_angle,
+)
 from ..hdmap.model import HDMap
 
 __all__ = ["CameraFrame", "MapMatcher", "MatchResult", "MatcherParams", "lane_distance_transform"]
@@ -693,15 +700,7 @@ class MapMatcher:
         if lanes:
             lane_pts, lane_tan, lane_w = self._lane_ahead(x, solid_only=sig_lon > p.lane_dashed_sigma_m, tangents=True)
         nP, nL, nS = len(near_pt), len(near_pl), len(lane_pts)
-        batch = np.vstack(
-            [
-                self._pt_xyz[near_pt],
-                self._pole_base[near_pl],
-                self._pole_top[near_pl],
-                lane_pts,
-                lane_pts + 0.5 * lane_tan,
-            ]
-        )
+        batch = np.vstack([self._pt_xyz[near_pt], self._pole_base[near_pl], self._pole_top[near_pl]])
         uv, z, J = project_points_jac(fd.intr, x, fd.T_bc, batch)
 
         # Points (D_P): Mahalanobis distance, same class only, Hungarian.
@@ -774,10 +773,11 @@ class MapMatcher:
         if anchor is not None and (len(rd.pt_map) + len(rd.pole_map)) and sig_lon > p.lane_dashed_sigma_m:
             rd.anchor = anchor
         elif lanes and nS:
-            o = nP + 2 * nL
+            # The samples and points 0.5 m along their lines (no Jacobian needed).
+            uv_l, z_l = project_points_pose(fd.intr, x, fd.T_bc, np.vstack([lane_pts, lane_pts + 0.5 * lane_tan]))
             rd.lane_cap = p.lane_cap_px * fd.lane_scale
             rd.lane_xyz, w_px, n_in = self._lane_select(
-                lane_pts, lane_w, uv[o : o + nS], z[o : o + nS], uv[o + nS :], z[o + nS :], fd, rd.lane_cap
+                lane_pts, lane_w, uv_l[:nS], z_l[:nS], uv_l[nS:], z_l[nS:], fd, rd.lane_cap
             )
             var = (p.lane_sigma_px * fd.lane_scale) ** 2 + (0.5 * w_px) ** 2 / 3.0
             rd.lane_sigma = np.sqrt(var * max(1.0, n_in / p.lane_effective_samples))
