@@ -33,7 +33,7 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
     )  # fmt: skip
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["runs"] == 2 and set(summary["targets"].values()) <= {"PASS", "FAIL"}
-    assert len(summary["targets"]) == 17  # res1 x 2 densities, res2 x 2 x 2 x 2, consistency x 2 x 2, bytes
+    assert len(summary["targets"]) == 15  # res1 x 2 densities, res2 x 2 x 2 x 2, consistency x 2 x 2, bytes
     assert proc.returncode == (1 if "FAIL" in summary["targets"].values() else 0)  # --check
     assert "experiment paper [" in proc.stderr  # the progress bar
 

@@ -1,0 +1,63 @@
+"""The paper experiment's figures with teeth: a short but steady-state configuration of its own runs
+(paper-urban, 4 development seeds, cold start, 8 s scored from 3 s, every realistic error source on)
+checked against bounds a missing fusion step or a broken estimator would fail. The claims the
+estimators do not earn yet are strict xfails naming the issue that owns them: when they start to
+hold, the test says so."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import pytest
+
+from mapcontainer.experiments.paper import PaperSettings
+from mapcontainer.experiments.paper.figures import sim_figures
+from mapcontainer.experiments.paper.runs import run_task
+from mapcontainer.experiments.runner import run_all
+
+pytestmark = pytest.mark.slow
+
+SETTINGS = PaperSettings(runs=4, seed=1000, duration_s=8.0, burnin_s=3.0)
+
+
+@pytest.fixture(scope="module")
+def urban() -> dict:
+    s = SETTINGS
+    tasks = [("sim", "urban", "paper-urban", "all", s.seed + i, asdict(s)) for i in range(s.runs)]
+    runs = sorted(run_all(run_task, tasks, 2, "paper runs", lambda r: str(r["seed"]), False), key=lambda r: r["seed"])
+    return sim_figures(runs, s.burnin_s)
+
+
+def test_map_matching_beats_gnss_by_an_order_of_magnitude(urban):
+    # seeds 1000-1003: GNSS 1.79 m, on-board 0.13 m, per-frame map matching 0.13 m (ego)
+    e = urban["ego_rmse_m"]
+    assert e["gnss"] > 1.0 and e["onboard"] < 0.25 and e["map_matching"] < 0.25
+    assert urban["runs"] == 4 and urban["objects"]["cooperative"]["frames"] == 4 * 50
+
+
+def test_cooperation_sees_more_targets_and_places_them_better(urban):
+    """A host that ignored the other vehicles would equal the ego-only view: coverage 0.58 against 0.48,
+    GOSPA 3.5 against 4.1 m, rms2 on the targets both views estimate 0.48 against 0.51 m."""
+    coop, ego = urban["objects"]["cooperative"], urban["objects"]["ego_only"]
+    assert coop["coverage"] > ego["coverage"] + 0.05
+    assert coop["gospa_m"] < ego["gospa_m"] - 0.2
+    assert urban["target_rmse_common_m"]["cooperative"] < urban["target_rmse_common_m"]["ego_only"]
+    assert urban["target_rmse_m"]["cooperative"] < 0.7
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 20: the host's fused pose is worse than the vehicle's own filtered one (cv2 0.65 vs 0.56 m)",
+)
+def test_cooperation_never_hurts_a_vehicle(urban):
+    for vid, f in urban["per_vehicle_rmse_m"].items():
+        assert f["cooperative"] <= 1.05 * f["onboard"], (vid, f)
+
+
+@pytest.mark.xfail(
+    strict=True, reason="issue 20: vehicle pose covariances are too small (fused ANEES 51 against a band 3.1-9.8)"
+)
+def test_fused_vehicle_poses_are_consistent(urban):
+    c = urban["consistency"]["vehicles_cooperative_6dof"]
+    assert c["dof"] == 6 and c["runs"] == 4
+    assert c["inside"], c
