@@ -286,11 +286,11 @@ def bilinear_with_grad(img: np.ndarray, uv: np.ndarray):
     d01 = flat[corner + 1]
     d10 = flat[corner + w]
     d11 = flat[corner + (w + 1)]
-    top = d00 + fu * (d01 - d00)
-    bot = d10 + fu * (d11 - d10)
-    val = top + fv * (bot - top)
-    du = (1.0 - fv) * (d01 - d00) + fv * (d11 - d10)
-    return val, du, bot - top
+    du_top, du_bot = d01 - d00, d11 - d10
+    top = d00 + fu * du_top
+    bot = d10 + fu * du_bot
+    dv = bot - top
+    return top + fv * dv, (1.0 - fv) * du_top + fv * du_bot, dv
 
 
 def _huber(norms: np.ndarray, k: float):
