@@ -14,7 +14,6 @@ from services.channel.app import Relay, parse_receivers
 from services.evaluator.core import Evaluator, match_objects
 from services.evaluator.plot import ellipse_params
 from services.host.app import fused_lag, fusion_stall
-from services.host.worker import FrameGate
 from services.launcher.app import parse_args as launcher_parse_args
 from services.launcher.control import launcher_argv
 from services.launcher.manifest import FleetParams, Manifest, RestartPolicy, load_manifest, resolve
@@ -151,41 +150,6 @@ def test_detached_launcher_command_line_round_trips(tmp_path) -> None:
     back = launcher_parse_args(argv[3:])
     assert back.params == s.params
     assert back.run_dir == str(tmp_path / "run") and not back.summary
-
-
-# ------------------------------------------------------------------------------ host frame gate
-
-
-def test_frame_gate_waits_for_every_known_sender() -> None:
-    g = FrameGate({"cv0", "cv1"}, max_wait_s=0.1)
-    g.arrived("cv0", 0.1, now=0.0)
-    assert g.due(0.01) is None  # cv1 missing
-    g.arrived("cv1", 0.1, now=0.02)
-    assert g.due(0.02) == pytest.approx(0.1) and g.complete == 1
-    assert g.due(0.03) is None  # solved once
-    g.arrived("cv1", 0.1, now=0.04)  # a late duplicate of a solved frame is ignored
-    assert g.next_deadline() is None
-
-
-def test_frame_gate_times_out_and_skips_to_the_newest() -> None:
-    g = FrameGate({"cv0", "cv1"}, max_wait_s=0.1)
-    g.arrived("cv0", 0.1, now=0.0)
-    g.arrived("cv0", 0.2, now=0.1)
-    assert g.next_deadline() == pytest.approx(0.1)
-    assert g.due(0.15) == pytest.approx(0.1)  # frame 0.1 timed out; 0.2 still waits
-    assert g.due(0.21) == pytest.approx(0.2) and g.timed_out == 2
-
-
-def test_frame_gate_without_a_sender_list_expects_the_active_ones() -> None:
-    g = FrameGate(None, max_wait_s=1.0, active_s=2.0)
-    g.arrived("a", 0.0, now=0.0)
-    assert g.due(0.0) == 0.0  # only a was heard of
-    g.arrived("b", 0.1, now=0.1)
-    g.arrived("a", 0.2, now=0.2)
-    assert g.due(0.2) is None  # a and b are both active now: frames 0.1 (b) and 0.2 (a) wait
-    g.arrived("b", 0.2, now=0.25)
-    assert g.due(0.25) == pytest.approx(0.2)  # complete; the incomplete older frame is dropped
-    assert g.next_deadline() is None
 
 
 def test_host_stall_names_the_rejections_since_the_last_fused_state() -> None:
