@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ...metrics import anees_band
+from ... import evaluation as ev
 from .settings import BLINDSPOT_SCENARIOS, CONNECTED, DENSITIES, EGO, GROSS_ERROR_M, LOCKED_M, SIM_SCENARIOS
 
 __all__ = [
@@ -61,26 +61,19 @@ def run_rmse(r: dict, name: str, burnin_s: float) -> float:
 
 
 def time_series(rs: list[dict], name: str, bucket_s: float = 1.0) -> list[list[float]]:
-    """RMSE against time: for each ``bucket_s`` bucket [t0, t0 + bucket_s), each run's RMSE in it, then
-    [t0, mean over runs, 5th and 95th percentile over runs, runs] (the whole run, burn-in included)."""
-    per_bucket: dict[int, list[float]] = defaultdict(list)
-    for r in rs:
-        a = np.asarray(r["series"].get(name, []), dtype=float)
-        if not a.size:
-            continue
-        b = np.floor(a[:, 0] / bucket_s + 1e-9).astype(int)
-        for k in np.unique(b):
-            per_bucket[int(k)].append(float(np.sqrt(a[b == k, 1].mean())))
-    return [
-        [
-            _r(k * bucket_s, 2),
-            _r(float(np.mean(v))),
-            _r(float(np.percentile(v, 5))),
-            _r(float(np.percentile(v, 95))),
-            len(v),
-        ]
-        for k, v in sorted(per_bucket.items())
-    ]
+    """RMSE against time of series ``name`` (:func:`mapcontainer.evaluation.rmse_vs_time`, the whole run,
+    burn-in included): per ``bucket_s`` bucket [t0, mean of the runs' RMSE, 5th and 95th percentile, runs]."""
+    t, sq, run = [], [], []
+    for j, r in enumerate(rs):
+        a = np.asarray(r["series"].get(name, []), dtype=float).reshape(-1, 2)
+        t.append(a[:, 0])
+        sq.append(a[:, 1])
+        run.append(np.full(len(a), j))
+    if not rs:
+        return []
+    v = ev.rmse_vs_time(np.concatenate(t), np.concatenate(sq), np.concatenate(run), bucket_s)
+    rows = zip(v.t_start, v.mean, v.lo, v.hi, v.runs, strict=True)
+    return [[_r(t0, 2), _r(m), _r(lo), _r(hi), int(n)] for t0, m, lo, hi, n in rows]
 
 
 def objects_summary(rs: list[dict], name: str, burnin_s: float) -> dict[str, float]:
@@ -113,7 +106,7 @@ def consistency(rs: list[dict], name: str, dof: int, burnin_s: float) -> dict[st
     """Both forms of the NEES check of series ``name`` (dimension ``dof``) over the scored frames.
 
     * per run: each run's mean NEES is one sample; ANEES = their mean, with the 95 % band of
-      :func:`~mapcontainer.metrics.anees_band` for n = runs (samples within a run are correlated in
+      :func:`mapcontainer.evaluation.anees` for n = runs (samples within a run are correlated in
       time, so this band is the lenient form: a value outside it is a real inconsistency);
     * per cell: for every (frame, object or vehicle) estimated in >= MIN_RUNS_PER_CELL runs, the
       average NEES over those m independent runs against the band of m samples; the fraction of cells
@@ -130,18 +123,13 @@ def consistency(rs: list[dict], name: str, dof: int, burnin_s: float) -> dict[st
     out: dict[str, Any] = {"dof": dof, "runs": len(per_run)}
     if not per_run:
         return out
-    lo, hi = anees_band(dof, len(per_run))
-    value = float(np.mean(per_run))
-    used = inside = 0
-    for vals in cells.values():
-        if len(vals) >= MIN_RUNS_PER_CELL:
-            a, b = anees_band(dof, len(vals))
-            used += 1
-            inside += a <= float(np.mean(vals)) <= b
+    run = ev.anees(per_run, dof)
+    per_cell = [ev.anees(vals, dof).inside for vals in cells.values() if len(vals) >= MIN_RUNS_PER_CELL]
+    used, inside = len(per_cell), sum(per_cell)
     out.update(
-        anees=_r(value),
-        band=[_r(lo), _r(hi)],
-        inside=bool(lo <= value <= hi),
+        anees=_r(run.value),
+        band=[_r(run.lo), _r(run.hi)],
+        inside=run.inside,
         per_run_p5_p50_p95=[_r(float(np.percentile(per_run, q))) for q in (5, 50, 95)],
         cells=used,
         cells_inside_fraction=_r(inside / used) if used else float("nan"),
