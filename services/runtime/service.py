@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import queue
@@ -23,6 +24,10 @@ from .config import ServiceSettings, ZenohSettings, open_session
 from .metrics import DEGRADED_AFTER_REJECT_S, DEGRADING_REJECTS, STATES, ServiceMetrics, build_health
 
 EXIT_THREAD_DIED = 70  # EX_SOFTWARE: a service whose worker thread died exits with it
+# Undeclaring and closing the Zenoh session are given this long; then the process exits anyway, with the
+# stacks of its threads in its log. A close that never returns is a known, rare Zenoh defect
+# (eclipse-zenoh/zenoh#969); a service asked to stop must stop.
+CLOSE_DEADLINE_S = 5.0
 
 
 # ------------------------------------------------------------------------------ the service
@@ -147,6 +152,10 @@ class Service:
                 th.join(timeout=5.0)
                 if th.is_alive():
                     self.log.warning("thread %s did not stop within 5 s", th.name)
+        code = EXIT_THREAD_DIED if self.thread_died is not None and exc is None else 0 if exc is None else 1
+        watchdog = threading.Timer(CLOSE_DEADLINE_S, self._close_hung, args=(code,))
+        watchdog.daemon = True
+        watchdog.start()
         try:
             for d in reversed(self._declared):
                 try:
@@ -159,10 +168,22 @@ class Service:
             self._health_pub.undeclare()
         finally:
             self.session.close()
+            watchdog.cancel()
             self._restore_signals()
             self.log.info("stopped after %.1f s", time.monotonic() - self._t0)
         if self.thread_died is not None and exc is None:
             raise SystemExit(EXIT_THREAD_DIED)
+
+    def _close_hung(self, code: int) -> None:
+        self.log.error(
+            "closing the Zenoh session did not finish within %.0f s: exiting %d without it; thread stacks follow",
+            CLOSE_DEADLINE_S,
+            code,
+        )
+        for h in logging.getLogger().handlers:
+            h.flush()
+        faulthandler.dump_traceback(all_threads=True)
+        os._exit(code)
 
     def ready(self) -> None:
         """Declare the liveliness token: the service is wired (subscribers declared) and working.
@@ -198,8 +219,11 @@ class Service:
             return
         for sig in (signal.SIGINT, signal.SIGTERM):
             self._old_handlers[sig] = signal.signal(sig, self._on_signal)
+        faulthandler.register(signal.SIGUSR1, all_threads=True)  # `kill -USR1 PID`: the stacks of a stuck service
 
     def _restore_signals(self) -> None:
+        if self._old_handlers:
+            faulthandler.unregister(signal.SIGUSR1)
         for sig, h in self._old_handlers.items():
             signal.signal(sig, h)
         self._old_handlers.clear()

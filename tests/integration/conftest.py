@@ -77,9 +77,7 @@ class LivelinessWatch:
     def wait(self, pred: Callable[[], bool], timeout: float, what: str) -> None:
         with self._cond:
             if not self._cond.wait_for(pred, timeout):
-                raise AssertionError(
-                    f"timed out after {timeout} s waiting for {what}; alive: {sorted(self.alive)}"
-                )
+                raise AssertionError(f"timed out after {timeout} s waiting for {what}; alive: {sorted(self.alive)}")
 
     def wait_alive(self, key: str, timeout: float = 60.0) -> None:
         self.wait(lambda: key in self.alive, timeout, f"liveliness token {key}")
@@ -139,6 +137,18 @@ def spawn(tmp_path):
             os.kill(pid, signal.SIGKILL)
 
 
+def stop(proc: subprocess.Popen, timeout: float = 20.0) -> int:
+    """SIGINT ``proc`` (started by ``spawn``) and return its exit code; if it has not exited within
+    ``timeout``, fail with its thread stacks (services dump them on SIGUSR1) and the end of its log."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        pytest.fail(f"{proc.args} did not stop within {timeout:.0f} s of SIGINT:\n{proc.log_path.read_text()[-6000:]}")
+
+
 def mapc(
     *args: str, timeout: float = 120.0, env: dict | None = None, cwd: str | Path = REPO
 ) -> subprocess.CompletedProcess:
@@ -156,6 +166,11 @@ def mapc(
 @pytest.fixture(name="wait_for")
 def _wait_for_fixture():
     return wait_for
+
+
+@pytest.fixture(name="stop")
+def _stop_fixture():
+    return stop
 
 
 @pytest.fixture(name="mapc")
