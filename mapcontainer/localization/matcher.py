@@ -81,7 +81,15 @@ class MatcherParams(BaseModel):
     # Measurement noise.
     point_sigma_px: float = Field(2.0, gt=0, description="1-sigma of a point detection incl. map error (px)")
     pole_sigma_px: float = Field(2.0, gt=0, description="1-sigma of a pole segment endpoint across the pole (px)")
-    pole_floor_px: float = Field(1.0, ge=0, description="extra 1-sigma of D_L for map and model error (px)")
+    pole_floor_px: float = Field(1.0, ge=0, description="extra 1-sigma of D_L for model error (px)")
+    landmark_map_sigma_m: float = Field(
+        0.05,
+        ge=0,
+        description="1-sigma of a map landmark's own position error per axis (m), the map's specification: it "
+        "moves the landmark's projection by f sigma / depth (px), added to the detection's sigma (a lamp post "
+        "10 m ahead: 5 px against the detector's 2). The error shared by every landmark in view (the survey's "
+        "drift) cannot be seen in one frame: the Localizer accounts for it (LocalizerParams.match_bias_sigma)",
+    )
     lane_sigma_px: float = Field(
         2.0,
         gt=0,
@@ -334,6 +342,7 @@ class RoundData:
     pole_M1: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # detected endpoints
     pole_n: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # unit normal of M1 -> M2
     pole_W: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    pt_sigma: np.ndarray = field(default_factory=lambda: np.ones(0))  # per point landmark, px
     lane_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     lane_sigma: np.ndarray = field(default_factory=lambda: np.ones(0))  # per sample, mask px
     lane_cap: float = 10.0  # mask px
@@ -707,7 +716,8 @@ class MapMatcher:
         vis = z[:nP] > near_z
         if vis.any():
             near, uvp, Jp = near_pt[vis], uv[:nP][vis], J[:nP][vis]
-            S = Jp @ P @ Jp.transpose(0, 2, 1) + (p.point_sigma_px**2 + floor2) * np.eye(2)
+            var_det = p.point_sigma_px**2 + self._map_var_px(fd, z[:nP][vis])
+            S = Jp @ P @ Jp.transpose(0, 2, 1) + (var_det + floor2)[:, None, None] * np.eye(2)
             diff = fd.pt_uv[None, :, :] - uvp[:, None, :]  # (K, D, 2)
             d2 = np.einsum("kdi,kij,kdj->kd", diff, np.linalg.inv(S), diff)
             ok = (
@@ -718,6 +728,7 @@ class MapMatcher:
             r, c = _assign(d2, ok)
             rd.pt_map, rd.pt_det = near[r], c
             rd.pt_xyz, rd.pt_uv = self._pt_xyz[rd.pt_map], fd.pt_uv[rd.pt_det]
+            rd.pt_sigma = np.sqrt(var_det[r])
 
         # Poles (D_L): distance of the detected endpoints to the projected pole's line, with overlap.
         if nL:
@@ -752,7 +763,9 @@ class MapMatcher:
                 tm = np.clip(0.5 * (t1 + t2), 0.0, 1.0)
                 jnA, jnB = np.einsum("ki,kij->kj", n, JA), np.einsum("ki,kij->kj", n, JB)
                 jn = (1.0 - tm)[:, :, None] * jnA[:, None, :] + tm[:, :, None] * jnB[:, None, :]
+                map_sd = np.sqrt(self._map_var_px(fd, np.stack([za[keep], zb[keep]], axis=1)))  # (K, 2)
                 var = np.einsum("kdi,ij,kdj->kd", jn, P, jn) + p.pole_sigma_px**2 + floor2
+                var = var + (map_sd.mean(axis=1) ** 2)[:, None]
                 mean_sq = 0.5 * (e1**2 + e2**2)
                 d2 = mean_sq / var
                 ok = (
@@ -767,7 +780,7 @@ class MapMatcher:
                 rd.pole_M1 = fd.pole_M1[c]
                 dM = fd.pole_M2[c] - rd.pole_M1
                 rd.pole_n = np.stack([-dM[:, 1], dM[:, 0]], axis=1) / np.linalg.norm(dM, axis=1)[:, None]
-                rd.pole_W = self.pole_whitening(m1[r], m2[r], rd.pole_M1, fd.pole_M2[c])
+                rd.pole_W = self.pole_whitening(m1[r], m2[r], rd.pole_M1, fd.pole_M2[c], map_sd[r])
 
         # Lanes (EDT): once within the basin of the cap; dashes once the longitudinal error cannot alias.
         if anchor is not None and (len(rd.pt_map) + len(rd.pole_map)) and sig_lon > p.lane_dashed_sigma_m:
@@ -816,14 +829,21 @@ class MapMatcher:
             pts, val, w_px = pts[sel], val[sel], w_px[sel]
         return pts, w_px, int(np.count_nonzero(val < cap))
 
-    def pole_whitening(self, m1, m2, M1, M2) -> np.ndarray:
-        """W (K, 2, 2) with W^T W = C^-1, C the covariance of D_L's (d_1, d_2) from the detection noise.
+    def _map_var_px(self, fd: FrameData, depth: np.ndarray) -> np.ndarray:
+        """Pixel variance of a landmark's projection at ``depth`` (m) from its own map error."""
+        f = 0.5 * (fd.intr.fx + fd.intr.fy)
+        return (f * self.params.landmark_map_sigma_m / np.maximum(depth, self.params.min_depth_m)) ** 2
+
+    def pole_whitening(self, m1, m2, M1, M2, map_sd=None) -> np.ndarray:
+        """W (K, 2, 2) with W^T W = C^-1, C the covariance of D_L's (d_1, d_2) from the detection noise
+        and the map pole's own position error (``map_sd`` (K, 2): its 1-sigma at each endpoint in px).
 
         The line through the detected endpoints is displaced at position s along M1 -> M2 (s = 0
         at M1, 1 at M2) by (1 - s) n_1 + s n_2, with n_1, n_2 ~ N(0, sigma^2) the endpoints' noise
         across the line, so ``C = sigma^2 A A^T + floor^2 I`` with ``A = [[1-s_1, s_1], [1-s_2, s_2]]``
         and s_k the position of the projected map endpoint m_k. A short or partial detection thus
-        weighs less where the map pole extends beyond it.
+        weighs less where the map pole extends beyond it. A map pole off its true place moves both
+        endpoints' projections the same way: ``C += s s^T``, s = map_sd.
         """
         p = self.params
         d = M2 - M1
@@ -832,6 +852,8 @@ class MapMatcher:
         s2 = np.einsum("ki,ki->k", m2 - M1, d) / L2
         A = np.stack([np.stack([1 - s1, s1], axis=1), np.stack([1 - s2, s2], axis=1)], axis=1)
         C = p.pole_sigma_px**2 * A @ A.transpose(0, 2, 1) + max(p.pole_floor_px, 1e-3) ** 2 * np.eye(2)
+        if map_sd is not None:
+            C = C + map_sd[:, :, None] * map_sd[:, None, :]
         return np.linalg.inv(np.linalg.cholesky(C))
 
     # ------------------------------------------------------------------ residuals
@@ -844,7 +866,6 @@ class MapMatcher:
         of each point landmark, of each pole) to detect landmarks that moved behind the camera, and
         ``lanes_under_cap``. One rotation and one projection of all the round's map points serve every block.
         """
-        p = self.params
         x = np.asarray(x, dtype=float)
         rot = rpy_to_matrix_jac(*x[3:])
         out: dict[str, Any] = {}
@@ -854,8 +875,8 @@ class MapMatcher:
         else:
             uv, z, J = np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2, 6))
         # D_P
-        s = p.point_sigma_px
-        out["points"] = ((uv[:nP] - rd.pt_uv).reshape(-1) / s, J[:nP].reshape(-1, 6) / s)
+        s = np.repeat(rd.pt_sigma, 2)
+        out["points"] = ((uv[:nP] - rd.pt_uv).reshape(-1) / s, J[:nP].reshape(-1, 6) / s[:, None])
         # D_L: d_k = n . (m_k - M_1), d d_k / dx = n^T dm_k/dx, whitened by W.
         if nL:
             a, b = slice(nP, nP + nL), slice(nP + nL, nP + 2 * nL)

@@ -94,9 +94,10 @@ def test_a_landmark_beside_the_camera_does_not_capture_a_far_detection(seed):
         frame.lane_mask,
     )
     P = np.diag([0.75**2, 0.75**2, 0.05**2, 0.01**2, 0.01**2, np.radians(2.0) ** 2])
-    res = MapMatcher(HDMAP).match(frame, truth, P)
+    exact = MatcherParams(landmark_map_sigma_m=0.0)  # the frame comes from the exact map
+    res = MapMatcher(HDMAP, exact).match(frame, truth, P)
     assert np.hypot(*pose_error(res.pose_filtered, truth)[:2]) < 0.2
-    trapped = MapMatcher(HDMAP, MatcherParams(near_sigmas=0.0)).match(frame, truth, P)
+    trapped = MapMatcher(HDMAP, exact.model_copy(update={"near_sigmas": 0.0})).match(frame, truth, P)
     assert np.hypot(*pose_error(trapped.pose_filtered, truth)[:2]) > 3.0
 
 
