@@ -27,11 +27,12 @@ from schemas.models import MAX_OBJECTS
 
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer
-from .graph import FusionGraph, SolveReport
+from .graph import FusionGraph
 from .misbehaviour import MisbehaviourMonitor
 from .motion import accel_psd, cv_predict
 from .params import FusionParams
 from .poses import pose_cov_from_tangent, sym_from_upper, upper_from_sym, vector_from_pose3
+from .solver import SolveReport
 
 __all__ = ["Container", "FusionParams", "IngestResult"]
 
