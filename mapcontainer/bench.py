@@ -6,8 +6,7 @@ import time
 
 import numpy as np
 
-from schemas import encode
-from schemas.arrays import cov_from_upper
+from schemas import body_pose_cov, encode
 
 from . import geometry as geo
 from .metrics import percentile, rmse
@@ -80,7 +79,7 @@ def bench_localization(
                     e_yaw.append(np.degrees(err[5:]))
                 err_p = _pose_error(prior.pose, truth)
                 e_prior.append(err_p[:2])
-                nees_prior.append(float(err_p @ np.linalg.solve(cov_from_upper(prior.pose_cov), err_p)))
+                nees_prior.append(float(err_p @ np.linalg.solve(body_pose_cov(prior), err_p)))
     return {
         "scenario": scenario,
         "error_sources": enabled_error_sources(sc),

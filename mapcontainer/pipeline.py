@@ -33,8 +33,7 @@ from typing import Literal
 
 import numpy as np
 
-from schemas import FusedState, GroundTruth, Rejection, encode
-from schemas.arrays import cov_from_upper
+from schemas import FusedState, GroundTruth, Rejection, body_pose_cov, encode
 from schemas.codec import peek
 
 from . import geometry as geo
@@ -104,12 +103,15 @@ class TickRecord:
     t: float
     truth: GroundTruth
     gnss: dict[str, np.ndarray]  # vid -> GNSS fix p_map
-    priors: dict[str, np.ndarray]  # vid -> the pose the vehicle sends (per-frame map matching; distributed mode)
-    prior_covs: dict[str, np.ndarray]  # vid -> 6x6
+    priors: dict[str, np.ndarray]  # vid -> the pose the vehicle sends (its filtered estimate; distributed mode)
+    prior_covs: dict[str, np.ndarray]  # vid -> 6x6, of the body pose (schemas.body_pose_cov)
     fused: dict[str, FusedState]  # view name -> fused state at t
     loc_mode: dict[str, str] = field(default_factory=dict)  # vid -> "map_matching" | "fallback" (distributed)
     onboard: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> the vehicle's filtered pose (distributed)
     onboard_covs: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> 6x6
+    # vid -> this frame's map matching alone (the baseline "map matching per frame"; the filtered pose in fallback)
+    per_frame: dict[str, np.ndarray] = field(default_factory=dict)
+    per_frame_covs: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> 6x6, of the body pose
     released: dict[str, float] = field(default_factory=dict)  # view name -> when its gate released this frame
 
 
@@ -216,7 +218,7 @@ def run_pipeline(
         if t_frame is None:
             return False
         rec = records[int(round(t_frame / world.dt))]  # the frame's time is the ego's clock: ms off t_k
-        rec.fused[name] = hosts[name].fuse(t_frame)
+        rec.fused[name] = hosts[name].fuse(t_frame, gates[name].tolerance_s)
         rec.released[name] = now
         return True
 
@@ -254,12 +256,17 @@ def run_pipeline(
             rec.gnss[vid] = np.asarray(frame.gnss.p_map, dtype=float)
             if mode == "distributed":
                 rec.priors[vid] = np.asarray(msg.pose, dtype=float)
-                rec.prior_covs[vid] = cov_from_upper(msg.pose_cov)
+                rec.prior_covs[vid] = body_pose_cov(msg)
                 rec.loc_mode[vid] = msg.quality.mode
                 res = agents[vid].last_result
                 if res.pose_filtered is not None:  # None until the localizer has initialised
                     rec.onboard[vid] = np.asarray(res.pose_filtered, dtype=float)
                     rec.onboard_covs[vid] = np.asarray(res.cov_filtered, dtype=float)
+                    if res.pose_frame is not None:
+                        bias = res.cov_filtered - res.cov_camera  # the error every frame repeats
+                        rec.per_frame[vid], rec.per_frame_covs[vid] = res.pose_frame, res.cov_frame + bias
+                    else:
+                        rec.per_frame[vid], rec.per_frame_covs[vid] = rec.onboard[vid], rec.onboard_covs[vid]
             for m in faults[vid].apply(msg) if faults[vid] else [msg]:
                 message = encode(m)
                 payload = signers[vid].sign(message, SIGNING_EPOCH_S + t) if signing else message

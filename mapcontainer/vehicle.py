@@ -22,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from schemas import LocalizationQuality, Observations, RawObservations, Rejection, VehiclePrior
+from schemas import LocalizationQuality, Observations, RawObservations, Rejection, VehiclePrior, body_pose_cov
 from schemas.arrays import cov_to_upper
 
 from . import lanemask
@@ -82,7 +82,7 @@ class VehicleAgent:
         self.vehicle_id = vehicle_id
         self.fleet = fleet
         self.mode = mode
-        self.localizer = Localizer(hdmap, params or LocalizerParams(report="frame"), initial_pose=initial_pose)
+        self.localizer = Localizer(hdmap, params or LocalizerParams(), initial_pose=initial_pose)
         width = raw_mask_max_width_px
         if width is None:
             width = self.localizer.params.matcher.lane_dt_max_width_px
@@ -108,11 +108,13 @@ class VehicleAgent:
             seq=self._next_seq(),
             t_meas=obs.t_meas,
             t_sent=t,
-            pose=res.pose,
-            pose_cov=cov_to_upper(res.cov),
+            pose=res.pose_filtered if res.initialized else res.pose,
+            pose_cov=cov_to_upper(res.cov_camera if res.initialized else res.cov),
             v_map=res.velocity_map,
             quality=LocalizationQuality(**res.quality()),
             objects=obs.objects,
+            pose_filtered=True,
+            pose_bias_sigma=np.asarray(self.localizer.params.match_bias_sigma, np.float16) if res.initialized else None,
         )
         self.last = prior
         return prior
@@ -186,5 +188,5 @@ class VehicleAgent:
             "map_matching": float(q.mode == "map_matching"),
             "landmark_inliers": float(q.n_points + q.n_poles),
             "lane_inliers": float(q.n_lane),
-            "pose_sigma_m": float(np.sqrt(self.last.pose_cov[0] + self.last.pose_cov[6])),
+            "pose_sigma_m": float(np.sqrt(np.trace(body_pose_cov(self.last)[:2, :2]))),
         }

@@ -2,6 +2,7 @@
 
 from .codec import REASONS, Rejection, decode, encode
 from .models import (
+    READABLE_VERSIONS,
     SCHEMA_VERSION,
     CameraInfo,
     Certificate,
@@ -21,9 +22,12 @@ from .models import (
     SecuredMessage,
     SensorFrame,
     VehiclePrior,
+    bias_cov,
+    body_pose_cov,
 )
 
 __all__ = [
+    "READABLE_VERSIONS",
     "REASONS",
     "SCHEMA_VERSION",
     "CameraInfo",
@@ -45,6 +49,8 @@ __all__ = [
     "SecuredMessage",
     "SensorFrame",
     "VehiclePrior",
+    "bias_cov",
+    "body_pose_cov",
     "decode",
     "encode",
 ]

@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from .models import SCHEMA_VERSION, Envelope
+from .models import READABLE_VERSIONS, Envelope
 from .tags import NAMES, TAGS
 
 __all__ = ["MAX_MESSAGE_BYTES", "REASONS", "Rejection", "decode", "encode", "peek", "tag_map", "untag_map"]
@@ -135,8 +135,8 @@ class _BadKey(ValueError):
 def _key_problem(key: Any, where: str) -> str:
     if isinstance(key, str) and key in TAGS:
         return (
-            f"{where}map keyed by field name ({key!r}): schema_version {SCHEMA_VERSION} keys fields by "
-            f"integer tag (a schema_version {SCHEMA_VERSION - 1} or older writer?)"
+            f"{where}map keyed by field name ({key!r}): schema_version {READABLE_VERSIONS[0]} and later key "
+            f"fields by integer tag (a schema_version {READABLE_VERSIONS[0] - 1} or older writer?)"
         )
     return f"{where}map key {_payload_repr(key)} ({type(key).__name__}) is not an integer field tag"
 
@@ -202,8 +202,9 @@ def decode(data: bytes, model: type[M]) -> M | Rejection:
     if bad is not None:
         return Rejection("malformed", _key_problem(bad, "")[:200])
     version = obj.get(_VERSION_TAG)
-    if type(version) is not int or version != SCHEMA_VERSION:  # an int: neither True nor 1.0
-        detail = f"schema_version {_payload_repr(version)}, this reader knows {SCHEMA_VERSION}"
+    if type(version) is not int or version not in READABLE_VERSIONS:  # an int: neither True nor 1.0
+        known = ", ".join(map(str, READABLE_VERSIONS))
+        detail = f"schema_version {_payload_repr(version)}, this reader knows {known}"
         return Rejection("schema_version", detail)
     try:
         fields = untag_map(model, obj)

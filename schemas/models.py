@@ -22,10 +22,13 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .arrays import F32, I16, U8, U32, Cov, cov_from_upper, cov_to_upper
+from .arrays import F16, F32, I16, U8, U32, Cov, cov_from_upper, cov_to_upper
 
 __all__ = [
+    "READABLE_VERSIONS",
     "SCHEMA_VERSION",
+    "bias_cov",
+    "body_pose_cov",
     "CameraInfo",
     "Certificate",
     "Envelope",
@@ -45,7 +48,9 @@ __all__ = [
     "VehiclePrior",
 ]
 
-SCHEMA_VERSION = 3  # 2: compact V2X covariances; 3: fields keyed by integer tag (schemas/tags.py)
+SCHEMA_VERSION = 4  # 2: compact V2X covariances; 3: fields keyed by integer tag (schemas/tags.py); 4: filtered priors
+# Versions a reader decodes: a version 3 message is a version 4 one without the fields 4 added (their defaults).
+READABLE_VERSIONS = (3, 4)
 
 # Limits that keep a hostile payload from allocating without bound.
 MAX_OBJECTS = 1024
@@ -294,6 +299,20 @@ class VehiclePrior(Envelope):
     v_map: F32(3) = Field(description="body velocity in the map frame (m/s)")
     quality: LocalizationQuality
     objects: ObjectObservations = Field(default_factory=ObjectObservations)
+    pose_filtered: bool = Field(
+        False,
+        description="what pose and pose_cov are. False (and every version 3 message): this frame's camera "
+        "evidence with a weak prior, independent from frame to frame (a receiver fuses every frame). True: the "
+        "vehicle's filtered estimate, all it knows so far of the pose as its camera sees the map (a receiver "
+        "fuses only the newest; the body's pose is off by the error in pose_bias_sigma)",
+    )
+    pose_bias_sigma: F16(6) | None = Field(
+        None,
+        description="1-sigmas of the error every frame repeats, in the body frame (along, across, up (m); roll, "
+        "pitch, yaw (rad)): camera calibration, the map's survey drift. The true body pose is off pose by it; "
+        "the vehicle's detections share it with the pose, so they sit right in the map from pose. Body pose "
+        "covariance = pose_cov + R(yaw) diag(sigma^2) R(yaw)^T (schemas.body_pose_cov)",
+    )
     # pose_cov is positive definite: checked by its type (Cov, schemas.arrays.CovSpec)
 
     @model_validator(mode="after")
@@ -301,7 +320,30 @@ class VehiclePrior(Envelope):
         _check_bound("pose position", self.pose[:3], MAX_COORD_M)
         _check_bound("pose angles", self.pose[3:], 2 * np.pi)
         _check_bound("v_map", self.v_map, MAX_SPEED_MPS)
+        if self.pose_bias_sigma is not None:
+            _check_bound("pose_bias_sigma", self.pose_bias_sigma, MAX_COORD_M)
+            if np.any(self.pose_bias_sigma < 0):
+                raise ValueError("pose_bias_sigma must be non-negative")
         return self
+
+
+def body_pose_cov(prior: VehiclePrior) -> np.ndarray:
+    """The 6x6 covariance of the vehicle's body pose from a VehiclePrior: ``pose_cov`` plus the error every
+    frame repeats (``pose_bias_sigma``, body frame, turned into the map frame by the pose's yaw)."""
+    cov = cov_from_upper(np.asarray(prior.pose_cov, dtype=float))
+    if prior.pose_bias_sigma is None:
+        return cov
+    return cov + bias_cov(prior.pose_bias_sigma, float(prior.pose[5]))
+
+
+def bias_cov(sigma_body, yaw: float) -> np.ndarray:
+    """Covariance in the map frame of a pose error with 1-sigmas ``sigma_body`` (along, across, up, roll,
+    pitch, yaw) in the body frame of a vehicle heading ``yaw``."""
+    sd = np.asarray(sigma_body, dtype=float)
+    B = np.eye(6)
+    c, s = np.cos(yaw), np.sin(yaw)
+    B[:2, :2] = [[c, -s], [s, c]]
+    return (B * sd**2) @ B.T
 
 
 class FusedState(Envelope):

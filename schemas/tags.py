@@ -130,7 +130,10 @@ TAGS: dict[str, int] = {
     "flagged": 93,
     # SensorFrame / RawObservations (added)
     "lane_mask_pooled_png": 94,
-    # new fields: next tag 95
+    # VehiclePrior (added in schema_version 4)
+    "pose_filtered": 95,
+    "pose_bias_sigma": 96,
+    # new fields: next tag 97
 }
 
 

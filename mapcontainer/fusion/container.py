@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import FusedState, RawObservations, Rejection, VehiclePrior, decode
+from schemas import FusedState, RawObservations, Rejection, VehiclePrior, bias_cov, decode
 from schemas.models import MAX_OBJECTS
 
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
@@ -80,6 +80,8 @@ class Container:
         self.tracker = Tracker(params)
         self._counts: Counter[str] = Counter()
         self._cross: list = []  # (observed vehicle id, Detection) waiting for that vehicle's frame
+        # vid -> body-frame 1-sigmas of the error its every frame repeats (VehiclePrior.pose_bias_sigma)
+        self._bias_sigma: dict[str, np.ndarray] = {}
         self._rejected: Counter[str] = Counter()
         self._seq = 0
         self._last: SolveReport | None = None
@@ -131,17 +133,27 @@ class Container:
         return IngestResult(False, reason)
 
     # ------------------------------------------------------------------ fusion
-    def fuse(self, t: float) -> FusedState:
-        """Fuse everything received with t_meas <= t within the window; the state at time t."""
+    def fuse(self, t: float, tolerance_s: float = 0.0) -> FusedState:
+        """Fuse everything received with t_meas <= t + tolerance_s within the window; the state at time t.
+
+        ``tolerance_s``: the frame's messages lie within this of t (``FrameGate.tolerance_s``: the vehicles'
+        clocks are a few ms apart); a vehicle whose frame is stamped after t is predicted back to t.
+        """
         t0 = time.perf_counter()
         t = float(t)
         t_min = t - self.params.window_s
-        msgs = [m for m in self.buffer.pop_until(t)]
+        msgs = [m for m in self.buffer.pop_until(t + tolerance_s)]
         fresh = [m for m in msgs if m.t_meas >= t_min]
         self._counts["expired"] += len(msgs) - len(fresh)
         keys = []
         for m in fresh:  # all poses first, so that detections can be matched to any vehicle of the instant
-            key = self.graph.add_vehicle_prior(m.sender, m.t_meas, m.pose, sym_from_upper(m.pose_cov), m.v_map)
+            key = self.graph.add_vehicle_prior(
+                m.sender, m.t_meas, m.pose, sym_from_upper(m.pose_cov), m.v_map, filtered=m.pose_filtered
+            )
+            if m.pose_bias_sigma is None:
+                self._bias_sigma.pop(m.sender, None)
+            else:
+                self._bias_sigma[m.sender] = np.asarray(m.pose_bias_sigma, dtype=float)
             if key is None:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
@@ -287,6 +299,9 @@ class Container:
             delta = det.t - target.t
             z = det.p_body - R_obs.T @ target.v_map * delta
             cov = det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3)
+            if vid in self._bias_sigma:  # the detection sees the body; the graph's pose is the camera's
+                S_b = bias_cov(self._bias_sigma[vid], float(target.pose[5]))[:3, :3]
+                cov = cov + R_obs.T @ S_b @ R_obs
             items.append((obs.key, target.key, z, cov))
         self.graph.add_cross_detections(items)
         self._counts["cross_detections"] += len(items)
@@ -308,12 +323,14 @@ class Container:
             else:
                 cov = pose_cov_from_tangent(pose, cov_xi)
             dt = t - ts
-            if dt > 0:  # its newest frame is older than t (latency): constant velocity to t, as the motion factor
+            if dt != 0:  # its newest frame is not at t (latency, clocks): constant velocity to t, as the motion factor
                 pose = pose.copy()
                 pose[:3] += g.vehicles[vid].latest().v_map * dt
                 s_t2 = (pp.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * pp.vehicle_accel_sigma_mps2 * dt**2) ** 2
                 s_r2 = (pp.vehicle_rate_sigma_radps * dt) ** 2
                 cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
+            if vid in self._bias_sigma:  # the body is off the pose its camera sees by this
+                cov = cov + bias_cov(self._bias_sigma[vid], float(pose[5]))
             poses.append(pose)
             pose_covs.append(cov)
         ids, cls, dts, xs, Cs = [], [], [], [], []

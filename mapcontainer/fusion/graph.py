@@ -2,7 +2,9 @@
 
 States (GTSAM keys):
 
-* ``x``: Pose3 T_map_body of a connected vehicle at the t_meas of each of its messages;
+* ``x``: Pose3 T_map_body of a connected vehicle at the t_meas of each of its messages: the pose its
+  camera sees in the map (a vehicle's detections are placed from it; the body is off it by the error
+  every frame repeats, VehiclePrior.pose_bias_sigma, which the container adds to the output);
 * ``s``: Vector6 state [p, v] (map-frame position and velocity) of an obstacle track at each instant
   it was detected within ``track_lag_s`` (0.3 s) of its newest (one 6-D variable rather than two
   Point3s: half the variables, and GTSAM's elimination costs about 15 us per clique here: cycles
@@ -16,7 +18,10 @@ States (GTSAM keys):
 Factors (the negative log-likelihood is their sum: the paper's X^D = argmin sum e^T R^-1 e):
 
 * each vehicle's self-localization z_k (its covariance over [x, y, z, roll, pitch, yaw] mapped to
-  Pose3's tangent, see :mod:`.poses`): ``PriorFactorPose3``, or, with
+  Pose3's tangent, see :mod:`.poses`). A filtered estimate (VehiclePrior.pose_filtered, what vehicles
+  send) already holds everything the vehicle knows, so only the vehicle's newest frame keeps one, a
+  ``PriorFactorPose3``: its information is used once, and the earlier frames hang on it by the motion
+  factors. Per-frame evidence (a version 3 sender): ``PriorFactorPose3`` on every frame, or, with
   ``pose_error_persistent_fraction`` a > 0, a linear factor on (x_k, b) where ``b`` (a Vector6 per
   vehicle, whitened units) is the part of the error that persists over the window: the whitened error
   is b + n_k with b ~ N(0, a I) and n_k ~ N(0, (1 - a) I) independent per frame (``_pose_prior``).
@@ -218,8 +223,15 @@ class FusionGraph:
         self.covariances.pop(key, None)
 
     # ------------------------------------------------------------------ vehicles
-    def add_vehicle_prior(self, vid: str, t: float, pose, pose_cov, v_map) -> int | None:
-        """Add a vehicle's self-localization at t; returns its pose key (None if that instant exists)."""
+    def add_vehicle_prior(self, vid: str, t: float, pose, pose_cov, v_map, filtered: bool = False) -> int | None:
+        """Add a vehicle's self-localization at t; returns its pose key (None if that instant exists).
+
+        ``filtered``: the pose is the vehicle's filtered estimate (VehiclePrior.pose_filtered), which holds
+        everything the vehicle knows so far: only the newest frame of the vehicle keeps its prior (the
+        earlier ones are dropped, a late frame gets none), so the vehicle's information is used once; its
+        earlier frames stay, tied by the motion factors, for the detections made from them. Otherwise
+        every frame's prior is independent evidence apart from the persistent part (``_pose_prior``).
+        """
         chain = self.vehicles.setdefault(vid, _Chain(cls=int(ObjectClass.VEHICLE)))
         tk = time_key(t)
         if tk in chain.states:
@@ -244,13 +256,20 @@ class FusionGraph:
             self._vehicle_motion(chain, chain.tkeys[i - 1], tk)
         if i < len(chain.tkeys) - 1:
             self._vehicle_motion(chain, tk, chain.tkeys[i + 1])
-        self._pose_prior(chain, i)
+        if not filtered:
+            self._pose_prior(chain, i)
+        elif i == len(chain.tkeys) - 1:
+            for old in list(chain.pose_prior_fids):
+                self._remove_factor(chain.pose_prior_fids.pop(old))
+                chain.states[old].prior_lin = None
+            self._pose_prior(chain, i, persistent=False)
         return key
 
-    def _pose_prior(self, chain: _Chain, i: int) -> None:
+    def _pose_prior(self, chain: _Chain, i: int, persistent: bool = True) -> None:
         """(Re)make the self-localization factor of the chain's i-th frame (module docstring).
 
-        With pose_error_persistent_fraction a = 0: PriorFactorPose3 with the reported covariance. With
+        With pose_error_persistent_fraction a = 0 or not ``persistent`` (a filtered prior, the only one
+        of its vehicle): PriorFactorPose3 with the reported covariance. With
         a > 0 the whitened prior residual u_k = L_k^-1 r_k (r_k = Local(z_k, x_k), L_k L_k^T = the
         reported covariance in the tangent) is u_k = beta + n_k: beta ~ N(0, a I) one vector per vehicle
         shared by all its frames in the window (the error that persists), n_k ~ N(0, (1 - a) I) per
@@ -262,7 +281,7 @@ class FusionGraph:
         tk = chain.tkeys[i]
         s = chain.states[tk]
         self._remove_factor(chain.pose_prior_fids.pop(tk, -1))
-        a = self.params.pose_error_persistent_fraction
+        a = self.params.pose_error_persistent_fraction if persistent else 0.0
         if a <= 0:
             f = gtsam.PriorFactorPose3(s.key, s.T, gtsam.noiseModel.Gaussian.Covariance(s.cov_xi))
             s.prior_lin = None

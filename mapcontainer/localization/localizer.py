@@ -74,6 +74,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from schemas import bias_cov
+
 from ..geometry import circular_mean, wrap_angle
 from ..hdmap.model import HDMap
 from .matcher import CameraFrame, MapMatcher, MatcherParams, MatchResult
@@ -247,6 +249,8 @@ class LocalizationResult:
     gnss_used: bool = False
     pose_filtered: np.ndarray | None = None
     cov_filtered: np.ndarray | None = None
+    # cov_filtered without the error every frame repeats (match_bias_sigma): of the pose as the camera sees the map
+    cov_camera: np.ndarray | None = None
     pose_frame: np.ndarray | None = None
     cov_frame: np.ndarray | None = None
     bad_input: bool = False  # the step's input was refused (``reason`` says why): the state did not move
@@ -1064,7 +1068,8 @@ class Localizer:
                 iterations=attempt.iterations,
                 converged=attempt.converged,
             )
-        pose_f, cov_f = self.y[:6].copy(), self.P[:6, :6] + self._match_bias_cov(self.y[5])
+        pose_f, cov_cam = self.y[:6].copy(), self.P[:6, :6].copy()
+        cov_f = cov_cam + self._match_bias_cov(pose_f[5])
         pose, cov = pose_f, cov_f
         frame_pose = frame_cov = None
         if mode == "map_matching":
@@ -1082,6 +1087,7 @@ class Localizer:
             gnss_used=gnss_used,
             pose_filtered=pose_f,
             cov_filtered=cov_f,
+            cov_camera=cov_cam,
             pose_frame=frame_pose,
             cov_frame=frame_cov,
             **q,
@@ -1089,11 +1095,7 @@ class Localizer:
 
     def _match_bias_cov(self, yaw: float) -> np.ndarray:
         """The covariance of the map-matching error no frame sees (``match_bias_sigma``), in the map frame."""
-        sd = np.asarray(self.params.match_bias_sigma)
-        B = np.eye(6)
-        c, s = np.cos(yaw), np.sin(yaw)
-        B[:2, :2] = [[c, -s], [s, c]]
-        return (B * sd**2) @ B.T
+        return bias_cov(self.params.match_bias_sigma, yaw)
 
 
 def _sigma_h(P) -> float:

@@ -129,7 +129,7 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
         if t is not None:
             t0 = time.perf_counter()
             try:
-                payload = encode(core.fuse(t))
+                payload = encode(core.fuse(t, gate.tolerance_s))
             except Exception:
                 outbox.put(("error", traceback.format_exc()))
                 payload = None

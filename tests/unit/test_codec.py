@@ -38,7 +38,7 @@ from schemas import (
 )
 from schemas.arrays import CovSpec, cov_from_upper, cov_to_upper
 from schemas.codec import MAX_MESSAGE_BYTES, peek, tag_map, untag_map
-from schemas.models import MAX_LANDMARKS, MAX_MASK_BYTES
+from schemas.models import MAX_LANDMARKS, MAX_MASK_BYTES, body_pose_cov
 from schemas.tags import NAMES, TAGS, check_table
 
 README = Path(__file__).resolve().parents[2] / "schemas" / "README.md"
@@ -312,7 +312,7 @@ def test_tags_are_stable() -> None:
     pinned = {"schema_version": 0, "seq": 3, "t_meas": 4, "pose": 6, "pose_cov": 7, "objects": 10, "cov": 17}
     assert {k: TAGS[k] for k in pinned} == pinned
     msg = vehicle_prior(False)
-    assert encode(msg)[:3] == bytes([0x80 | 11, 0, SCHEMA_VERSION])  # fixmap of 11 fields, tag 0 = version
+    assert encode(msg)[:3] == bytes([0x80 | 12, 0, SCHEMA_VERSION])  # fixmap of 12 fields, tag 0 = version
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -713,7 +713,7 @@ FUSED_STATE = {
 def decode_fused_state(data: bytes) -> dict:
     raw = msgpack.unpackb(data, raw=False, strict_map_key=False)  # a map keyed by integer tag
     msg = {FUSED_STATE[k]: v for k, v in raw.items() if k in FUSED_STATE}  # unknown tags: ignore
-    if msg.get("schema_version") != 3:
+    if msg.get("schema_version") not in (3, 4):  # 4 only added fields to VehiclePrior
         raise ValueError(f"unsupported schema_version {msg.get('schema_version')!r}")
 
     def arr(name, dtype, cols=None):  # msgpack bin -> little-endian, row-major array
@@ -789,3 +789,37 @@ def test_readme_compact_cov_recipe_decodes_our_prior() -> None:
     objects = namespace["compact_cov"](raw["objects"]["cov"], 3, "i1")
     np.testing.assert_allclose(pose[0], cov_from_upper(back.pose_cov), rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(objects, cov_from_upper(back.objects.cov), rtol=1e-6, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------ schema_version 4
+
+
+def test_a_version_3_vehicle_prior_still_decodes_as_per_frame_evidence() -> None:
+    raw = tagged(vehicle_prior(True))
+    raw[TAGS["schema_version"]] = 3
+    for name in ("pose_filtered", "pose_bias_sigma"):  # what a version 3 writer never wrote
+        raw.pop(TAGS[name], None)
+    out = decode(pack(raw), VehiclePrior)
+    assert isinstance(out, VehiclePrior), out
+    assert out.schema_version == 3 and out.pose_filtered is False and out.pose_bias_sigma is None
+    np.testing.assert_array_equal(body_pose_cov(out), cov_from_upper(np.asarray(out.pose_cov, float)))
+
+
+def test_a_filtered_prior_with_its_bias_round_trips_and_adds_the_bias_in_the_body_frame() -> None:
+    sigma = np.array([0.1, 0.05, 0.04, 0.0035, 0.0065, 0.0045])
+    msg = vehicle_prior(True).model_copy(update={"pose_filtered": True, "pose_bias_sigma": sigma.astype(np.float16)})
+    out = decode(encode(msg), VehiclePrior)
+    assert isinstance(out, VehiclePrior) and out.pose_filtered and out.schema_version == SCHEMA_VERSION == 4
+    np.testing.assert_allclose(out.pose_bias_sigma, sigma, rtol=1e-3)
+    extra = body_pose_cov(out) - cov_from_upper(np.asarray(out.pose_cov, float))
+    yaw = float(out.pose[5])  # 1.5 rad: "along" is mostly +y in the map
+    along = np.array([np.cos(yaw), np.sin(yaw)])
+    assert along @ extra[:2, :2] @ along == pytest.approx(float(out.pose_bias_sigma[0]) ** 2, rel=1e-6)
+    np.testing.assert_allclose(np.diag(extra)[2:], np.asarray(out.pose_bias_sigma[2:], float) ** 2, rtol=1e-6)
+
+
+@pytest.mark.parametrize("bad", [[-0.1, 0, 0, 0, 0, 0], [0.1, 0.1, 0.1, 0.1, 0.1]])
+def test_a_negative_or_short_bias_sigma_is_invalid(bad: list) -> None:
+    raw = tagged(vehicle_prior(True))
+    raw[TAGS["pose_bias_sigma"]] = np.asarray(bad, np.float16).tobytes()
+    assert_rejected(pack(raw), VehiclePrior, "invalid")

@@ -443,3 +443,44 @@ def test_a_departed_vehicle_leaves_the_track_priors():
     assert all("cv1" not in c.prior.vids for c in box.graph.tracks.values())
     assert any("cv0" in c.prior.vids for c in box.graph.tracks.values())
     assert len(box.out.object_id) == 3 and box.out.vehicle_ids == ["cv0"]
+
+
+def test_a_frame_stamped_a_few_ms_late_is_in_its_frame_and_predicted_back():
+    """Vehicles stamp a frame with their own clocks, a few ms apart: with the gate's tolerance, cv1's
+    frame stamped 5 ms after t is fused at t (predicted back by its velocity), not left for the next frame
+    (which published cv1's previous pose, 0.1 s old, as its pose at t)."""
+    box = Container(FusionParams(), "f", "host")
+    for k in range(5):
+        t = 0.1 * k
+        box.ingest(encode(prior("cv0", k, t, pose=(5 * t, 0, 0, 0, 0, 0))), t)
+        box.ingest(encode(prior("cv1", k, t + 0.005, pose=(5 * (t + 0.005), 10, 0, 0, 0, 0))), t)
+        out = box.fuse(t, tolerance_s=0.02)
+    i = out.vehicle_ids.index("cv1")
+    assert box.graph.vehicle_estimate("cv1")[0] == pytest.approx(0.405)
+    np.testing.assert_allclose(out.vehicle_pose[i][:2], [2.0, 10.0], atol=1e-3)
+    lagging = Container(FusionParams(), "f", "host")
+    for k in range(5):
+        t = 0.1 * k
+        lagging.ingest(encode(prior("cv1", k, t + 0.005, pose=(5 * (t + 0.005), 10, 0, 0, 0, 0))), t)
+        out = lagging.fuse(t)
+    np.testing.assert_allclose(out.vehicle_pose[0][:2], [2.0, 10.0], atol=1e-3)  # from 0.305 s, 0.095 s ahead
+    assert lagging.graph.vehicle_estimate("cv1")[0] == pytest.approx(0.305)
+
+
+def test_the_body_covariance_adds_the_error_every_frame_repeats():
+    """A filtered prior with pose_bias_sigma: the graph fuses the pose as the camera sees it, once; the
+    published covariance of the body adds the bias (body frame along/across turned by the yaw)."""
+    sigma = np.array([0.2, 0.05, 0.04, 0.0035, 0.0065, 0.0045])
+    box = Container(FusionParams(), "f", "host")
+    yaw = np.pi / 2
+    for k in range(5):
+        t = 0.1 * k
+        m = prior("cv0", k, t, pose=(0, 5 * t, 0, 0, 0, yaw), objects=(), v=(0, 5, 0))
+        m = m.model_copy(update={"pose_filtered": True, "pose_bias_sigma": sigma.astype(np.float16)})
+        box.ingest(encode(m), t)
+        out = box.fuse(t)
+    C = sym_from_upper(out.vehicle_pose_cov.astype(float))[0]
+    s16 = sigma.astype(np.float16).astype(float)
+    np.testing.assert_allclose(C[1, 1], POSE_COV[1, 1] + s16[0] ** 2, rtol=1e-3)  # along = +y
+    np.testing.assert_allclose(C[0, 0], POSE_COV[0, 0] + s16[1] ** 2, rtol=1e-3)
+    np.testing.assert_allclose(C[5, 5], POSE_COV[5, 5] + s16[5] ** 2, rtol=1e-3)

@@ -295,6 +295,32 @@ def test_pruning_keeps_one_prior_per_frame_and_the_bias():
     assert not g.vehicles and g.num_variables == 0 and g.num_factors == 0
 
 
+def test_a_filtered_prior_is_used_once_the_newest_frame_keeps_it():
+    """A vehicle that sends its filtered estimate: only its newest frame keeps a prior (a late frame gets
+    none), so its information is counted once. Alone in the graph, the fused newest pose and its covariance
+    are what the vehicle sent, where ten per-frame priors of the same covariance shrink its variance 2.5x."""
+    g = FusionGraph(FusionParams(pose_error_persistent_fraction=0.5))
+    for k in (0, 1, 2, 4, 5, 6, 7, 8, 9):
+        g.add_vehicle_prior("cv0", 0.1 * k, [0.5 * k, 0, 0, 0, 0, 0], POSE_COV, [5.0, 0, 0], filtered=True)
+    chain = g.vehicles["cv0"]
+    newest = chain.tkeys[-1]
+    assert list(chain.pose_prior_fids) == [newest] and chain.bias_key is None
+    g.add_vehicle_prior("cv0", 0.3, [1.5, 0, 0, 0, 0, 0], POSE_COV, [5.0, 0, 0], filtered=True)  # late
+    assert list(chain.pose_prior_fids) == [newest] and len(chain.tkeys) == 10 and len(chain.motion) == 9
+    g.solve()
+    t, T, C = g.vehicle_estimate("cv0")
+    assert t == pytest.approx(0.9)
+    np.testing.assert_allclose(T.translation(), [4.5, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(np.diag(C), np.diag(POSE_COV)[[3, 4, 5, 0, 1, 2]], rtol=1e-6)
+    # a moved estimate does not bring back the priors of the earlier frames (they have none to re-make)
+    assert g._relinearize_pose_priors() == 0 and list(chain.pose_prior_fids) == [newest]
+    per_frame = FusionGraph(FusionParams(pose_error_persistent_fraction=0.0))
+    for k in range(10):
+        per_frame.add_vehicle_prior("cv0", 0.1 * k, [0.5 * k, 0, 0, 0, 0, 0], POSE_COV, [5.0, 0, 0])
+    per_frame.solve()
+    assert np.all(np.diag(per_frame.vehicle_estimate("cv0")[2])[3:5] < np.diag(POSE_COV)[:2] / 2)
+
+
 def test_track_summaries_batch_by_size_and_padding_changes_nothing(monkeypatch):
     from mapcontainer.fusion import graph as G
     from mapcontainer.fusion.bench import bench_fusion

@@ -80,8 +80,8 @@ class _Scorer:
         )
 
     def vehicles(self, k: int, rec, vids, fused: dict[str, ev.FrameScore]) -> None:
-        """Every estimate of each vehicle in ``vids``: GNSS, its filtered on-board pose, the per-frame
-        map-matching pose it sends, and each fused view's (name -> its frame score); series and NEES
+        """Every estimate of each vehicle in ``vids``: GNSS, its filtered on-board pose (what it sends), its
+        per-frame map-matching pose, and each fused view's (name -> its frame score); series and NEES
         "<vid>:<estimate>", NEES cells by frame index."""
         for i, vid in enumerate(rec.truth.vehicle_ids):
             if vid not in vids:
@@ -90,7 +90,7 @@ class _Scorer:
             own = (
                 ("gnss", rec.gnss.get(vid), None),
                 ("onboard", rec.onboard.get(vid), rec.onboard_covs.get(vid)),
-                ("map_matching", rec.priors.get(vid), rec.prior_covs.get(vid)),
+                ("map_matching", rec.per_frame.get(vid), rec.per_frame_covs.get(vid)),
             )
             for name, p, cov in own:
                 if p is None:
