@@ -58,10 +58,12 @@ A match is never taken from a wide prediction on three constraints alone: that i
 lane, a wrong lamp post or the opposite heading used to be accepted with a confident covariance.
 
 What to send on: ``pose``/``cov`` are the tracker's posterior by default (``report="filtered"``),
-the best estimate of the vehicle's pose now. They are correlated from frame to frame; a consumer
-that fuses frames itself (one prior factor per frame plus motion factors) should take
-``pose_frame``/``cov_frame`` -- this frame's camera evidence with a weak prior, see
-:mod:`.matcher` -- or set ``report="frame"``, lest it count the same information many times.
+the best estimate of the vehicle's pose now; ``cov_filtered`` includes the error every frame repeats
+(``match_bias_sigma``: calibration, the map's survey drift) and ``cov_camera`` is the same without it,
+the covariance of the pose as the camera sees the map. A VehiclePrior carries the filtered pose with
+``cov_camera`` and the bias beside it (``pose_filtered``, ``pose_bias_sigma``): a consumer fuses only
+the newest. ``pose_frame``/``cov_frame`` are this frame's camera evidence with a weak prior (see
+:mod:`.matcher`), for a consumer that fuses frames itself, or ``report="frame"``.
 """
 
 from __future__ import annotations
