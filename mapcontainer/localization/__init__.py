@@ -4,6 +4,8 @@ odometry fallback. Pure core: no I/O, deterministic.
 * :mod:`.matcher` -- one Levenberg-Marquardt solve for one camera frame (D_P, D_L, EDT lane
   residual, r_n, GNSS and prediction priors).
 * :mod:`.localizer` -- tracking over frames: odometry prediction, failure detection, fallback, recovery.
+* :mod:`.ekf` -- the localizer's filter: prediction, match, GNSS and ground updates, as plain functions.
+* :mod:`.startup` -- the localizer's phases (uninitialised, verifying, searching, tracking) as a state machine.
 """
 
 from .localizer import GnssMeasurement, LocalizationResult, Localizer, LocalizerParams, OdometryMeasurement
