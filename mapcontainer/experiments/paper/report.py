@@ -15,7 +15,7 @@ __all__ = ["plots", "report", "runs_csv"]
 ESTIMATE_LABELS = {
     "gnss": "GNSS alone",
     "onboard": "vehicle alone (filtered on-board)",
-    "map_matching": "per-frame map matching (the prior it sends)",
+    "map_matching": "per-frame map matching",
     "cooperative": "cooperative (host, fused)",
 }
 VIEW_LABELS = {"ego_only": "ego only", "cooperative": "cooperative"}
@@ -60,9 +60,9 @@ def _method(res: dict) -> list[str]:
         "* **Channel**: ideal, distributed mode (this experiment is about estimation; `mapc experiment network` "
         "sweeps the channel).",
         "* **Vehicle estimates**: *GNSS alone* = the raw fix; *vehicle alone* = the vehicle's own filtered on-board "
-        "estimate (what it knows without cooperation); *per-frame map matching* = the pose it sends (this frame's "
-        "camera evidence; labelled as such, it is not the vehicle's best estimate); *cooperative* = the host's "
-        "fused pose. Horizontal map-frame RMSE (rms1).",
+        "estimate (what it knows without cooperation, and what it sends); *per-frame map matching* = this frame's "
+        "camera evidence alone (with a weak prior; in fallback the filtered pose), the baseline of map matching "
+        "without a tracker; *cooperative* = the host's fused pose. Horizontal map-frame RMSE (rms1).",
         f"* **Targets** (rms2): true obstacles within {s['radius_m']:g} m of the ego, matched to fused objects "
         "(Hungarian, 3 m gate), horizontal error in the ego's body frame. *Ego only* = the same host estimator fed "
         "only the ego's messages. Beside every RMSE: coverage (matched / true in scope), false tracks (fused objects "
@@ -213,7 +213,7 @@ def _consistency(sim: dict) -> list[str]:
         "objects_cooperative_3d": "objects, cooperative",
         "vehicles_cooperative_6dof": "vehicle poses, fused",
         "vehicles_onboard_6dof": "vehicle poses, on-board filtered",
-        "vehicles_map_matching_6dof": "vehicle poses, per-frame prior sent",
+        "vehicles_map_matching_6dof": "vehicle poses, per-frame map matching",
     }
     for key in SIM_SCENARIOS:
         for name, label in labels.items():
