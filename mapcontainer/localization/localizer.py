@@ -482,7 +482,7 @@ class Localizer:
                 converged=attempt.converged,
             )
         pose_f, cov_cam = self.y[:6].copy(), self.P[:6, :6].copy()
-        cov_f = cov_cam + self._match_bias_cov(pose_f[5])
+        cov_f = cov_cam + bias_cov(self.params.match_bias_sigma, pose_f[5])  # the error every frame repeats
         pose, cov = pose_f, cov_f
         frame_pose = frame_cov = None
         if mode == "map_matching":
@@ -505,7 +505,3 @@ class Localizer:
             cov_frame=frame_cov,
             **q,
         )
-
-    def _match_bias_cov(self, yaw: float) -> np.ndarray:
-        """The covariance of the map-matching error no frame sees (``match_bias_sigma``), in the map frame."""
-        return bias_cov(self.params.match_bias_sigma, yaw)
