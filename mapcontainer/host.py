@@ -63,5 +63,7 @@ def make_host(
     if mode == "distributed":
         return Container(params, fleet, host_id, known_senders)
     if mode == "centralized":
-        return Container(params, fleet, host_id, known_senders, localize=HostLocalizer(hdmap, fleet))
+        from .fusion.joint import JointHost
+
+        return JointHost(hdmap, params, fleet, host_id, known_senders)
     raise ValueError(f"mode must be 'distributed' or 'centralized', got {mode!r}")

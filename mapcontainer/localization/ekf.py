@@ -31,6 +31,7 @@ __all__ = [
     "match_update",
     "predict",
     "sigma_h",
+    "transition",
     "widen",
 ]
 
@@ -46,7 +47,23 @@ def predict(
     odo_b: OdometryMeasurement | None,
     params: LocalizerParams,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Unicycle prediction of the state (y, P) over dt with the mean of the two odometry readings.
+    """Unicycle prediction of the state (y, P) over dt (:func:`transition`): F y, F P F^T + Q."""
+    y_new, F, Q = transition(y, dt, odo_a, odo_b, params)
+    if F is None:
+        return y_new, P.copy()
+    P = F @ P @ F.T + Q
+    return y_new, 0.5 * (P + P.T)
+
+
+def transition(
+    y: np.ndarray,
+    dt: float,
+    odo_a: OdometryMeasurement | None,
+    odo_b: OdometryMeasurement | None,
+    params: LocalizerParams,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The predicted state over dt with the mean of the two odometry readings, the transition's
+    Jacobian F and its noise Q (None, None for dt <= 0: nothing moves).
 
     With odometry v_m, w_m (the mean of the readings given); v = k_v v_m, w = w_m - b_w,
     theta_m = yaw + w dt / 2::
@@ -59,9 +76,9 @@ def predict(
     wide noise (10 m/s, 0.5 rad/s); dt <= 0 returns copies of (y, P).
     """
     p = params
-    y, P = y.copy(), P.copy()
+    y = y.copy()
     if dt <= 0.0:
-        return y, P
+        return y, None, None
     odos = [o for o in (odo_a, odo_b) if o is not None]
     if odos:
         vm = float(np.mean([o.speed for o in odos]))
@@ -100,8 +117,7 @@ def predict(
     Q[GYRO, GYRO] += p.gyro_bias_rw_sigma**2 * dt
     Q[8, 8] += p.gnss_bias_sigma_m**2 * (1.0 - phi**2)
     Q[9, 9] += p.gnss_bias_sigma_m**2 * (1.0 - phi**2)
-    P = F @ P @ F.T + Q
-    return y, 0.5 * (P + P.T)
+    return y, F, Q
 
 
 def match_update(y: np.ndarray, P: np.ndarray, match: MatchResult) -> tuple[np.ndarray, np.ndarray]:

@@ -334,6 +334,10 @@ class Localizer:
         self.t_prev: float | None = None
         self._odo_prev: OdometryMeasurement | None = None
         self._last: LocalizationResult | None = None
+        # (F, y_pred, P_pred) of the last step if its updates (camera, GNSS, ground) were applied to the
+        # prediction F y_prev of the previous state, else None (initialised, reset, a start-up
+        # hypothesis's own prediction): a joint estimator holding this state can condition on it.
+        self.conditioned: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.startup.reset(initial_yaw, initial_pose)
 
     @property
@@ -360,6 +364,7 @@ class Localizer:
         bad = self._check_inputs(t, odometry, gnss)
         if bad:
             return self._bad_input(t, bad)
+        self.conditioned = None
         if not self.initialized:
             dt_init = t - self.t_prev if self.t_prev is not None else 0.0
             self.startup.advance_course(t, self.t_prev, odometry, gnss)
@@ -380,10 +385,15 @@ class Localizer:
                 self.reset(None)
                 return self.step(t, frame, odometry, gnss)
         odo_prev = self._odo_prev
+        y_prior = self.y
         y_pred, P_pred = ekf.predict(self.y, self.P, dt, odo_prev, odometry, p)
         self.t_prev, self._odo_prev = t, odometry
 
+        predicted = y_pred
         match, reason, y_pred, P_pred = self.startup.match(frame, y_pred, P_pred, dt, odo_prev, odometry, gnss)
+        if y_pred is predicted:  # the step's updates apply to the prediction from the previous state
+            F = ekf.transition(y_prior, dt, odo_prev, odometry, p)[1]
+            self.conditioned = (np.eye(ekf.N) if F is None else F, y_pred, P_pred)
         if match is not None:
             y, P = ekf.match_update(y_pred, P_pred, match)
             mode = "map_matching"

@@ -1,0 +1,460 @@
+"""The centralized host: one joint estimator over every vehicle's raw observations (the paper's centralized
+architecture, the accuracy reference the distributed one is measured against).
+
+Vehicles send RawObservations (camera features, lane mask, GNSS, odometry, object detections). The host
+holds one Gaussian over everything: each vehicle's localizer state y_v (10: the pose as its camera sees
+the map, wheel-speed scale, gyro bias, GNSS receiver bias; :mod:`mapcontainer.localization.ekf`) and
+each confirmed track's [p, v], one mean and one covariance with every cross-covariance. A frame of
+vehicle v is processed in two steps, in time order:
+
+1. Self-localization, by the same :class:`~mapcontainer.localization.Localizer` a vehicle runs, started
+   from the joint marginal of y_v (so its matcher associates and solves from everything the host knows,
+   the other vehicles' observations included). Its updates (camera, GNSS, ground constraint) involve y_v
+   only, so the joint posterior is exact given its result: with the prediction (F, y_pred, P_pred) the
+   localizer conditioned on (``Localizer.conditioned``) and its posterior (y+, P+), every other block o
+   moves with the prior's conditional: K = P_ov P_pred^-1, mu_o += K (y+ - y_pred),
+   P_oo += K (P+ - P_pred) K^T, P_ov = K P+ (no information is counted twice, none is dropped). When the
+   localizer did not condition on that prediction (start-up, a reset, a search hypothesis) its state
+   replaces the block, uncorrelated with the rest.
+2. Detections: associated by the distributed host's :class:`~.association.Tracker` (same gates, births,
+   confirmation, merging and expiry) from the joint estimates; each detection of a confirmed track and
+   each cross-observation of another vehicle is an extended Kalman update of the exact Cartesian model
+   z = R_v^T (p - c_v) in the observer's body frame, on the observer's pose and the target jointly.
+
+So every measurement enters once, linearized at the current joint estimate, and the vehicles' poses gain
+what the objects and the other vehicles tell about them from then on (the distributed vehicle's filter
+never sees that). Approximations, each stated: a filter, not a smoother (a measurement is linearized once);
+a newly confirmed track starts from the tracker's filter of its held detections, uncorrelated with the
+vehicles (its first few detections' dependence on their observers' poses is dropped); detections arrive
+as they were measured, a frame older than its vehicle's newest is refused (``out_of_order``). The error
+every frame of a vehicle repeats (``LocalizerParams.match_bias_sigma``) is added to its output pose's
+covariance as the vehicle does, and to cross-observations of it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+import numpy as np
+
+from schemas import FusedState, RawObservations, Rejection, bias_cov, decode
+from schemas.models import MAX_OBJECTS
+
+from .. import geometry as geo
+from ..hdmap.model import HDMap
+from ..localization import Localizer, LocalizerParams
+from ..vehicle import camera_frame
+from .association import Detection, Tracker, VehicleCandidate, observations_to_map
+from .buffer import ReorderBuffer, time_key
+from .container import IngestResult, _make_pd
+from .motion import accel_psd, cv_model, cv_predict
+from .params import FusionParams
+from .poses import sym_from_upper, upper_from_sym
+
+__all__ = ["JointHost"]
+
+_V = 10  # a vehicle's block: the localizer's state
+_O = 6  # a track's block: [p, v]
+
+
+class JointHost:
+    """The centralized host's core (module docstring): ``ingest`` RawObservations bytes, ``fuse`` at t."""
+
+    def __init__(
+        self,
+        hdmap: HDMap,
+        params: FusionParams,
+        fleet: str,
+        host_id: str,
+        known_senders: set[str] | None = None,
+        localizer_params: LocalizerParams | None = None,
+    ):
+        self.hdmap = hdmap
+        self.params = params
+        self.fleet = fleet
+        self.host_id = host_id
+        self.known_senders = None if known_senders is None else set(known_senders)
+        self.loc_params = localizer_params or LocalizerParams()
+        self.buffer = ReorderBuffer(params.window_s, params.future_tolerance_s, params.max_pending)
+        self.tracker = Tracker(params)
+        self.localizers: dict[str, Localizer] = {}
+        self._results: dict = {}  # vid -> its localizer's last LocalizationResult
+        self.mu = np.zeros(0)
+        self.P = np.zeros((0, 0))
+        self._keys: list[tuple[str, object]] = []  # blocks in state order: ("v", vid) or ("o", track id)
+        self._t: dict[tuple[str, object], float] = {}  # each block's time
+        self._off: dict[tuple[str, object], int] = {}
+        self._counts: Counter[str] = Counter()
+        self._rejected: Counter[str] = Counter()
+        self._seq = 0
+        self._last_cycle_ms = float("nan")
+
+    # ------------------------------------------------------------------ input
+    def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
+        """Decode and buffer one RawObservations payload received at ``t_recv``. Never raises on bad input."""
+        self._counts["received"] += 1
+        raw = decode(payload, RawObservations)
+        if isinstance(raw, Rejection):
+            return self._reject(raw.reason)
+        if raw.fleet != self.fleet:
+            return self._reject("fleet")
+        if self.known_senders is not None and raw.sender not in self.known_senders:
+            return self._reject("unknown_sender")
+        reason = self.buffer.push(raw, float(t_recv))
+        if reason is not None:
+            return self._reject(reason)
+        self._counts["accepted"] += 1
+        return IngestResult(True)
+
+    def _reject(self, reason: str) -> IngestResult:
+        self._rejected[reason] += 1
+        return IngestResult(False, reason)
+
+    # ------------------------------------------------------------------ state blocks
+    def _size(self, key) -> int:
+        return _V if key[0] == "v" else _O
+
+    def _reindex(self) -> None:
+        off = 0
+        self._off = {}
+        for k in self._keys:
+            self._off[k] = off
+            off += self._size(k)
+
+    def _sl(self, key) -> slice:
+        o = self._off[key]
+        return slice(o, o + self._size(key))
+
+    def _set_block(self, key, x: np.ndarray, C: np.ndarray, t: float) -> None:
+        """Put a block (new or replaced) with mean x and covariance C, uncorrelated with the rest."""
+        if key in self._off:
+            s = self._sl(key)
+            self.P[s, :] = 0.0
+            self.P[:, s] = 0.0
+        else:
+            n = len(self.mu)
+            self._keys.append(key)
+            self._off[key] = n
+            m = self._size(key)
+            self.mu = np.concatenate([self.mu, np.zeros(m)])
+            P = np.zeros((n + m, n + m))
+            P[:n, :n] = self.P
+            self.P = P
+            s = self._sl(key)
+        self.mu[s] = x
+        self.P[s, s] = 0.5 * (C + C.T)
+        self._t[key] = float(t)
+
+    def _drop(self, key) -> None:
+        if key not in self._off:
+            return
+        idx = np.arange(self._sl(key).start, self._sl(key).stop)
+        self.mu = np.delete(self.mu, idx)
+        self.P = np.delete(np.delete(self.P, idx, axis=0), idx, axis=1)
+        self._keys.remove(key)
+        del self._t[key]
+        self._reindex()
+
+    def _others(self, key) -> np.ndarray:
+        s = self._sl(key)
+        mask = np.ones(len(self.mu), dtype=bool)
+        mask[s] = False
+        return np.flatnonzero(mask)
+
+    # ------------------------------------------------------------------ fusion
+    def fuse(self, t: float, tolerance_s: float = 0.0) -> FusedState:
+        """Process every frame received with t_meas <= t + tolerance_s (in time order); the state at t."""
+        t0 = time.perf_counter()
+        t = float(t)
+        msgs = self.buffer.pop_until(t + tolerance_s)
+        fresh = [m for m in msgs if m.t_meas >= t - self.params.window_s]
+        self._counts["expired"] += len(msgs) - len(fresh)
+        by_instant: dict[int, list[RawObservations]] = {}
+        for m in fresh:
+            by_instant.setdefault(time_key(m.t_meas), []).append(m)
+        for tk in sorted(by_instant):
+            frames = [m for m in by_instant[tk] if self._localize(m)]
+            cross: list[tuple[str, Detection]] = []
+            for m in frames:
+                cross += self._detections(m)
+            self._cross_updates(cross)
+        for tid in self.tracker.expire(t):
+            self._drop(("o", tid))
+        for tid in self.tracker.merge_duplicates(t):
+            self._drop(("o", tid))
+        self._counts["fused_cycles"] += 1
+        out = self._output(t)
+        self._last_cycle_ms = (time.perf_counter() - t0) * 1e3
+        return out
+
+    def _localize(self, raw: RawObservations) -> bool:
+        """Step 1 of the module docstring for one frame; False if the frame is refused."""
+        vid, t = raw.sender, float(raw.t_meas)
+        loc = self.localizers.get(vid)
+        if loc is None:
+            loc = self.localizers[vid] = Localizer(self.hdmap, self.loc_params)
+        if loc.t_prev is not None and t <= loc.t_prev:
+            self._rejected["out_of_order"] += 1
+            return False
+        key = ("v", vid)
+        held = key in self._off and loc.initialized
+        if held:  # the localizer starts from everything the host knows of this vehicle
+            s = self._sl(key)
+            loc.y, loc.P = self.mu[s].copy(), self.P[s, s].copy()
+        try:
+            res = loc.step(t, camera_frame(raw), raw.odometry, raw.gnss)
+        except ValueError as exc:  # e.g. a lane mask that is not an image
+            self._rejected["invalid"] += 1
+            self._counts["invalid: " + str(exc)[:60]] += 1
+            return False
+        if res.bad_input:
+            self._rejected["bad_input"] += 1
+            return False
+        self._results[vid] = res
+        self._counts["frames"] += 1
+        if not loc.initialized:
+            self._drop(key)
+        elif held and loc.conditioned is not None:
+            self._condition(key, *loc.conditioned, loc.y, loc.P)
+            self._t[key] = t
+        else:
+            self._set_block(key, loc.y, loc.P, t)
+            self._counts["vehicle_reseeded"] += 1
+        return True
+
+    def _condition(self, key, F, y_pred, P_pred, y_post, P_post) -> None:
+        """The joint posterior of a vehicle's prediction F and its localizer's update (module docstring)."""
+        s, o = self._sl(key), self._others(key)
+        P = self.P
+        P_vo = F @ P[s][:, o]
+        self.mu[s] = y_post
+        if len(o):
+            K = np.linalg.solve(P_pred, P_vo).T  # P_ov P_pred^-1 (P_pred symmetric)
+            d = y_post - y_pred
+            d[5] = geo.wrap_angle(d[5])
+            self.mu[o] += K @ d
+            P[np.ix_(o, o)] += K @ (P_post - P_pred) @ K.T
+            P_ov = K @ P_post
+            P[np.ix_(o, np.arange(s.start, s.stop))] = P_ov
+            P[s, o] = P_ov.T
+        P[s, s] = 0.5 * (P_post + P_post.T)
+
+    def _predict_tracks(self, t: float) -> None:
+        """Every track block to time t (constant velocity, white acceleration), with its cross-covariances."""
+        for key in self._keys:
+            if key[0] != "o" or self._t[key] == t:
+                continue
+            tr = self.tracker.by_id(key[1])
+            F, Q = cv_model(t - self._t[key], accel_psd(self.params, tr.cls if tr else 0))
+            s = self._sl(key)
+            self.mu[s] = F @ self.mu[s]
+            self.P[s, :] = F @ self.P[s, :]
+            self.P[:, s] = self.P[:, s] @ F.T
+            self.P[s, s] += Q
+            self._t[key] = t
+
+    def _vehicle_candidates(self, t: float, observer: str) -> list[VehicleCandidate]:
+        out = []
+        for key in self._keys:
+            if key[0] != "v" or key[1] == observer:
+                continue
+            s, dt = self._sl(key), t - self._t[key]
+            if abs(dt) > self.params.vehicle_gate_max_dt_s:
+                continue
+            x = self.mu[s]
+            cov = (
+                self.P[s, s][:3, :3]
+                + bias_cov(self.loc_params.match_bias_sigma, float(x[5]))[:3, :3]
+                + (self.params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
+            )
+            out.append(VehicleCandidate(key[1], x[:3] + self._results[key[1]].velocity_map * dt, cov))
+        return out
+
+    def _detections(self, raw: RawObservations) -> list[tuple[str, Detection]]:
+        """Step 2 for one frame's object detections; returns its cross-observations (target vid, detection)."""
+        vid, t = raw.sender, float(raw.t_meas)
+        key = ("v", vid)
+        objs = raw.objects
+        if len(objs) == 0:
+            return []
+        if key not in self._off:
+            self._counts["detections_unlocalized"] += len(objs)
+            return []
+        p_body = np.asarray(objs.p_body, dtype=float)
+        cov_body = sym_from_upper(np.asarray(objs.cov, dtype=np.float64))
+        keep = np.linalg.norm(p_body, axis=1) >= self.params.min_range_m
+        self._counts["too_close"] += int((~keep).sum())
+        if not keep.any():
+            return []
+        s = self._sl(key)
+        pose, pose_cov = self.mu[s][:6], self.P[s, s][:6, :6]
+        self._predict_tracks(t)
+        self._sync_tracker()
+        p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
+        dets = [
+            Detection(vid, t, int(i), p_body[i], cov_body[i], int(objs.cls[i]), p_map[j], S_map[j])
+            for j, i in enumerate(np.flatnonzero(keep))
+        ]
+        assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid))
+        for tid in born:  # its held detections are in the tracker's filter of it
+            tr = self.tracker.by_id(tid)
+            x, C = cv_predict(tr.x, tr.P, t - tr.t, accel_psd(self.params, tr.cls))
+            self._set_block(("o", tid), x, C, t)
+        rows, cross = [], []
+        for a in assignments:
+            if a.kind == "vehicle":
+                if self.params.cross_localization:
+                    cross.append((a.target, a.det))
+            elif a.target not in born and ("o", a.target) in self._off:
+                rows.append((("o", a.target), a.det.p_body, a.det.cov_body))
+        self._counts["detections"] += len(rows)
+        self._ekf_update(key, rows)
+        self._sync_tracker()
+        return cross
+
+    def _cross_updates(self, cross: list[tuple[str, Detection]]) -> None:
+        """Cross-observations of this instant: the observed vehicle's origin from the observer."""
+        by_observer: dict[str, list] = {}
+        for target, det in cross:
+            tkey = ("v", target)
+            okey = ("v", det.sender)
+            if tkey not in self._off or okey not in self._off:
+                self._counts["cross_no_state"] += 1
+                continue
+            delta = det.t - self._t[tkey]
+            if abs(delta) > self.params.cross_obs_max_dt_s:
+                self._counts["cross_no_state"] += 1
+                continue
+            R_obs = geo.rpy_to_matrix(*self.mu[self._sl(okey)][3:6])
+            x_t = self.mu[self._sl(tkey)]
+            z = det.p_body - R_obs.T @ self._results[target].velocity_map * delta
+            S_b = bias_cov(self.loc_params.match_bias_sigma, float(x_t[5]))[:3, :3]
+            cov = (
+                det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3) + R_obs.T @ S_b @ R_obs
+            )
+            by_observer.setdefault(det.sender, []).append((tkey, z, cov))
+        for observer, rows in by_observer.items():
+            self._counts["cross_detections"] += len(rows)
+            self._ekf_update(("v", observer), rows)
+
+    def _ekf_update(self, obs_key, rows: list) -> None:
+        """One stacked EKF update of detections z_k = R_v^T (c_k - c_v) + n_k, n_k ~ N(0, cov_k), made by
+        vehicle ``obs_key`` of targets (track position or another vehicle's origin)."""
+        if not rows:
+            return
+        n, m = len(self.mu), 3 * len(rows)
+        so = self._sl(obs_key)
+        x_o = self.mu[so]
+        R, dR_r, dR_p, dR_y = geo.rpy_to_matrix_jac(*x_o[3:6])
+        H = np.zeros((m, n))
+        r = np.zeros(m)
+        Rn = np.zeros((m, m))
+        for k, (tkey, z, cov) in enumerate(rows):
+            st = self._sl(tkey)
+            d = self.mu[st][:3] - x_o[:3]
+            i = slice(3 * k, 3 * k + 3)
+            r[i] = z - R.T @ d
+            H[i, so.start : so.start + 3] = -R.T
+            H[i, so.start + 3] = dR_r.T @ d
+            H[i, so.start + 4] = dR_p.T @ d
+            H[i, so.start + 5] = dR_y.T @ d
+            H[i, st.start : st.start + 3] = R.T
+            Rn[i, i] = cov
+        PHt = self.P @ H.T
+        S = H @ PHt + Rn
+        K = np.linalg.solve(S, PHt.T).T
+        self.mu += K @ r
+        P = self.P - K @ S @ K.T
+        self.P = 0.5 * (P + P.T)
+        for key in self._keys:
+            if key[0] == "v":
+                s = self._sl(key)
+                self.mu[s.start + 5] = geo.wrap_angle(self.mu[s.start + 5])
+
+    def _sync_tracker(self) -> None:
+        for key in self._keys:
+            if key[0] == "o":
+                s = self._sl(key)
+                self.tracker.sync(key[1], self._t[key], self.mu[s], self.P[s, s])
+
+    # ------------------------------------------------------------------ output
+    def _output(self, t: float) -> FusedState:
+        """Every vehicle and confirmed track at t (constant velocity from its newest state, as the
+        distributed container); a vehicle whose localizer has not initialised: its GNSS-grade estimate."""
+        pp = self.params
+        vids, poses, covs = [], [], []
+        for vid in sorted(self.localizers):
+            res = self._results.get(vid)
+            if res is None:
+                continue
+            key = ("v", vid)
+            if key in self._off:
+                s = self._sl(key)
+                pose, cov, ts = self.mu[s][:6].copy(), self.P[s, s][:6, :6].copy(), self._t[key]
+                cov += bias_cov(self.loc_params.match_bias_sigma, float(pose[5]))
+            else:
+                pose, cov, ts = np.asarray(res.pose, float).copy(), np.asarray(res.cov, float).copy(), res.t
+            dt = t - ts
+            if dt != 0:
+                pose[:3] += res.velocity_map * dt
+                s_t2 = (pp.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * pp.vehicle_accel_sigma_mps2 * dt**2) ** 2
+                s_r2 = (pp.vehicle_rate_sigma_radps * dt) ** 2
+                cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
+            vids.append(vid)
+            poses.append(pose)
+            covs.append(cov)
+        ids, cls, ps, vs, Ps = [], [], [], [], []
+        for tid, tr in sorted(self.tracker.confirmed().items()):
+            key = ("o", tid)
+            if key not in self._off or len(ids) >= MAX_OBJECTS:
+                continue
+            s = self._sl(key)
+            x, C = cv_predict(self.mu[s], self.P[s, s], t - self._t[key], accel_psd(pp, tr.cls))
+            ids.append(tid)
+            cls.append(tr.cls)
+            ps.append(x[:3])
+            vs.append(self.mu[s][3:])
+            Ps.append(C[:3, :3])
+        self._seq += 1
+        return FusedState(
+            fleet=self.fleet,
+            sender=self.host_id,
+            seq=self._seq,
+            t_meas=t,
+            t_sent=t,
+            vehicle_ids=vids,
+            vehicle_pose=np.array(poses, dtype=np.float32).reshape(-1, 6),
+            vehicle_pose_cov=upper_from_sym(_make_pd(np.array(covs).reshape(-1, 6, 6))).astype(np.float32),
+            object_id=np.array(ids, dtype=np.uint32),
+            object_cls=np.array(cls, dtype=np.uint8),
+            object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
+            object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
+            object_cov=upper_from_sym(_make_pd(np.array(Ps).reshape(-1, 3, 3))).astype(np.float32),
+            messages_fused=self._counts["frames"],
+            flagged=[],
+        )
+
+    def stats(self) -> dict:
+        """Counters and figures (for health status and benchmarks)."""
+        tracks = list(self.tracker.tracks.values())
+        return {
+            "received": self._counts["received"],
+            "accepted": self._counts["accepted"],
+            "rejected": dict(self._rejected),
+            "pending": len(self.buffer),
+            "expired": self._counts["expired"],
+            "fused_cycles": self._counts["fused_cycles"],
+            "last_cycle_ms": self._last_cycle_ms,
+            "vehicles": sum(k[0] == "v" for k in self._keys),
+            "state_dim": len(self.mu),
+            "tracks_confirmed": sum(tr.confirmed for tr in tracks),
+            "tracks_tentative": sum(not tr.confirmed for tr in tracks),
+            "association": dict(self.tracker.counts),
+            "detections": self._counts["detections"],
+            "cross_detections": self._counts["cross_detections"],
+            "cross_no_state": self._counts["cross_no_state"],
+            "detections_unlocalized": self._counts["detections_unlocalized"],
+            "vehicle_reseeded": self._counts["vehicle_reseeded"],
+            "too_close": self._counts["too_close"],
+        }

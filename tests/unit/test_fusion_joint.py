@@ -1,0 +1,100 @@
+"""The centralized host's joint estimator (mapcontainer.fusion.joint): its two updates are exact on
+linear-Gaussian problems, and it runs end to end on raw observations."""
+
+import numpy as np
+import pytest
+
+from mapcontainer.fusion import FusionParams
+from mapcontainer.fusion.joint import JointHost
+from mapcontainer.hdmap.generator import generate_map
+from mapcontainer.sim import load_scenario
+
+
+@pytest.fixture(scope="module")
+def host() -> JointHost:
+    return JointHost(generate_map(load_scenario("overlap").map), FusionParams(), "f", "host")
+
+
+def _joint(host: JointHost, rng, blocks) -> tuple[np.ndarray, np.ndarray]:
+    """A random joint Gaussian over ``blocks`` (keys), put into the host's state."""
+    host.mu, host.P, host._keys, host._t = np.zeros(0), np.zeros((0, 0)), [], {}
+    host._reindex()
+    for key in blocks:
+        host._set_block(key, np.zeros(host._size(key)), np.eye(host._size(key)), 0.0)
+    n = len(host.mu)
+    A = rng.normal(size=(n, n))
+    host.mu = rng.normal(size=n) * 0.1
+    host.P = A @ A.T / n + 0.1 * np.eye(n)
+    return host.mu.copy(), host.P.copy()
+
+
+def test_conditioning_on_a_block_posterior_is_the_joint_kalman_update(host):
+    """A vehicle's localizer updates its block alone; conditioning the rest on its result must equal one
+    Kalman update of the whole state with the same measurement (with a prediction F, Q first)."""
+    rng = np.random.default_rng(3)
+    mu, P = _joint(host, rng, [("v", "a"), ("o", 1), ("v", "b"), ("o", 2)])
+    key = ("v", "b")
+    s = host._sl(key)
+    n = len(mu)
+    F_v = np.eye(10) + 0.05 * rng.normal(size=(10, 10))
+    Q_v = 0.01 * np.eye(10)
+    # the joint prediction: F on block s only, Q on it
+    F = np.eye(n)
+    F[s, s] = F_v
+    mu_pred, P_pred = F @ mu, F @ P @ F.T
+    P_pred[s, s] += Q_v
+    # a linear measurement of block s (yaw difference small: no wrapping at play)
+    H_v = rng.normal(size=(4, 10))
+    R = 0.05 * np.eye(4)
+    z = rng.normal(size=4) * 0.1
+    H = np.zeros((4, n))
+    H[:, s] = H_v
+    K = P_pred @ H.T @ np.linalg.inv(H @ P_pred @ H.T + R)
+    mu_ref = mu_pred + K @ (z - H @ mu_pred)
+    P_ref = P_pred - K @ H @ P_pred
+    # what the localizer does with its block: predict, update
+    yv, Pv = mu_pred[s], P_pred[s, s]
+    Kv = Pv @ H_v.T @ np.linalg.inv(H_v @ Pv @ H_v.T + R)
+    y_post, P_post = yv + Kv @ (z - H_v @ yv), Pv - Kv @ H_v @ Pv
+    host._condition(key, F_v, yv, Pv, y_post, P_post)
+    np.testing.assert_allclose(host.mu, mu_ref, atol=1e-10)
+    np.testing.assert_allclose(host.P, P_ref, atol=1e-10)
+
+
+def test_detection_update_is_the_extended_kalman_update_of_the_body_frame_model(host):
+    """z = R(observer)^T (p_target - c_observer): the stacked update moves the state as an EKF whose
+    Jacobian is the numerical one."""
+    rng = np.random.default_rng(5)
+    mu, P = _joint(host, rng, [("v", "a"), ("o", 7)])
+    so, st = host._sl(("v", "a")), host._sl(("o", 7))
+    mu[st][:3] += np.array([8.0, 2.0, 0.5])
+    host.mu = mu.copy()
+
+    def h(x):
+        from mapcontainer.geometry import rpy_to_matrix
+
+        R = rpy_to_matrix(*x[so][3:6])
+        return R.T @ (x[st][:3] - x[so][:3])
+
+    Hn = np.zeros((3, len(mu)))
+    for i in range(len(mu)):
+        d = np.zeros(len(mu))
+        d[i] = 1e-6
+        Hn[:, i] = (h(mu + d) - h(mu - d)) / 2e-6
+    cov = 0.04 * np.eye(3)
+    z = h(mu) + np.array([0.1, -0.2, 0.05])
+    K = P @ Hn.T @ np.linalg.inv(Hn @ P @ Hn.T + cov)
+    mu_ref, P_ref = mu + K @ (z - h(mu)), P - K @ Hn @ P
+    host._ekf_update(("v", "a"), [(("o", 7), z, cov)])
+    np.testing.assert_allclose(host.mu, mu_ref, atol=1e-6)
+    np.testing.assert_allclose(host.P, 0.5 * (P_ref + P_ref.T), atol=1e-6)
+
+
+def test_blocks_come_and_go_with_their_cross_covariances(host):
+    rng = np.random.default_rng(9)
+    mu, P = _joint(host, rng, [("v", "a"), ("o", 1), ("o", 2)])
+    host._drop(("o", 1))
+    keep = np.r_[0:10, 16:22]
+    np.testing.assert_array_equal(host.mu, mu[keep])
+    np.testing.assert_array_equal(host.P, P[np.ix_(keep, keep)])
+    assert host._sl(("o", 2)) == slice(10, 16)
