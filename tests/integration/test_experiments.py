@@ -33,7 +33,8 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
     )  # fmt: skip
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["runs"] == 2 and set(summary["targets"].values()) <= {"PASS", "FAIL"}
-    assert len(summary["targets"]) == 15  # res1 x 2 densities, res2 x 2 x 2 x 2, consistency x 2 x 2, bytes
+    # res1 x 2 densities, res2 x 2 x 2 x 2, consistency x 2 x 2, cold start x 3 x 2, bytes
+    assert len(summary["targets"]) == 21
     assert proc.returncode == (1 if "FAIL" in summary["targets"].values() else 0)  # --check
     assert "experiment paper [" in proc.stderr  # the progress bar
 
@@ -51,7 +52,9 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
         assert c["dof"] == 6 and c["runs"] == 2 and c["band"][0] < 6 < c["band"][1]
         assert set(sim["over_time"]) >= {"cv0:onboard", "targets:cooperative"}
         assert [row[0] for row in sim["over_time"]["cv0:gnss"]] == [0.0, 1.0, 2.0]
-        assert set(sim["startup"]["at"]) == {"1", "2"}
+        st = sim["startup"]
+        assert set(st["at"]) == {"1", "2"} and st["runs"] == 2
+        assert st["time_to_localize_s"]["vehicles"] == 2 * len(sim["per_vehicle_rmse_m"])  # every vehicle start
     for density in ("dense", "sparse"):
         assert _finite(res["overlap"][density]["fused_m"]), density
         for key in ("ii", "iii"):
@@ -62,7 +65,15 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
     assert res["bytes"]["ratio"] > 1.0 and res["bytes"]["measured"]["seeds"] == [2, 3]
 
     report = (out / "report.md").read_text()
-    for heading in ("## Method", "Table res1", "Table res2", "## Consistency", "## Sensitivity", "## Bandwidth"):
+    for heading in (
+        "## Method",
+        "## Cold start",
+        "Table res1",
+        "Table res2",
+        "## Consistency",
+        "## Sensitivity",
+        "## Bandwidth",
+    ):
         assert heading in report, heading
     assert "development seeds" in report and "0.23" in report and "| ours, sparse" in report
     for png in ("exp_sim.png", "over_time.png", "real_vehicle.png"):

@@ -13,11 +13,13 @@ from mapcontainer.experiments.paper.figures import (
     consistency,
     evaluate_claims,
     evaluate_targets,
+    localized_index,
     objects_summary,
     rmse,
     startup_summary,
     time_series,
 )
+from mapcontainer.experiments.paper.report import _startup as report_startup
 
 
 def _run(series=None, nees=None, objects=None, locks=None, seed=0) -> dict:
@@ -78,18 +80,120 @@ def test_objects_summary_counts_coverage_false_tracks_and_gospa_parts():
     assert objects_summary([_run()], "v", 3.0) == {"frames": 0}
 
 
-def test_startup_summary_counts_locked_vehicles_at_whole_seconds():
-    ts = [round(0.1 * k, 1) for k in range(31)]
-    # vehicle 0: map matching from 0.5 s, accurate; 1: map matching from 1.5 s but 2 m off; 2: never, 4 m off
-    locks = [[t, i, float(t >= m), e] for t in ts for i, (m, e) in enumerate(((0.5, 0.1), (1.5, 2.0), (99, 4.0)))]
-    out = startup_summary([_run(locks=locks), _run(locks=locks)], duration_s=3.1)
-    assert set(out["at"]) == {"1", "2", "3"}
-    one, two = out["at"]["1"], out["at"]["2"]
-    assert one["map_matching"] == pytest.approx(1 / 3, abs=1e-4) and one["locked"] == pytest.approx(1 / 3, abs=1e-4)
-    assert two["map_matching"] == pytest.approx(2 / 3, abs=1e-4) and two["locked"] == pytest.approx(1 / 3, abs=1e-4)
-    assert two["gross"] == pytest.approx(1 / 3, abs=1e-4) and two["vehicles"] == 6
-    f = out["first_locked_s"]
-    assert f["vehicles"] == 6 and f["never"] == 4 and f["median"] == pytest.approx(0.5)
+def _vehicle(i: int, state) -> list[list[float]]:
+    """Locks rows [t, i, says map_matching, error] of one vehicle over frames k = 0..40 (t = 0.0..4.0 s);
+    ``state(k)`` -> (map_matching, error)."""
+    return [[round(0.1 * k, 1), i, *state(k)] for k in range(41)]
+
+
+NAN = float("nan")
+# Vehicle start-ups, frame k -> (says map_matching, horizontal error m); frames every 0.1 s for 4 s.
+# Localized = the error stays within 0.3 m for 1 s (or to the run's end).
+
+
+def _locks_at_1_2(k):  # no pose for 0.4 s, 2 m off in fallback, then within from 1.2 s on
+    return (0, NAN) if k < 4 else (0, 2.0) if k < 12 else (1, 0.1)
+
+
+def _dip_then_at_2_0(k):  # within for one frame at 0.5 s, localizes at 2.0 s
+    return (1, 0.2) if k == 5 else (0, 2.0) if k < 20 else (1, 0.1)
+
+
+def _never(k):  # never within; says map_matching 1.5 m off at 3.0-3.2 s (before localizing)
+    return (1, 1.5) if 30 <= k <= 32 else (0, 4.0)
+
+
+def _silent(k):  # localizes at 0.5 s, then 1.5 m off at 2.0-2.4 s while saying map_matching
+    return (0, 2.0) if k < 5 else (1, 1.5) if 20 <= k <= 24 else (1, 0.1)
+
+
+def _said_so(k):  # localizes at 1.0 s, then 2.5 m off and without a pose at 3.0-3.2 s, in fallback
+    return (0, 2.0) if k < 10 else (0, 2.5) if k in (30, 31) else (0, NAN) if k == 32 else (1, 0.1)
+
+
+def _at_the_end(k):  # within from 3.5 s to the run's end (less than the hold): localized at 3.5 s
+    return (0, NAN) if k < 10 else (0, 2.0) if k < 35 else (1, 0.1)
+
+
+def _startup_runs(*runs) -> list[dict]:
+    return [
+        _run(locks=[row for i, st in enumerate(vs) for row in _vehicle(i, st)], seed=j) for j, vs in enumerate(runs)
+    ]
+
+
+@pytest.mark.parametrize(
+    ("within", "expected"),
+    [
+        (range(5, 16), 5),  # 0.5-1.5 s: held for 1 s
+        (list(range(5, 15)) + list(range(30, 41)), 30),  # 0.5-1.4 s is 0.9 s; from 3.0 s on
+        (range(33, 41), 33),  # 3.3 s to the run's end (0.7 s left)
+        ([], None),
+    ],
+)
+def test_localized_index_holds_for_a_second_or_to_the_end(within, expected):
+    t = np.round(0.1 * np.arange(41), 1)
+    err = np.full(41, 0.5)
+    err[list(within)] = 0.3  # on the threshold: within
+    assert localized_index(t, err) == expected
+
+
+def test_startup_summary_times_to_localize_and_losses_of_lock_after_it():
+    runs = _startup_runs((_locks_at_1_2, _dip_then_at_2_0, _never, _silent), (_said_so, _at_the_end))
+    out = startup_summary(runs, duration_s=4.1)
+    # times to localize 1.2, 2.0, never, 0.5, 1.0, 3.5: sorted 0.5 1.0 1.2 2.0 3.5 inf; the q-th percentile
+    # is the ceil(6 q)-th of them: median the 3rd, p90 and p95 the 6th (never)
+    f = out["time_to_localize_s"]
+    assert (f["median"], f["p90"], f["p95"], f["max"]) == (1.2, math.inf, math.inf, math.inf)
+    assert f["never"] == 1 and f["vehicles"] == 6 and f["never_fraction"] == pytest.approx(1 / 6, abs=1e-4)
+    # frames from localizing on: 29 + 21 + 36 + 31 + 6 = 123; gross: 5 silent (map matching) + 3 said so
+    a = out["after_localized"]
+    assert (a["frames"], a["gross_frames"], a["silent_frames"], a["silent_runs"]) == (123, 8, 5, 1)
+    assert a["gross_fraction"] == pytest.approx(8 / 123, abs=1e-6)
+    assert out["before_localized"] == {"silent_frames": 3, "silent_runs": 1} and out["runs"] == 2
+    assert set(out["at"]) == {"1", "2", "3", "4"}
+    # t = 1: localized (and within, map matching) _silent and _said_so; gross the other four (2, 2, 4, 2 m)
+    assert out["at"]["1"] == {
+        "map_matching": 0.3333,
+        "accurate": 0.3333,
+        "localized": 0.3333,
+        "gross": 0.6667,
+        "vehicles": 6,
+    }
+    # t = 2: map matching all but _never and _at_the_end; _silent is 1.5 m off; _dip_then_at_2_0 localizes now
+    assert out["at"]["2"] == {"map_matching": 0.6667, "accurate": 0.5, "localized": 0.6667, "gross": 0.5, "vehicles": 6}
+
+    without_never = startup_summary(
+        _startup_runs((_locks_at_1_2, _dip_then_at_2_0, _silent), (_said_so, _at_the_end)), 4.1
+    )
+    f = without_never["time_to_localize_s"]  # 0.5 1.0 1.2 2.0 3.5: the 3rd, the 5th, the 5th
+    assert (f["median"], f["p90"], f["p95"], f["max"], f["never"]) == (1.2, 3.5, 3.5, 3.5, 0)
+
+
+def test_cold_start_targets_and_their_report():
+    clean = startup_summary(_startup_runs((_locks_at_1_2, _dip_then_at_2_0)), 4.1)  # p95 2.0 s, no loss of lock
+    lossy = startup_summary(_startup_runs((_locks_at_1_2, _silent), (_said_so, _at_the_end)), 4.1)  # p95 3.5 s
+    res = {
+        "overlap": {},
+        "blindspot": {},
+        "simulation": {
+            key: {"consistency": {"objects_cooperative_3d": {}}, "startup": st}
+            for key, st in (("urban", clean), ("suburban", lossy))
+        },
+    }
+    rows = {t["target"]: t for t in evaluate_targets(res)}
+    assert rows["urban: cold start, time to localize p95 <= 3 s"]["pass"]
+    assert rows["urban: cold start, gross errors (> 1 m) after localizing <= 0.5 % of vehicle-frames"]["pass"]
+    assert rows["urban: cold start, runs where a vehicle loses lock without saying so = 0"]["pass"]
+    assert rows["suburban: cold start, time to localize p95 <= 6 s"]["pass"]  # 3.5 s
+    gross = rows["suburban: cold start, gross errors (> 1 m) after localizing <= 0.5 % of vehicle-frames"]
+    assert not gross["pass"] and gross["value"] == pytest.approx(100 * 8 / (29 + 36 + 31 + 6), abs=1e-4)
+    assert rows["suburban: cold start, runs where a vehicle loses lock without saying so = 0"]["value"] == 1
+    assert len(rows) == 6
+
+    one_never = startup_summary(_startup_runs((_locks_at_1_2, _never)), 4.1)
+    text = "\n".join(report_startup({"urban": {"startup": one_never}}))
+    assert "| urban | 2 | 1.2 | never | never | never | 1 (50.0 %) |" in text
+    assert "| urban | 29 | 0 (0.00 %) | 0 | 0 of 1 | 3 (1) |" in text  # _locks_at_1_2: frames 1.2-4.0 s
 
 
 def _sim(coop, onboard, gnss, t_coop, t_ego, cov_coop, cov_ego, per_vehicle=None) -> dict:

@@ -13,6 +13,8 @@ of the whole run is drawn so that no window hides anything. Seeds come from the 
   paper's rms2 (ego frame, within ``radius_m``) with coverage, false tracks and GOSPA.
 * **test site** (Tables res1, res2): overlap and blind spots (ii), (iii), each at both landmark
   densities, ``rv_runs`` runs.
+* **cold start** (:func:`.figures.startup_summary`): each vehicle's time to localize from GNSS, and
+  its gross errors after it, those it did not announce (in map matching) apart.
 * **consistency**: per scenario, object NEES (3-D) and vehicle pose NEES (6-DoF) in both forms.
 * **sensitivity**: the headline figures with each error source off in turn, with all off, and all on,
   on the first ``sensitivity_runs`` seeds (the same seeds for every setting).

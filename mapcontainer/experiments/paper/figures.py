@@ -10,13 +10,25 @@ from typing import Any
 import numpy as np
 
 from ... import evaluation as ev
-from .settings import BLINDSPOT_SCENARIOS, CONNECTED, DENSITIES, EGO, GROSS_ERROR_M, LOCKED_M, SIM_SCENARIOS
+from .settings import (
+    BLINDSPOT_SCENARIOS,
+    CONNECTED,
+    DENSITIES,
+    EGO,
+    GROSS_AFTER_LOCALIZED_MAX,
+    GROSS_ERROR_M,
+    LOCALIZED_HOLD_S,
+    LOCKED_M,
+    SIM_SCENARIOS,
+    TIME_TO_LOCALIZE_P95_MAX_S,
+)
 
 __all__ = [
     "consistency",
     "evaluate_claims",
     "evaluate_targets",
     "group",
+    "localized_index",
     "objects_summary",
     "rmse",
     "rv_figures",
@@ -215,44 +227,107 @@ def rv_figures(kind: str, rs: list[dict], burnin_s: float) -> dict[str, Any]:
     return out
 
 
+def localized_index(t: np.ndarray, err: np.ndarray, hold_s: float = LOCALIZED_HOLD_S) -> int | None:
+    """The frame at which a vehicle localizes, None if it never does: the first frame k from which its
+    error stays within LOCKED_M for ``hold_s``,
+
+        k = min { k : err_j <= LOCKED_M for every frame j with t_k <= t_j <= t_k + hold_s },
+
+    which near the run's end (less than ``hold_s`` left) asks it of every remaining frame. ``t``
+    ascending; a NaN error (no pose yet) is not within."""
+    ok = err <= LOCKED_M
+    end = np.searchsorted(t, t + hold_s + 1e-6, side="right")  # frames k .. end-1 lie within the hold
+    misses = np.concatenate(([0], np.cumsum(~ok)))
+    held = misses[end] == misses[: len(t)]
+    return int(np.argmax(held)) if held.any() else None
+
+
+def _time_s(x: float) -> float:
+    """A time rounded to 10 ms; +inf (never) stays."""
+    return x if x == math.inf else _r(x, 2)
+
+
 def startup_summary(rs: list[dict], duration_s: float) -> dict[str, Any]:
-    """Start-up of every vehicle of the runs, at each whole second t: the fraction in map matching,
-    ``locked`` (map matching and the filtered pose within LOCKED_M of the truth) and ``gross`` (filtered
-    pose off by more than GROSS_ERROR_M; a vehicle without a pose yet is neither); and when each vehicle
-    first locked (median, 90th percentile, never within the run)."""
-    at: dict[str, dict] = {}
-    first: list[float] = []
-    never = n_veh = 0
+    """Cold start of every vehicle of the runs, from each run's ``locks`` rows [t, vehicle index, says
+    map_matching (0/1), horizontal error of its filtered pose (NaN: no pose yet)]:
+
+    * ``time_to_localize_s``: from a vehicle's first frame to the frame at which it localizes
+      (:func:`localized_index`: the first frame from which its error stays within LOCKED_M for
+      LOCALIZED_HOLD_S, or to the run's end if less remains); a vehicle that never does is ``never``
+      and counts as infinitely late: the q-th percentile is the time by which q % of the vehicle starts
+      had localized (inverted CDF; +inf when more than 100 - q % never did);
+    * ``after_localized``: every frame of a vehicle from that frame on; ``gross`` = its error above
+      GROSS_ERROR_M or no pose; ``silent`` = gross while the vehicle says map_matching (it lost lock
+      without saying so), also counted in runs; ``before_localized``: the same silent frames before it;
+    * ``at`` each whole second t: the fraction of vehicles that say map_matching, are ``accurate``
+      (error within LOCKED_M in that frame), have ``localized`` by t, and are ``gross`` (error above
+      GROSS_ERROR_M; a vehicle without a pose yet is not).
+    """
+    ttl: list[float] = []
+    after = {"frames": 0, "gross_frames": 0, "silent_frames": 0, "silent_runs": 0}
+    before = {"silent_frames": 0, "silent_runs": 0}
+    marks = range(1, int(math.floor(duration_s - 1e-6)) + 1)
+    at_rows: dict[int, list[tuple[bool, bool, bool, bool]]] = {m: [] for m in marks}
     for r in rs:
         a = np.asarray(r["locks"], dtype=float).reshape(-1, 4)
-        for i in np.unique(a[:, 1]).astype(int):
+        silent_after = silent_before = 0
+        for i in np.unique(a[:, 1]):
             v = a[a[:, 1] == i]
-            n_veh += 1
-            ok = (v[:, 2] > 0) & (v[:, 3] <= LOCKED_M)
-            if ok.any():
-                first.append(float(v[np.argmax(ok), 0]))
-            else:
-                never += 1
-    marks = range(1, int(math.floor(duration_s - 1e-6)) + 1)
-    for m in marks:
-        rows = [row for r in rs for row in r["locks"] if abs(row[0] - m) < 1e-6]
-        if not rows:
-            continue
-        a = np.asarray(rows, dtype=float)
-        at[str(m)] = {
-            "map_matching": _r(float(a[:, 2].mean())),
-            "locked": _r(float(((a[:, 2] > 0) & (a[:, 3] <= LOCKED_M)).mean())),
-            "gross": _r(float((a[:, 3] > GROSS_ERROR_M).mean())),
-            "vehicles": len(a),
-        }
+            v = v[np.argsort(v[:, 0], kind="stable")]
+            t, mm, err = v[:, 0], v[:, 2] > 0, v[:, 3]
+            k = localized_index(t, err)
+            t_lock = math.inf if k is None else float(t[k])
+            ttl.append(t_lock - float(t[0]))
+            k = len(t) if k is None else k
+            gross = ~(err <= GROSS_ERROR_M)
+            silent = gross & mm
+            after["frames"] += len(t) - k
+            after["gross_frames"] += int(gross[k:].sum())
+            silent_after += int(silent[k:].sum())
+            silent_before += int(silent[:k].sum())
+            for m in marks:
+                j = np.flatnonzero(np.abs(t - m) < 1e-6)
+                if len(j):
+                    e = err[j[0]]
+                    at_rows[m].append(
+                        (bool(mm[j[0]]), bool(e <= LOCKED_M), t_lock <= m + 1e-6, bool(e > GROSS_ERROR_M))
+                    )
+        after["silent_frames"] += silent_after
+        after["silent_runs"] += silent_after > 0
+        before["silent_frames"] += silent_before
+        before["silent_runs"] += silent_before > 0
+    n = len(ttl)
+    q = np.percentile(ttl, [50, 90, 95], method="inverted_cdf") if n else [math.nan] * 3
+    never = sum(x == math.inf for x in ttl)
+    after["gross_fraction"] = _r(after["gross_frames"] / after["frames"], 6) if after["frames"] else math.nan
+    at = {}
+    for m, rows in at_rows.items():
+        if rows:
+            f = np.asarray(rows, dtype=float).mean(axis=0)
+            at[str(m)] = {
+                "map_matching": _r(f[0]),
+                "accurate": _r(f[1]),
+                "localized": _r(f[2]),
+                "gross": _r(f[3]),
+                "vehicles": len(rows),
+            }
     return {
-        "at": at,
-        "first_locked_s": {
-            "median": _r(float(np.median(first))) if first else float("nan"),
-            "p90": _r(float(np.percentile(first, 90))) if first else float("nan"),
+        "locked_m": LOCKED_M,
+        "hold_s": LOCALIZED_HOLD_S,
+        "gross_m": GROSS_ERROR_M,
+        "time_to_localize_s": {
+            "median": _time_s(float(q[0])),
+            "p90": _time_s(float(q[1])),
+            "p95": _time_s(float(q[2])),
+            "max": _time_s(max(ttl)) if n else math.nan,
             "never": never,
-            "vehicles": n_veh,
+            "never_fraction": _r(never / n) if n else math.nan,
+            "vehicles": n,
         },
+        "after_localized": after,
+        "before_localized": before,
+        "runs": len(rs),
+        "at": at,
     }
 
 
@@ -307,7 +382,7 @@ def evaluate_claims(sim: dict[str, dict]) -> list[dict]:
 
 def evaluate_targets(res: dict) -> list[dict]:
     """Pass/fail targets: the paper's Table res1/res2 figures at both landmark densities, consistency
-    in both forms, and the byte ratio."""
+    in both forms, the cold start (:func:`startup_summary`) and the byte ratio."""
     rows = []
     for density in DENSITIES:
         ov = res["overlap"].get(density)
@@ -340,10 +415,36 @@ def evaluate_targets(res: dict) -> list[dict]:
                     ">=",
                 )
             )
+    for key in SIM_SCENARIOS:
+        st = res["simulation"].get(key, {}).get("startup")
+        if st and st["time_to_localize_s"]["vehicles"]:
+            rows += _cold_start_targets(key, st)
     by = res.get("bytes") or {}
     if "ratio" in by:
         rows.append(_row("distributed bytes/message >= 10x smaller than centralized", by["ratio"], 10.0, ">="))
     return rows
+
+
+def _cold_start_targets(key: str, st: dict) -> list[dict]:
+    """A scenario's cold-start targets: time to localize (95th percentile), gross errors after it (a
+    fraction of the vehicle-frames, in %), and no run with a silent loss of lock."""
+    after = st["after_localized"]
+    p95_max = TIME_TO_LOCALIZE_P95_MAX_S[key]
+    return [
+        _row(
+            f"{key}: cold start, time to localize p95 <= {p95_max:g} s", st["time_to_localize_s"]["p95"], p95_max, "<="
+        ),
+        _row(
+            f"{key}: cold start, gross errors (> {GROSS_ERROR_M:g} m) after localizing <= "
+            f"{100 * GROSS_AFTER_LOCALIZED_MAX:g} % of vehicle-frames",
+            _r(100 * after["gross_fraction"]),
+            100 * GROSS_AFTER_LOCALIZED_MAX,
+            "<=",
+        ),
+        _row(
+            f"{key}: cold start, runs where a vehicle loses lock without saying so = 0", after["silent_runs"], 0, "<="
+        ),
+    ]
 
 
 def _row(target: str, value: float, threshold: float, op: str) -> dict:

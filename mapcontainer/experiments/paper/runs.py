@@ -8,7 +8,8 @@ steady state (after the burn-in), draw the error against time, and compare runs:
   its localization, missed and false parts] (:func:`mapcontainer.evaluation.gospa`);
 * ``nees[name]``: [t, cell, NEES] with a cell id that names the same estimate in every run
   (frame index and obstacle or vehicle), for the per-cell consistency check;
-* ``locks``: [t, vehicle index, in map matching, horizontal error of its filtered pose] (start-up).
+* ``locks``: [t, vehicle index, says map_matching (1/0: the mode its message announces, with a pose),
+  horizontal error of its filtered pose (NaN: no pose yet)] (the cold start).
 """
 
 from __future__ import annotations

@@ -12,11 +12,14 @@ __all__ = [
     "CONNECTED",
     "DENSITIES",
     "EGO",
+    "GROSS_AFTER_LOCALIZED_MAX",
     "GROSS_ERROR_M",
+    "LOCALIZED_HOLD_S",
     "LOCKED_M",
     "PAPER",
     "PaperSettings",
     "SIM_SCENARIOS",
+    "TIME_TO_LOCALIZE_P95_MAX_S",
     "rv_scenario",
 ]
 
@@ -40,8 +43,13 @@ BLINDSPOT_SCENARIOS = {"ii": "blindspot-occluded", "iii": "blindspot-beyond"}
 # as named) and "sparse" (14 lamps + 4 signs, the density the paper's targets were written against:
 # the presets with a "-sparse" suffix).
 DENSITIES = ("dense", "sparse")
-GROSS_ERROR_M = 3.0  # a horizontal pose error beyond this (GNSS level) = a localization failure
-LOCKED_M = 1.0  # a vehicle in map matching within this horizontal error of the truth is "locked"
+GROSS_ERROR_M = 1.0  # a horizontal pose error beyond this = a gross error (lost lock)
+LOCKED_M = 0.3  # map-matching accuracy: a horizontal pose error within this
+LOCALIZED_HOLD_S = 1.0  # a vehicle has localized once its error stays within LOCKED_M this long
+# Cold-start targets (from GNSS, no prior): the 95th percentile of the time to localize per scenario,
+# and the fraction of vehicle-frames with a gross error after localizing.
+TIME_TO_LOCALIZE_P95_MAX_S = {"urban": 3.0, "suburban": 6.0}
+GROSS_AFTER_LOCALIZED_MAX = 0.005
 
 
 def rv_scenario(key: str, density: str) -> str:
