@@ -4,25 +4,19 @@ A pure core: no I/O, no threads, time is an argument, deterministic for a given 
 The live host service and ``pipeline.py`` feed it bytes with :meth:`Container.ingest` and ask for the
 fused driving environment with :meth:`Container.fuse`.
 
-Where vehicle priors come from is pluggable: ``ingest`` decodes ``VehiclePrior`` by default (the
-distributed mode); with a ``localize`` function given to the constructor it decodes RawObservations
-and turns them into priors with it (the centralized mode: a host-side map matcher). A raw frame is
-screened like a prior first (fleet, sender, time, duplicates), so that nothing refused reaches the
-map matcher: a frame from the far future would otherwise move a sender's localizer ahead and lock
-its later frames out, and an unknown sender would cost a full localization before its refusal.
-``ingest_prior`` takes an already-decoded prior.
+``ingest_prior`` takes an already-decoded prior. (The centralized mode's host is
+:class:`~.joint.JointHost`.)
 """
 
 from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import FusedState, RawObservations, Rejection, VehiclePrior, bias_cov, decode
+from schemas import FusedState, Rejection, VehiclePrior, bias_cov, decode
 from schemas.models import MAX_OBJECTS
 
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
@@ -35,8 +29,6 @@ from .poses import pose_cov_from_tangent, sym_from_upper, upper_from_sym, vector
 from .solver import SolveReport
 
 __all__ = ["Container", "FusionParams", "IngestResult"]
-
-Localize = Callable[[RawObservations], "VehiclePrior | Rejection"]
 
 
 @dataclass(frozen=True)
@@ -68,13 +60,11 @@ class Container:
         fleet: str,
         host_id: str,
         known_senders: set[str] | None = None,
-        localize: Localize | None = None,
     ):
         self.params = params
         self.fleet = fleet
         self.host_id = host_id
         self.known_senders = None if known_senders is None else set(known_senders)
-        self._localize = localize
         self.buffer = ReorderBuffer(params.window_s, params.future_tolerance_s, params.max_pending)
         self.graph = FusionGraph(params)
         self.tracker = Tracker(params)
@@ -93,22 +83,13 @@ class Container:
     def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
         """Decode and buffer one payload received at scenario time ``t_recv``. Never raises on bad input."""
         self._counts["received"] += 1
-        if self._localize is None:
-            msg = decode(payload, VehiclePrior)
-        else:
-            raw = decode(payload, RawObservations)
-            if isinstance(raw, Rejection):
-                return self._reject(raw.reason)
-            reason = self._sender_refused(raw) or self.buffer.check(raw, float(t_recv))
-            if reason is not None:
-                return self._reject(reason)
-            msg = self._localize(raw)
+        msg = decode(payload, VehiclePrior)
         if isinstance(msg, Rejection):
             return self._reject(msg.reason)
         return self._take(msg, t_recv)
 
     def ingest_prior(self, prior: VehiclePrior, t_recv: float) -> IngestResult:
-        """Buffer an already-decoded prior (e.g. from a host-side map matcher)."""
+        """Buffer an already-decoded prior."""
         if not isinstance(prior, VehiclePrior):
             raise TypeError(f"ingest_prior takes a VehiclePrior, got {type(prior).__name__}")
         self._counts["received"] += 1
@@ -121,7 +102,7 @@ class Container:
         self._counts["accepted"] += 1
         return IngestResult(True)
 
-    def _sender_refused(self, msg: VehiclePrior | RawObservations) -> str | None:
+    def _sender_refused(self, msg: VehiclePrior) -> str | None:
         if msg.fleet != self.fleet:
             return "fleet"
         if self.known_senders is not None and msg.sender not in self.known_senders:

@@ -69,13 +69,18 @@ class JointHost:
         host_id: str,
         known_senders: set[str] | None = None,
         localizer_params: LocalizerParams | None = None,
+        idle_s: float = 30.0,
     ):
+        """``idle_s``: a sender silent for this long (scenario time) is forgotten, its localizer and state
+        with it (a host without a list of known senders would otherwise keep one for every name it saw);
+        if it comes back it starts afresh."""
         self.hdmap = hdmap
         self.params = params
         self.fleet = fleet
         self.host_id = host_id
         self.known_senders = None if known_senders is None else set(known_senders)
         self.loc_params = localizer_params or LocalizerParams()
+        self.idle_s = idle_s
         self.buffer = ReorderBuffer(params.window_s, params.future_tolerance_s, params.max_pending)
         self.tracker = Tracker(params)
         self.localizers: dict[str, Localizer] = {}
@@ -191,6 +196,10 @@ class JointHost:
     def _localize(self, raw: RawObservations) -> bool:
         """Step 1 of the module docstring for one frame; False if the frame is refused."""
         vid, t = raw.sender, float(raw.t_meas)
+        for gone in [v for v, lc in self.localizers.items() if lc.t_prev is not None and lc.t_prev < t - self.idle_s]:
+            del self.localizers[gone]
+            self._results.pop(gone, None)
+            self._drop(("v", gone))
         loc = self.localizers.get(vid)
         if loc is None:
             loc = self.localizers[vid] = Localizer(self.hdmap, self.loc_params)

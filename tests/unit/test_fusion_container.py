@@ -9,16 +9,11 @@ from mapcontainer import geometry as geo
 from mapcontainer.fusion import Container, FusionParams
 from mapcontainer.fusion.bench import _detector_cov
 from mapcontainer.fusion.poses import sym_from_upper, upper_from_sym
-from mapcontainer.hdmap.generator import generate_map
-from mapcontainer.host import HostLocalizer
 from mapcontainer.metrics import anees_band
-from mapcontainer.sim.config import load_scenario
 from schemas import (
-    CameraInfo,
     FusedState,
     LocalizationQuality,
     ObjectObservations,
-    RawObservations,
     VehiclePrior,
     decode,
     encode,
@@ -116,46 +111,6 @@ def test_ingest_prior_takes_models_only():
     assert box.ingest_prior(prior(), 0.0).accepted
     with pytest.raises(TypeError, match="VehiclePrior"):
         box.ingest_prior(b"bytes", 0.0)
-
-
-def test_raw_frames_are_screened_before_the_host_side_localizer_sees_them():
-    """Centralized mode: what the container would refuse never reaches ``localize`` (a far-future frame
-    would move the sender's localizer ahead and lock its later frames out)."""
-    seen = []
-
-    def localize(raw: RawObservations):
-        seen.append(raw.t_meas)
-        return prior(raw.sender, raw.seq, raw.t_meas)
-
-    def raw(sender="cv0", seq=0, t=0.0, fleet="f"):
-        cam = CameraInfo(fx=500, fy=500, cx=320, cy=240, width=640, height=480, T_body_cam=np.eye(4))
-        return encode(RawObservations(fleet=fleet, sender=sender, seq=seq, t_meas=t, t_sent=t, camera=cam))
-
-    box = Container(FusionParams(), "f", "host", known_senders={"cv0"}, localize=localize)
-    refused = {
-        raw(t=1e6): "future",
-        raw(sender="intruder"): "unknown_sender",
-        raw(fleet="other"): "fleet",
-        encode(prior()): "invalid",  # a VehiclePrior is not a RawObservations
-    }
-    for payload, reason in refused.items():
-        assert box.ingest(payload, 0.0).reason == reason
-    assert seen == []
-    assert box.ingest(raw(seq=0, t=0.0), 0.0).accepted
-    assert box.ingest(raw(seq=0, t=0.0), 0.05).reason == "duplicate"
-    assert box.ingest(raw(seq=1, t=0.1), 0.1).accepted  # the far-future frame locked nothing out
-    assert seen == [0.0, 0.1]
-
-
-def test_the_host_side_localizer_forgets_senders_that_went_silent():
-    """Without a list of known senders, a localizer per name ever seen would pile up."""
-    cam = CameraInfo(fx=500, fy=500, cx=320, cy=240, width=640, height=480, T_body_cam=np.eye(4))
-    loc = HostLocalizer(generate_map(load_scenario("overlap").map), "f", idle_s=5.0)
-    for i in range(3):
-        loc(RawObservations(fleet="f", sender=f"x{i}", seq=0, t_meas=float(i), t_sent=float(i), camera=cam))
-    assert set(loc.agents) == {"x0", "x1", "x2"}
-    loc(RawObservations(fleet="f", sender="x2", seq=1, t_meas=6.5, t_sent=6.5, camera=cam))
-    assert set(loc.agents) == {"x2"}  # x0 and x1: silent for more than 5 s
 
 
 def _two_vehicle_stream(n=30):

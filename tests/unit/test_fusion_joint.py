@@ -8,6 +8,7 @@ from mapcontainer.fusion import FusionParams
 from mapcontainer.fusion.joint import JointHost
 from mapcontainer.hdmap.generator import generate_map
 from mapcontainer.sim import load_scenario
+from schemas import CameraInfo, RawObservations, encode
 
 
 @pytest.fixture(scope="module")
@@ -98,3 +99,41 @@ def test_blocks_come_and_go_with_their_cross_covariances(host):
     np.testing.assert_array_equal(host.mu, mu[keep])
     np.testing.assert_array_equal(host.P, P[np.ix_(keep, keep)])
     assert host._sl(("o", 2)) == slice(10, 16)
+
+
+def _raw(sender="cv0", seq=0, t=0.0, fleet="f"):
+    cam = CameraInfo(fx=500, fy=500, cx=320, cy=240, width=640, height=480, T_body_cam=np.eye(4))
+    return encode(RawObservations(fleet=fleet, sender=sender, seq=seq, t_meas=t, t_sent=t, camera=cam))
+
+
+def test_raw_frames_are_screened_before_a_localizer_sees_them():
+    """What the host refuses never reaches a localizer (a far-future frame would move the sender's
+    localizer ahead and lock its later frames out; an unknown name would cost a localizer)."""
+    box = JointHost(generate_map(load_scenario("overlap").map), FusionParams(), "f", "host", known_senders={"cv0"})
+    refused = {
+        _raw(t=1e6): "future",
+        _raw(sender="intruder"): "unknown_sender",
+        _raw(fleet="other"): "fleet",
+        b"\x81\x00": "malformed",
+    }
+    for payload, reason in refused.items():
+        assert box.ingest(payload, 0.0).reason == reason
+    box.fuse(0.0)
+    assert box.localizers == {}
+    assert box.ingest(_raw(seq=0, t=0.0), 0.0).accepted
+    assert box.ingest(_raw(seq=0, t=0.0), 0.05).reason == "duplicate"
+    assert box.ingest(_raw(seq=1, t=0.1), 0.1).accepted
+    box.fuse(0.1)
+    assert box.localizers["cv0"].t_prev == 0.1  # the far-future frame locked nothing out
+    assert box.stats()["rejected"] == {"future": 1, "unknown_sender": 1, "fleet": 1, "malformed": 1, "duplicate": 1}
+
+
+def test_senders_that_went_silent_are_forgotten():
+    box = JointHost(generate_map(load_scenario("overlap").map), FusionParams(), "f", "host", idle_s=5.0)
+    for i in range(3):
+        box.ingest(_raw(sender=f"x{i}", t=float(i)), float(i))
+        box.fuse(float(i))
+    assert set(box.localizers) == {"x0", "x1", "x2"}
+    box.ingest(_raw(sender="x2", seq=1, t=6.5), 6.5)
+    box.fuse(6.5)
+    assert set(box.localizers) == {"x2"}  # x0 and x1: silent for more than 5 s

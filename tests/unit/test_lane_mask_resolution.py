@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from mapcontainer import lanemask
-from mapcontainer.fusion import Container, FusionParams
-from mapcontainer.host import HostLocalizer
+from mapcontainer.fusion import FusionParams
+from mapcontainer.fusion.joint import JointHost
 from mapcontainer.localization import MatcherParams
 from mapcontainer.sim import World, load_scenario
 from mapcontainer.vehicle import VehicleAgent, camera_frame
@@ -86,7 +86,7 @@ def test_the_centralized_vehicle_sends_the_pooled_mask_and_the_camera_it_came_fr
 def test_the_hosts_poses_are_the_same_with_the_mask_at_camera_or_at_matcher_resolution():
     """Two centralized hosts of one run, one fed the masks at 1280x720 (as vehicles sent them before,
     and as an older vehicle still does), one at 640x360: every fused pose and every host-side
-    per-frame pose is the same to the bit (max difference 0)."""
+    localizer's pose is the same to the bit (max difference 0)."""
     world = World(load_scenario("paper-urban"), seed=SEED)
     ids = world.vehicle_ids
     variants = {"camera": FULL, "matcher": None}
@@ -94,8 +94,7 @@ def test_the_hosts_poses_are_the_same_with_the_mask_at_camera_or_at_matcher_reso
         name: {v: VehicleAgent(world.hdmap, v, "sim", "centralized", raw_mask_max_width_px=w) for v in ids}
         for name, w in variants.items()
     }
-    localizers = {name: HostLocalizer(world.hdmap, "sim") for name in variants}
-    hosts = {name: Container(FusionParams(), "sim", "host", set(ids), localize=localizers[name]) for name in variants}
+    hosts = {name: JointHost(world.hdmap, FusionParams(), "sim", "host", set(ids)) for name in variants}
     sizes = {name: [] for name in variants}
     max_diff, fused_poses = 0.0, 0
     for tick in world.run(3.0):
@@ -114,12 +113,13 @@ def test_the_hosts_poses_are_the_same_with_the_mask_at_camera_or_at_matcher_reso
             max_diff = max(max_diff, float(np.max(np.abs(pa - pb))))
             fused_poses += len(pa)
         assert np.array_equal(np.asarray(a.object_p_map), np.asarray(b.object_p_map))
-        for vid in ids:  # the host-side map matcher's per-frame pose of each vehicle
-            la = localizers["camera"].agents[vid].last
-            lb = localizers["matcher"].agents[vid].last
+        for vid in ids:  # each host-side localizer's own pose of the vehicle
+            la, lb = (hosts[name].localizers.get(vid) for name in variants)
+            assert (la is None) == (lb is None)
+            la, lb = (None, None) if la is None else (la.pose, lb.pose)
             assert (la is None) == (lb is None)
             if la is not None:
-                max_diff = max(max_diff, float(np.max(np.abs(la.pose.astype(float) - lb.pose.astype(float)))))
+                max_diff = max(max_diff, float(np.max(np.abs(la - lb))))
     assert fused_poses > 50  # the hosts did localize and fuse the vehicles
     assert max_diff == 0.0
     assert np.mean(sizes["matcher"]) < 0.6 * np.mean(sizes["camera"])
