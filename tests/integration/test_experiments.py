@@ -33,8 +33,8 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
     )  # fmt: skip
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["runs"] == 2 and set(summary["targets"].values()) <= {"PASS", "FAIL"}
-    # res1 x 2 densities, res2 x 2 x 2 x 2, consistency x 2 x 2, cold start x 3 x 2, bytes
-    assert len(summary["targets"]) == 21
+    # res1 x 2 densities, res2 x 2 x 2 x 2, consistency x 2 x 2, cold start x 3 x 2, efficiency x 3 x 2, bytes
+    assert len(summary["targets"]) == 27
     assert proc.returncode == (1 if "FAIL" in summary["targets"].values() else 0)  # --check
     assert "experiment paper [" in proc.stderr  # the progress bar
 
@@ -42,9 +42,13 @@ def test_experiment_paper_tiny_writes_results_report_and_plots(tmp_path):
     assert res["seeds"] == "development" and res["settings"]["start"] == "cold"
     for key in ("urban", "suburban"):
         sim = res["simulation"][key]
-        assert set(sim["ego_rmse_m"]) == {"gnss", "onboard", "map_matching", "cooperative"}
+        assert set(sim["ego_rmse_m"]) == {"gnss", "onboard", "map_matching", "cooperative", "centralized"}
         assert all(_finite(v) for v in sim["ego_rmse_m"].values()), key
-        assert all(_finite(sim["target_rmse_m"][v]) for v in ("ego_only", "cooperative")), key
+        assert all(_finite(sim["target_rmse_m"][v]) for v in ("ego_only", "cooperative", "centralized")), key
+        eff = sim["efficiency"]  # the same runs in centralized mode
+        assert eff["runs"] == 2 and set(eff["vehicles"]) == set(sim["per_vehicle_rmse_m"])
+        assert all(_finite(v) and v > 0 for v in (eff["all_vehicles"], eff["objects"], eff["targets"])), key
+        assert eff["bytes_ratio"] > 3, key  # raw observations are several times a prior
         for view in ("ego_only", "cooperative"):
             o = sim["objects"][view]
             assert 0.0 <= o["coverage"] <= 1.0 and o["false_per_frame"] >= 0.0 and o["gospa_m"] >= 0.0

@@ -33,6 +33,8 @@ from ... import jsonout
 from ...seeds import EVAL_SEED0, seed_kind
 from ..runner import run_all
 from .figures import (
+    ESTIMATES,
+    TARGET_VIEWS,
     consistency,
     evaluate_claims,
     evaluate_targets,
@@ -102,8 +104,7 @@ def aggregate(results: list[dict], s: PaperSettings, wall_s: float, bytes_figure
         rs = by.get(("sim", key, "all"), [])
         if rs:
             simulation[key] = sim_figures(rs, b)
-            names = [f"{EGO}:{m}" for m in ("gnss", "onboard", "map_matching", "cooperative")]
-            names += ["targets:ego_only", "targets:cooperative"]
+            names = [f"{EGO}:{m}" for m in ESTIMATES] + [f"targets:{m}" for m in TARGET_VIEWS]
             simulation[key]["over_time"] = {n: time_series(rs, n) for n in names}
             simulation[key]["startup"] = startup_summary(rs, s.duration_s)
     overlap, blindspot = _rv(by, "all", b)

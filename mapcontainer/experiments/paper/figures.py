@@ -24,7 +24,10 @@ from .settings import (
 )
 
 __all__ = [
+    "ESTIMATES",
+    "TARGET_VIEWS",
     "consistency",
+    "efficiency",
     "evaluate_claims",
     "evaluate_targets",
     "group",
@@ -37,7 +40,9 @@ __all__ = [
     "time_series",
 ]
 
-ESTIMATES = ("gnss", "onboard", "map_matching", "cooperative")  # a vehicle's pose: the baselines and the fused one
+# a vehicle's pose: the baselines, the distributed host's fused one and the centralized joint estimator's
+ESTIMATES = ("gnss", "onboard", "map_matching", "cooperative", "centralized")
+TARGET_VIEWS = ("ego_only", "cooperative", "centralized")  # who estimates the targets
 MIN_RUNS_PER_CELL = 5  # per-cell NEES: cells estimated in at least this many runs
 
 
@@ -173,20 +178,49 @@ def sim_figures(rs: list[dict], burnin_s: float) -> dict[str, Any]:
         "ego_rmse_m": {m: rmse(rs, f"{EGO}:{m}", burnin_s) for m in ESTIMATES},
         "vehicles_rmse_m": {m: _pooled(rs, [f"{v}:{m}" for v in vids], burnin_s) for m in ESTIMATES},
         "per_vehicle_rmse_m": {v: {m: rmse(rs, f"{v}:{m}", burnin_s) for m in ESTIMATES} for v in vids},
-        "target_rmse_m": {m: rmse(rs, f"targets:{m}", burnin_s) for m in ("ego_only", "cooperative")},
+        "target_rmse_m": {m: rmse(rs, f"targets:{m}", burnin_s) for m in TARGET_VIEWS},
         "target_rmse_common_m": {m: rmse(rs, f"targets_common:{m}", burnin_s) for m in ("ego_only", "cooperative")},
-        "objects": {m: objects_summary(rs, f"objects:{m}", burnin_s) for m in ("ego_only", "cooperative")},
+        "objects": {m: objects_summary(rs, f"objects:{m}", burnin_s) for m in TARGET_VIEWS},
+        "object_rmse_m": {m: rmse(rs, f"objects:{m}", burnin_s) for m in TARGET_VIEWS},  # map frame, matched
         "consistency": {
             "objects_cooperative_3d": consistency(rs, "objects:cooperative", 3, burnin_s),
+            "objects_centralized_3d": consistency(rs, "objects:centralized", 3, burnin_s),
             **{
                 f"vehicles_{m}_6dof": _pooled_consistency(rs, [f"{v}:{m}" for v in vids], burnin_s)
-                for m in ("cooperative", "onboard", "map_matching")
+                for m in ("cooperative", "onboard", "map_matching", "centralized")
             },
         },
         "lost_lock_runs": {"ego": _failures(rs, [EGO], burnin_s), "any_vehicle": _failures(rs, vids, burnin_s)},
         "runs": len(rs),
     }
+    out["efficiency"] = efficiency(out, rs)
     return out
+
+
+def efficiency(fig: dict, rs: list[dict]) -> dict[str, Any]:
+    """The distributed architecture against the centralized joint estimator on the same runs: its
+    efficiency centralized MSE / distributed MSE (1: as good as the joint optimum; MSE = RMSE^2) per
+    vehicle, pooled over the vehicles, of the targets (ego frame) and of the objects (map frame), next to
+    the bytes per message each sends. Empty when the runs have no centralized estimate."""
+    runs_c = [r for r in rs if "tx_msgs_centralized" in r]
+    if not runs_c:
+        return {}
+
+    def ratio(c: float, d: float) -> float:
+        return _r((c / d) ** 2) if d > 0 and math.isfinite(c) and math.isfinite(d) else float("nan")
+
+    per, objs = fig["per_vehicle_rmse_m"], fig["object_rmse_m"]
+    bpm_d = sum(r["tx_bytes"] for r in runs_c) / max(1, sum(r["tx_msgs"] for r in runs_c))
+    bpm_c = sum(r["tx_bytes_centralized"] for r in runs_c) / max(1, sum(r["tx_msgs_centralized"] for r in runs_c))
+    return {
+        "vehicles": {v: ratio(x["centralized"], x["cooperative"]) for v, x in per.items()},
+        "all_vehicles": ratio(fig["vehicles_rmse_m"]["centralized"], fig["vehicles_rmse_m"]["cooperative"]),
+        "targets": ratio(fig["target_rmse_m"]["centralized"], fig["target_rmse_m"]["cooperative"]),
+        "objects": ratio(objs["centralized"], objs["cooperative"]),
+        "bytes_per_message": {"distributed": _r(bpm_d, 1), "centralized": _r(bpm_c, 1)},
+        "bytes_ratio": _r(bpm_c / bpm_d, 2) if bpm_d > 0 else float("nan"),
+        "runs": len(runs_c),
+    }
 
 
 def _pooled(rs: list[dict], names: list[str], burnin_s: float) -> float:
@@ -419,6 +453,19 @@ def evaluate_targets(res: dict) -> list[dict]:
         st = res["simulation"].get(key, {}).get("startup")
         if st and st["time_to_localize_s"]["vehicles"]:
             rows += _cold_start_targets(key, st)
+    for key in SIM_SCENARIOS:
+        eff = res["simulation"].get(key, {}).get("efficiency")
+        if eff:
+            rows += [
+                _row(
+                    f"{key}: distributed efficiency (centralized MSE / distributed MSE), vehicles >= 0.9",
+                    eff["all_vehicles"],
+                    0.9,
+                    ">=",
+                ),
+                _row(f"{key}: distributed efficiency, objects >= 0.9", eff["objects"], 0.9, ">="),
+                _row(f"{key}: centralized bytes per message / distributed >= 5", eff["bytes_ratio"], 5.0, ">="),
+            ]
     by = res.get("bytes") or {}
     if "ratio" in by:
         rows.append(_row("distributed bytes/message >= 10x smaller than centralized", by["ratio"], 10.0, ">="))

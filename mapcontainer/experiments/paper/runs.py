@@ -99,15 +99,19 @@ class _Scorer:
                 self.add(f"{vid}:{name}", rec.t, ev.horizontal_sq_error(p, p_true))
                 if cov is not None:
                     self.add_nees(f"{vid}:{name}", rec.t, [k], nees(ev.pose_error(p, p_true), cov))
-            for name, fs in fused.items():
-                if vid in fs.vehicle_ids:
-                    j = fs.vehicle_ids.index(vid)
-                    self.add(f"{vid}:{name}", rec.t, fs.vehicle_sq[j])
-                    self.add_nees(f"{vid}:{name}", rec.t, [k], fs.vehicle_nees[j : j + 1])
+            self.fused_vehicle(k, rec.t, vid, fused)
             if vid in rec.loc_mode:  # NaN error: not initialised yet, no pose
                 p = rec.onboard.get(vid)
                 err = math.sqrt(ev.horizontal_sq_error(p, p_true)) if p is not None else float("nan")
                 self.locks.append([rec.t, i, float(rec.loc_mode[vid] == "map_matching" and p is not None), err])
+
+    def fused_vehicle(self, k: int, t: float, vid: str, fused: dict[str, ev.FrameScore]) -> None:
+        """A vehicle's pose in each fused view (name -> its frame score): series and NEES "<vid>:<name>"."""
+        for name, fs in fused.items():
+            if vid in fs.vehicle_ids:
+                j = fs.vehicle_ids.index(vid)
+                self.add(f"{vid}:{name}", t, fs.vehicle_sq[j])
+                self.add_nees(f"{vid}:{name}", t, [k], fs.vehicle_nees[j : j + 1])
 
     def objects_of(self, k: int, t: float, fs: ev.FrameScore, name: str) -> None:
         """Map-frame errors, coverage, false tracks and GOSPA of one view's objects in a frame."""
@@ -140,9 +144,10 @@ class _Scorer:
         }
 
 
-def _sim_run(scenario, seed: int, s: PaperSettings) -> dict:
+def _sim_run(scenario, seed: int, s: PaperSettings, centralized: bool = False) -> dict:
     """paper-urban / paper-suburban: every vehicle's estimates, and the targets of the cooperative
-    and the ego-only views (the same host estimator fed every vehicle's messages or the ego's)."""
+    and the ego-only views (the same host estimator fed every vehicle's messages or the ego's);
+    ``centralized``: the same run in centralized mode too (:func:`_centralized`)."""
     views = (View("cooperative"), View("ego_only", (EGO,)))
     res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start)
     if res.ego != EGO:
@@ -157,7 +162,26 @@ def _sim_run(scenario, seed: int, s: PaperSettings) -> dict:
         both = sorted(per_view["ego_only"].keys() & per_view["cooperative"].keys())
         for view, d in per_view.items():  # the targets both views estimate
             sc.add(f"targets_common:{view}", rec.t, [d[i] for i in both])
-    return sc.result(vehicles=list(res.records[0].truth.vehicle_ids) if res.records else [])
+    extra = _centralized(scenario, seed, s, sc) if centralized and s.start == "cold" else {}
+    return sc.result(vehicles=list(res.records[0].truth.vehicle_ids) if res.records else [], **extra)
+
+
+def _centralized(scenario, seed: int, s: PaperSettings, sc: _Scorer) -> dict:
+    """The same run (seed: the same world, sensors and link) in centralized mode, the joint estimator
+    over every vehicle's raw observations (:class:`mapcontainer.fusion.joint.JointHost`), scored into
+    ``sc`` as the estimate "centralized" of every vehicle and of the objects and targets; returns its
+    bytes on the air. Only from a cold start (the host localizes the vehicles itself)."""
+    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, mode="centralized", views=(View("centralized"),))
+    for k, rec in enumerate(res.records):
+        fs = sc.score(rec, "centralized", scoped=True)
+        for vid in rec.truth.vehicle_ids:
+            sc.fused_vehicle(k, rec.t, vid, {"centralized": fs})
+        sc.objects_of(k, rec.t, fs, "objects:centralized")
+        sc.targets(rec, "centralized")
+    return {
+        "tx_bytes_centralized": int(sum(res.tx_bytes.values())),
+        "tx_msgs_centralized": int(sum(res.tx_msgs.values())),
+    }
 
 
 def _overlap_run(scenario, seed: int, s: PaperSettings) -> dict:
@@ -193,7 +217,8 @@ def run_task(task: tuple[str, str, str, str, int, dict[str, Any]]) -> dict:
     """One independent run: (kind, key, scenario preset, error-source variant, seed, settings)."""
     kind, key, scenario, variant, seed, settings = task
     t0, c0 = time.perf_counter(), time.process_time()
-    out = _RUNNERS[kind](scenario_variant(scenario, variant), seed, PaperSettings(**settings))
+    extra = {"centralized": True} if kind == "sim" and variant == "all" else {}  # not for the sensitivity study
+    out = _RUNNERS[kind](scenario_variant(scenario, variant), seed, PaperSettings(**settings), **extra)
     out.update(
         kind=kind,
         key=key,
