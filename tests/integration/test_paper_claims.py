@@ -60,3 +60,15 @@ def test_fused_vehicle_poses_are_consistent(urban):
     c = urban["consistency"]["vehicles_cooperative_6dof"]
     assert c["dof"] == 6 and c["runs"] == 4
     assert c["inside"], c
+
+
+def test_the_centralized_joint_estimator_is_the_accuracy_reference(urban):
+    """The same runs in centralized mode (one joint filter over every vehicle's raw observations) are at
+    least as accurate as the distributed architecture, for the vehicles and the objects, at several times
+    the bytes: efficiency = centralized MSE / distributed MSE <= 1."""
+    eff = urban["efficiency"]
+    assert eff["runs"] == 4
+    assert eff["all_vehicles"] < 1.0, eff
+    assert eff["objects"] <= 1.0 and eff["targets"] <= 1.05, eff
+    assert eff["bytes_ratio"] > 5.0, eff
+    assert urban["vehicles_rmse_m"]["centralized"] < 0.3
