@@ -93,6 +93,7 @@ class JointHost:
         self._counts: Counter[str] = Counter()
         self._rejected: Counter[str] = Counter()
         self._seq = 0
+        self._cycle_frames = 0
         self._last_cycle_ms = float("nan")
 
     # ------------------------------------------------------------------ input
@@ -178,8 +179,10 @@ class JointHost:
         by_instant: dict[int, list[RawObservations]] = {}
         for m in fresh:
             by_instant.setdefault(time_key(m.t_meas), []).append(m)
+        self._cycle_frames = 0
         for tk in sorted(by_instant):
             frames = [m for m in by_instant[tk] if self._localize(m)]
+            self._cycle_frames += len(frames)
             cross: list[tuple[str, Detection]] = []
             for m in frames:
                 cross += self._detections(m)
@@ -440,7 +443,7 @@ class JointHost:
             object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
             object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
             object_cov=upper_from_sym(_make_pd(np.array(Ps).reshape(-1, 3, 3))).astype(np.float32),
-            messages_fused=self._counts["frames"],
+            messages_fused=self._cycle_frames,  # a filter has no window: the frames this cycle took in
             flagged=[],
         )
 
