@@ -29,6 +29,7 @@ from . import lanemask
 from .geometry import CameraIntrinsics
 from .hdmap.model import HDMap
 from .localization import CameraFrame, LocalizationResult, Localizer, LocalizerParams
+from .localization.health import PoseHealth, PoseHealthParams, advance, verdict
 
 __all__ = ["FUTURE_TOLERANCE_S", "Mode", "VehicleAgent", "camera_frame"]
 
@@ -72,11 +73,13 @@ class VehicleAgent:
         params: LocalizerParams | None = None,
         initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
         raw_mask_max_width_px: int | None = None,
+        health: PoseHealthParams | None = None,
     ):
         """``initial_pose``: (pose (6,), covariance 6x6) known at start, see :meth:`Localizer.reset`;
         without it the vehicle initialises from GNSS, the map's driving directions and the camera.
         ``raw_mask_max_width_px``: the widest lane mask sent in centralized mode (None: the matcher's
-        ``lane_dt_max_width_px``, the width the host's matcher pools any wider mask to)."""
+        ``lane_dt_max_width_px``, the width the host's matcher pools any wider mask to).
+        ``health``: the thresholds of :meth:`health` (:mod:`.localization.health`)."""
         if mode not in ("distributed", "centralized"):
             raise ValueError(f"mode must be 'distributed' or 'centralized', got {mode!r}")
         self.vehicle_id = vehicle_id
@@ -92,13 +95,15 @@ class VehicleAgent:
         self._seq = 0
         self.last: VehiclePrior | None = None
         self.last_result: LocalizationResult | None = None  # the localizer's, with its filtered estimate
+        self.health_params = health or PoseHealthParams()
+        self.pose_health = PoseHealth()  # whether the vehicle knows where it is, after the newest step
 
     def localize(self, t: float, obs: Observations) -> VehiclePrior | Rejection:
         """Self-localization of this frame as a VehiclePrior (also used by the host in centralized mode)."""
         late = self._future(t, obs)
         if late is not None:
             return late
-        res = self.localizer.step(obs.t_meas, camera_frame(obs), obs.odometry, obs.gnss)
+        res = self._step(obs.t_meas, camera_frame(obs), obs)
         if res.bad_input:
             return Rejection("bad_input", res.reason)
         self.last_result = res
@@ -161,9 +166,27 @@ class VehicleAgent:
         self._check_sender(frame)
         refused = self._future(t, frame)
         if refused is None:
-            res = self.localizer.step(frame.t_meas, None, frame.odometry, frame.gnss)
+            res = self._step(frame.t_meas, None, frame)
             refused = Rejection("bad_input", res.reason) if res.bad_input else None
         return refused
+
+    def _step(self, t_meas: float, camera: CameraFrame | None, obs: Observations) -> LocalizationResult:
+        """One localizer step; the pose health follows it (:func:`.localization.health.advance`)."""
+        inits = self.localizer.stats.get("initialised", 0)
+        res = self.localizer.step(t_meas, camera, obs.odometry, obs.gnss)
+        if not res.bad_input:
+            matched = None if camera is None else res.mode == "map_matching"
+            restarted = self.localizer.stats.get("initialised", 0) > inits
+            self.pose_health = advance(
+                self.pose_health, t_meas, self.localizer.phase, matched, restarted, self.health_params
+            )
+        return res
+
+    def health(self) -> tuple[str, str | None]:
+        """("ok", None) or ("degraded", why): degraded while the vehicle does not know where it is (after a gap,
+        a restart or a reset, until relocalized) or is not map-matched for long (:mod:`.localization.health`).
+        Its own time is the newest step's; before the first step, "ok"."""
+        return verdict(self.pose_health, self.health_params)
 
     @staticmethod
     def _future(t: float, frame: Observations) -> Rejection | None:

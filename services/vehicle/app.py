@@ -10,8 +10,12 @@ Frames are handled in order. When the vehicle cannot keep up, new frames are cou
 GNSS fix to the localizer, in order (``VehicleAgent.skip``), so that no stretch of the path goes
 unmeasured.
 
-Health: degraded while the vehicle is not localized by the map (its localizer in GNSS fallback or
-not yet started) for more than ``unlocalized_s`` seconds of scenario time: its priors are then GNSS-grade.
+Health (distributed mode, ``VehicleAgent.health``): degraded while the vehicle does not know where it
+is -- from the first frame after a gap longer than ``health.gap_s`` (a freeze, frames lost), a restart
+or a reset of its localizer, and in any phase of the localizer but tracking, until it has been
+map-matched while tracking for ``health.relocalized_s`` -- and while tracking without a map match for
+more than ``health.unlocalized_s`` (its priors are then GNSS-grade); all in scenario seconds
+(:mod:`mapcontainer.localization.health`).
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from typing import Literal
 from pydantic import Field
 
 from mapcontainer.faults import FaultInjector
+from mapcontainer.localization import LocalizerParams
+from mapcontainer.localization.health import PoseHealthParams
 from mapcontainer.security import Signer, load_credentials
 from mapcontainer.sim.config import load_scenario
 from mapcontainer.sim.errors import published_map
@@ -53,7 +59,7 @@ class VehicleSettings(ServiceSettings):
     # and the host refused them all as stale (fleet e2e p50 0.7-1.0 s; once no fused state after
     # 1.5 s). Measured with 2: e2e p50 0.19-0.29 s, every fused state evaluated.
     queue: int = 2
-    unlocalized_s: float = Field(3.0, gt=0, description="degraded when not map-matched for longer (scenario s)")
+    health: PoseHealthParams = Field(default_factory=PoseHealthParams, description="when the pose health is degraded")
     keys: str | None = Field(None, description="directory of the fleet's keys: sign every V2X message (None: unsigned)")
 
 
@@ -90,7 +96,10 @@ def main(s: VehicleSettings) -> int:
     log.info("settings: %s", s.model_dump_json())
     scenario = load_scenario(s.scenario)
     hdmap = published_map(scenario, s.seed)  # the in-process pipeline's map for this scenario and seed
-    agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode)
+    # On board the odometry comes with every frame: a gap that loses the pose (a frozen process, frames
+    # lost) starts the localizer again rather than predicting over it from the odometry at its two ends.
+    localizer = LocalizerParams(max_gap_s=s.health.gap_s)
+    agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode, params=localizer, health=s.health)
     faults = FaultInjector(s.id, scenario.faults)  # the scenario's faults of this vehicle, if any
     signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # ConfigError: exit 2 at start
     if faults:
@@ -99,12 +108,8 @@ def main(s: VehicleSettings) -> int:
     figures_fn = getattr(agent, "figures", None) or getattr(agent, "stats", None)
     extra = {"sent": 0.0, "last_msg_bytes": 0.0, "skipped": 0.0}  # skipped: frames given to agent.skip
 
-    lost = {"since": None, "t": None}  # scenario time map matching was lost (None: localized), the newest frame's
-
     def check() -> tuple[str, str | None]:
-        if s.mode != "distributed" or lost["since"] is None or lost["t"] - lost["since"] <= s.unlocalized_s:
-            return "ok", None
-        return "degraded", f"not localized by the map for {lost['t'] - lost['since']:.1f} s (GNSS-grade priors)"
+        return agent.health() if s.mode == "distributed" else ("ok", None)
 
     with Service(
         "vehicle", s, figures=lambda: {**(figures_fn() if figures_fn else {}), **extra}, health_check=check
@@ -138,12 +143,6 @@ def main(s: VehicleSettings) -> int:
             out = agent.handle(got[1], got[0])
             if refused(out):
                 return
-            if s.mode == "distributed":
-                lost["t"] = got[1]
-                if out.quality.mode == "map_matching":
-                    lost["since"] = None
-                elif lost["since"] is None:
-                    lost["since"] = got[1]
             for m in faults.apply(out) if faults and s.mode == "distributed" else [out]:
                 payload = encode(m) if signer is None else signer.sign(encode(m), time.time())
                 pub.put(
