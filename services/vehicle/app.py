@@ -27,7 +27,6 @@ from typing import Literal
 from pydantic import Field
 
 from mapcontainer.faults import FaultInjector
-from mapcontainer.localization import LocalizerParams
 from mapcontainer.localization.health import PoseHealthParams
 from mapcontainer.security import Signer, load_credentials
 from mapcontainer.sim.config import load_scenario
@@ -96,10 +95,7 @@ def main(s: VehicleSettings) -> int:
     log.info("settings: %s", s.model_dump_json())
     scenario = load_scenario(s.scenario)
     hdmap = published_map(scenario, s.seed)  # the in-process pipeline's map for this scenario and seed
-    # On board the odometry comes with every frame: a gap that loses the pose (a frozen process, frames
-    # lost) starts the localizer again rather than predicting over it from the odometry at its two ends.
-    localizer = LocalizerParams(max_gap_s=s.health.gap_s)
-    agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode, params=localizer, health=s.health)
+    agent = VehicleAgent(hdmap, s.id, s.fleet, mode=s.mode, health=s.health)
     faults = FaultInjector(s.id, scenario.faults)  # the scenario's faults of this vehicle, if any
     signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # ConfigError: exit 2 at start
     if faults:
