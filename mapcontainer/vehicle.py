@@ -99,7 +99,7 @@ class VehicleAgent:
         self.pose_health = PoseHealth()  # whether the vehicle knows where it is, after the newest step
 
     def localize(self, t: float, obs: Observations) -> VehiclePrior | Rejection:
-        """Self-localization of this frame as a VehiclePrior (also used by the host in centralized mode)."""
+        """Self-localization of this frame as a VehiclePrior."""
         late = self._future(t, obs)
         if late is not None:
             return late
