@@ -25,10 +25,17 @@ So every measurement enters once, linearized at the current joint estimate, and 
 what the objects and the other vehicles tell about them from then on (the distributed vehicle's filter
 never sees that). Approximations, each stated: a filter, not a smoother (a measurement is linearized once);
 a newly confirmed track starts from the tracker's filter of its held detections, uncorrelated with the
-vehicles (its first few detections' dependence on their observers' poses is dropped); detections arrive
-as they were measured, a frame older than its vehicle's newest is refused (``out_of_order``). The error
-every frame of a vehicle repeats (``LocalizerParams.match_bias_sigma``) is added to its output pose's
-covariance as the vehicle does, and to cross-observations of it.
+vehicles (its first few detections' dependence on their observers' poses is dropped), and a merged track's
+information goes with it; a frame older than its vehicle's newest is refused (``out_of_order``), one older
+than another vehicle's is taken, the tracks predicted back to it; a cross-observation uses the observed
+vehicle's newest state moved by its velocity. The error every frame of a vehicle repeats
+(``LocalizerParams.match_bias_sigma``) is added to its output pose's covariance as the vehicle does, and
+to cross-observations of it.
+
+Bad input: a detection's covariance is floored at 5 cm, detections far from their prediction are
+down-weighted (Huber, ``FusionParams.huber_k``, as the distributed graph), an update that fails
+numerically is undone and counted, a localizer that fails starts that vehicle again. The distributed
+host's misbehaviour monitor is not run here: a vehicle forging its raw observations is not contained.
 """
 
 from __future__ import annotations
@@ -56,6 +63,15 @@ __all__ = ["JointHost"]
 
 _V = 10  # a vehicle's block: the localizer's state
 _O = 6  # a track's block: [p, v]
+# A detection's covariance is floored at this 1-sigma (m) in every direction: a sender reporting
+# millimetres cannot pin the joint state (no detector of ours is better than a few centimetres).
+_MIN_DETECTION_SIGMA_M = 0.05
+
+
+def _floored(C: np.ndarray) -> np.ndarray:
+    """Covariances (..., 3, 3) with eigenvalues at least _MIN_DETECTION_SIGMA_M^2."""
+    w, U = np.linalg.eigh(0.5 * (C + np.swapaxes(C, -1, -2)))
+    return (U * np.maximum(w, _MIN_DETECTION_SIGMA_M**2)[..., None, :]) @ np.swapaxes(U, -1, -2)
 
 
 class JointHost:
@@ -185,8 +201,10 @@ class JointHost:
             self._cycle_frames += len(frames)
             cross: list[tuple[str, Detection]] = []
             for m in frames:
-                cross += self._detections(m)
-            self._cross_updates(cross)
+                self.tracker.observe(m.t_meas)
+                cross += self._guarded(self._detections, m) or []
+            self._guarded(self._cross_updates, cross)
+        self._sync_tracker()
         for tid in self.tracker.expire(t):
             self._drop(("o", tid))
         for tid in self.tracker.merge_duplicates(t):
@@ -196,13 +214,38 @@ class JointHost:
         self._last_cycle_ms = (time.perf_counter() - t0) * 1e3
         return out
 
+    def _guarded(self, update, *args):
+        """Run an update of the joint state; if it fails numerically (a singular innovation, a result
+        that is not finite) the state is put back as it was and the failure counted."""
+        mu, P = self.mu.copy(), self.P.copy()
+        try:
+            out = update(*args)
+            if np.all(np.isfinite(self.mu)) and np.all(np.isfinite(self.P)) and np.all(np.diag(self.P) > 0):
+                return out
+        except np.linalg.LinAlgError:
+            pass
+        self.mu, self.P = mu, P
+        self._counts["numerical_failure"] += 1
+        return None
+
+    def _wrap_yaws(self) -> None:
+        for key in self._keys:
+            if key[0] == "v":
+                i = self._off[key] + 5
+                self.mu[i] = geo.wrap_angle(self.mu[i])
+
     def _localize(self, raw: RawObservations) -> bool:
         """Step 1 of the module docstring for one frame; False if the frame is refused."""
         vid, t = raw.sender, float(raw.t_meas)
-        for gone in [v for v, lc in self.localizers.items() if lc.t_prev is not None and lc.t_prev < t - self.idle_s]:
+        for gone in [v for v, lc in self.localizers.items() if lc.t_prev is None or lc.t_prev < t - self.idle_s]:
             del self.localizers[gone]
             self._results.pop(gone, None)
             self._drop(("v", gone))
+        try:
+            frame = camera_frame(raw)
+        except ValueError:  # e.g. a lane mask that is not an image
+            self._rejected["invalid"] += 1
+            return False
         loc = self.localizers.get(vid)
         if loc is None:
             loc = self.localizers[vid] = Localizer(self.hdmap, self.loc_params)
@@ -215,10 +258,11 @@ class JointHost:
             s = self._sl(key)
             loc.y, loc.P = self.mu[s].copy(), self.P[s, s].copy()
         try:
-            res = loc.step(t, camera_frame(raw), raw.odometry, raw.gnss)
-        except ValueError as exc:  # e.g. a lane mask that is not an image
-            self._rejected["invalid"] += 1
-            self._counts["invalid: " + str(exc)[:60]] += 1
+            res = loc.step(t, frame, raw.odometry, raw.gnss)
+        except (ValueError, np.linalg.LinAlgError):  # numerically broken: that vehicle starts again
+            loc.reset()
+            self._drop(key)
+            self._counts["localizer_failure"] += 1
             return False
         if res.bad_input:
             self._rejected["bad_input"] += 1
@@ -227,8 +271,9 @@ class JointHost:
         self._counts["frames"] += 1
         if not loc.initialized:
             self._drop(key)
-        elif held and loc.conditioned is not None:
-            self._condition(key, *loc.conditioned, loc.y, loc.P)
+        elif (
+            held and loc.conditioned is not None and self._guarded(self._condition, key, *loc.conditioned, loc.y, loc.P)
+        ):
             self._t[key] = t
         else:
             self._set_block(key, loc.y, loc.P, t)
@@ -251,6 +296,8 @@ class JointHost:
             P[np.ix_(o, np.arange(s.start, s.stop))] = P_ov
             P[s, o] = P_ov.T
         P[s, s] = 0.5 * (P_post + P_post.T)
+        self._wrap_yaws()
+        return True
 
     def _predict_tracks(self, t: float) -> None:
         """Every track block to time t (constant velocity, white acceleration), with its cross-covariances."""
@@ -294,7 +341,7 @@ class JointHost:
             self._counts["detections_unlocalized"] += len(objs)
             return []
         p_body = np.asarray(objs.p_body, dtype=float)
-        cov_body = sym_from_upper(np.asarray(objs.cov, dtype=np.float64))
+        cov_body = _floored(sym_from_upper(np.asarray(objs.cov, dtype=np.float64)))
         keep = np.linalg.norm(p_body, axis=1) >= self.params.min_range_m
         self._counts["too_close"] += int((~keep).sum())
         if not keep.any():
@@ -375,14 +422,18 @@ class JointHost:
             Rn[i, i] = cov
         PHt = self.P @ H.T
         S = H @ PHt + Rn
+        k = self.params.huber_k
+        if k is not None:  # Huber, as the distributed graph: a detection far off its prediction counts less
+            for j in range(len(rows)):
+                i = slice(3 * j, 3 * j + 3)
+                d = float(np.sqrt(r[i] @ np.linalg.solve(S[i, i], r[i])))
+                if d > k:
+                    S[i, i] += (d / k - 1.0) * Rn[i, i]
         K = np.linalg.solve(S, PHt.T).T
         self.mu += K @ r
         P = self.P - K @ S @ K.T
         self.P = 0.5 * (P + P.T)
-        for key in self._keys:
-            if key[0] == "v":
-                s = self._sl(key)
-                self.mu[s.start + 5] = geo.wrap_angle(self.mu[s.start + 5])
+        self._wrap_yaws()
 
     def _sync_tracker(self) -> None:
         for key in self._keys:
@@ -408,6 +459,8 @@ class JointHost:
             else:
                 pose, cov, ts = np.asarray(res.pose, float).copy(), np.asarray(res.cov, float).copy(), res.t
             dt = t - ts
+            if dt > pp.window_s:  # silent for longer than the distributed host keeps a vehicle
+                continue
             if dt != 0:
                 pose[:3] += res.velocity_map * dt
                 s_t2 = (pp.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * pp.vehicle_accel_sigma_mps2 * dt**2) ** 2
@@ -469,4 +522,6 @@ class JointHost:
             "detections_unlocalized": self._counts["detections_unlocalized"],
             "vehicle_reseeded": self._counts["vehicle_reseeded"],
             "too_close": self._counts["too_close"],
+            "numerical_failure": self._counts["numerical_failure"],
+            "localizer_failure": self._counts["localizer_failure"],
         }

@@ -63,17 +63,17 @@ def transition(
     params: LocalizerParams,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The predicted state over dt with the mean of the two odometry readings, the transition's
-    Jacobian F and its noise Q (None, None for dt <= 0: nothing moves).
+    Jacobian F and its noise Q (a copy of y and None, None for dt <= 0: nothing moves).
 
     With odometry v_m, w_m (the mean of the readings given); v = k_v v_m, w = w_m - b_w,
     theta_m = yaw + w dt / 2::
 
         x += v dt cos(theta_m),  y += v dt sin(theta_m),  yaw += w dt,  b_gnss *= exp(-dt / tau)
-        P = F P F^T + G diag(s_v^2, s_w^2) G^T + Q dt
+        Q = G diag(s_v^2, s_w^2) G^T + Q_c dt
 
-    with s_v^2 = speed_sigma^2 + (speed_scale_sigma v_m)^2 and Q the lateral, height, roll, pitch,
+    with s_v^2 = speed_sigma^2 + (speed_scale_sigma v_m)^2 and Q_c the lateral, height, roll, pitch,
     scale, gyro-bias and GNSS-bias process noise. Without odometry the vehicle stands still with
-    wide noise (10 m/s, 0.5 rad/s); dt <= 0 returns copies of (y, P).
+    wide noise (10 m/s, 0.5 rad/s).
     """
     p = params
     y = y.copy()

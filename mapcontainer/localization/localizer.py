@@ -338,8 +338,9 @@ class Localizer:
         self._odo_prev: OdometryMeasurement | None = None
         self._last: LocalizationResult | None = None
         # (F, y_pred, P_pred) of the last step if its updates (camera, GNSS, ground) were applied to the
-        # prediction F y_prev of the previous state, else None (initialised, reset, a start-up
-        # hypothesis's own prediction): a joint estimator holding this state can condition on it.
+        # prediction F y_prev of the state before the step, else None (the step initialised, possibly
+        # after a reset, or a start-up hypothesis brought its own prediction): a joint estimator holding
+        # this state can condition on it.
         self.conditioned: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.startup.reset(initial_yaw, initial_pose)
 
@@ -368,7 +369,8 @@ class Localizer:
         if bad:
             return self._bad_input(t, bad)
         self.conditioned = None
-        if not self.initialized:
+        fresh = not self.initialized  # initialised in this step: nothing to condition on
+        if fresh:
             dt_init = t - self.t_prev if self.t_prev is not None else 0.0
             self.startup.advance_course(t, self.t_prev, odometry, gnss)
             odo_prev, self.t_prev, self._odo_prev = self._odo_prev, t, odometry
@@ -394,7 +396,7 @@ class Localizer:
 
         predicted = y_pred
         match, reason, y_pred, P_pred = self.startup.match(frame, y_pred, P_pred, dt, odo_prev, odometry, gnss)
-        if y_pred is predicted:  # the step's updates apply to the prediction from the previous state
+        if y_pred is predicted and not fresh:  # the updates apply to the prediction from the previous state
             F = ekf.transition(y_prior, dt, odo_prev, odometry, p)[1]
             self.conditioned = (np.eye(ekf.N) if F is None else F, y_pred, P_pred)
         if match is not None:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mapcontainer.fusion import FusionParams
-from mapcontainer.fusion.joint import JointHost
+from mapcontainer.fusion.joint import _MIN_DETECTION_SIGMA_M, JointHost, _floored
 from mapcontainer.hdmap.generator import generate_map
 from mapcontainer.sim import load_scenario
 from schemas import CameraInfo, RawObservations, encode
@@ -137,3 +137,31 @@ def test_senders_that_went_silent_are_forgotten():
     box.ingest(_raw(sender="x2", seq=1, t=6.5), 6.5)
     box.fuse(6.5)
     assert set(box.localizers) == {"x2"}  # x0 and x1: silent for more than 5 s
+
+
+def test_a_localizer_that_starts_again_gives_nothing_to_condition_on():
+    """After a gap (or any reset) the localizer's state is new: the host must re-seed the vehicle's block
+    rather than condition the rest of the state on it."""
+    from mapcontainer.localization import Localizer
+
+    loc = Localizer(generate_map(load_scenario("overlap").map), initial_pose=(np.zeros(6), np.eye(6) * 0.01))
+    fix = (np.zeros(3), 1.0, 2.0)
+    loc.step(0.0, None, (5.0, 0.0), fix)
+    assert loc.initialized and loc.conditioned is None  # initialised in this step
+    loc.step(0.1, None, (5.0, 0.0), fix)
+    F, y_pred, P_pred = loc.conditioned
+    assert F.shape == (10, 10) and y_pred[0] == pytest.approx(0.5, abs=0.05)
+    loc.step(0.1 + 2 * loc.params.max_gap_s, None, (5.0, 0.0), fix)  # a gap: it starts again
+    assert loc.conditioned is None
+
+
+def test_a_detection_reported_to_the_millimetre_cannot_pin_the_state(host):
+    rng = np.random.default_rng(11)
+    _joint(host, rng, [("v", "a"), ("o", 3)])
+    before = host.P.copy()
+    floored = _floored(np.eye(3)[None] * 1e-12)[0]
+    np.testing.assert_allclose(np.linalg.eigvalsh(floored), _MIN_DETECTION_SIGMA_M**2)
+    host._ekf_update(("v", "a"), [(("o", 3), np.zeros(3), floored)])
+    st = host._sl(("o", 3))
+    assert np.all(np.diag(host.P) > 0) and np.all(np.diag(host.P) <= np.diag(before) + 1e-12)
+    assert np.linalg.eigvalsh(host.P[st, st][:3, :3]).min() > 1e-4  # not pinned below the floor
