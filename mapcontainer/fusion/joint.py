@@ -24,8 +24,8 @@ vehicle v is processed in two steps, in time order:
 So every measurement enters once, linearized at the current joint estimate, and the vehicles' poses gain
 what the objects and the other vehicles tell about them from then on (the distributed vehicle's filter
 never sees that). Approximations, each stated: a filter, not a smoother (a measurement is linearized once);
-a newly confirmed track starts from the tracker's filter of its held detections, uncorrelated with the
-vehicles (its first few detections' dependence on their observers' poses is dropped), and a merged track's
+a newly confirmed track starts from the frame's detection of it, correlated with its observer as a
+landmark in EKF-SLAM (the earlier held detections give only its velocity), and a merged track's
 information goes with it; a frame older than its vehicle's newest is refused (``out_of_order``), one older
 than another vehicle's is taken, the tracks predicted back to it; a cross-observation uses the observed
 vehicle's newest state moved by its velocity. The error every frame of a vehicle repeats
@@ -356,10 +356,10 @@ class JointHost:
             for j, i in enumerate(np.flatnonzero(keep))
         ]
         assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid))
-        for tid in born:  # its held detections are in the tracker's filter of it
-            tr = self.tracker.by_id(tid)
-            x, C = cv_predict(tr.x, tr.P, t - tr.t, accel_psd(self.params, tr.cls))
-            self._set_block(("o", tid), x, C, t)
+        for tid in born:
+            det = next((a.det for a in assignments if a.target == tid and a.det.sender == vid and a.det.t == t), None)
+            if det is not None:  # confirmed by this frame's detection (always, as the tracker works)
+                self._birth(key, tid, det)
         rows, cross = [], []
         for a in assignments:
             if a.kind == "vehicle":
@@ -371,6 +371,33 @@ class JointHost:
         self._ekf_update(key, rows)
         self._sync_tracker()
         return cross
+
+    def _birth(self, obs_key, tid: int, det: Detection) -> None:
+        """A newly confirmed track's block from this frame's detection of it, as a landmark is added in
+        EKF-SLAM: p = c_v + R_v z with its covariance and its cross-covariances with everything through the
+        observer's pose (a track placed from a vehicle's pose is not independent of it: counting it so let
+        the vehicle's next detections of it anchor the vehicle to its own past estimate, and a vehicle in
+        GNSS fallback drifted metres with a confident covariance). The velocity is the tracker's (its held
+        detections), uncorrelated; the earlier detections' position information is left out."""
+        so = self._sl(obs_key)
+        x_o = self.mu[so]
+        R, dR_r, dR_p, dR_y = geo.rpy_to_matrix_jac(*x_o[3:6])
+        z = det.p_body
+        J = np.zeros((3, _V))
+        J[:, :3] = np.eye(3)
+        J[:, 3], J[:, 4], J[:, 5] = dR_r @ z, dR_p @ z, dR_y @ z
+        tr = self.tracker.by_id(tid)
+        x = np.concatenate([x_o[:3] + R @ z, tr.x[3:]])
+        C = np.zeros((_O, _O))
+        C[:3, :3] = J @ self.P[so, so] @ J.T + R @ det.cov_body @ R.T
+        C[3:, 3:] = tr.P[3:, 3:]
+        cross = J @ self.P[so, :]  # (3, n) before the block exists
+        key = ("o", tid)
+        self._set_block(key, x, C, det.t)
+        st = self._sl(key)
+        n = len(cross[0])
+        self.P[st.start : st.start + 3, :n] = cross
+        self.P[:n, st.start : st.start + 3] = cross.T
 
     def _cross_updates(self, cross: list[tuple[str, Detection]]) -> None:
         """Cross-observations of this instant: the observed vehicle's origin from the observer."""
