@@ -51,6 +51,41 @@ def _make_pd(C: np.ndarray) -> np.ndarray:
     return (U * np.maximum(w, floor)[..., None, :]) @ np.swapaxes(U, -1, -2)
 
 
+def vehicle_at(pose, cov, v_map, dt: float, params: FusionParams) -> tuple[np.ndarray, np.ndarray]:
+    """A vehicle's pose and covariance moved dt at constant velocity v_map, with the vehicle motion
+    factor's noise (its newest frame is not at the output time: latency, clocks)."""
+    pose, cov = np.array(pose, dtype=float), np.array(cov, dtype=float)
+    if dt != 0:
+        pose[:3] += np.asarray(v_map, dtype=float) * dt
+        s_t2 = (params.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * params.vehicle_accel_sigma_mps2 * dt**2) ** 2
+        s_r2 = (params.vehicle_rate_sigma_radps * dt) ** 2
+        cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
+    return pose, cov
+
+
+def fused_state(
+    fleet, host_id, seq, t, vids, poses, pose_covs, ids, cls, ps, vs, covs, messages_fused, flagged
+) -> FusedState:
+    """The FusedState message of a host's estimate at t (covariances made wire-valid by _make_pd)."""
+    return FusedState(
+        fleet=fleet,
+        sender=host_id,
+        seq=seq,
+        t_meas=t,
+        t_sent=t,
+        vehicle_ids=vids,
+        vehicle_pose=np.array(poses, dtype=np.float32).reshape(-1, 6),
+        vehicle_pose_cov=upper_from_sym(_make_pd(np.array(pose_covs).reshape(-1, 6, 6))).astype(np.float32),
+        object_id=np.array(ids, dtype=np.uint32),
+        object_cls=np.array(cls, dtype=np.uint8),
+        object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
+        object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
+        object_cov=upper_from_sym(_make_pd(np.array(covs).reshape(-1, 3, 3))).astype(np.float32),
+        messages_fused=messages_fused,
+        flagged=flagged,
+    )
+
+
 class Container:
     """The host's fusion core. See the module docstring; the estimator is described in :mod:`.graph`."""
 
@@ -303,13 +338,7 @@ class Container:
                 cov = g.vehicles[vid].latest().cov
             else:
                 cov = pose_cov_from_tangent(pose, cov_xi)
-            dt = t - ts
-            if dt != 0:  # its newest frame is not at t (latency, clocks): constant velocity to t, as the motion factor
-                pose = pose.copy()
-                pose[:3] += g.vehicles[vid].latest().v_map * dt
-                s_t2 = (pp.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * pp.vehicle_accel_sigma_mps2 * dt**2) ** 2
-                s_r2 = (pp.vehicle_rate_sigma_radps * dt) ** 2
-                cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
+            pose, cov = vehicle_at(pose, cov, g.vehicles[vid].latest().v_map, t - ts, pp)
             if vid in self._bias_sigma:  # the body is off the pose its camera sees by this
                 cov = cov + bias_cov(self._bias_sigma[vid], float(pose[5]))
             poses.append(pose)
@@ -330,22 +359,21 @@ class Container:
             x, P = cv_predict(np.array(xs), np.array(Cs), np.array(dts), q)
             ps, covs, vs = x[:, :3], P[:, :3, :3], np.array(xs)[:, 3:]
         self._seq += 1
-        return FusedState(
-            fleet=self.fleet,
-            sender=self.host_id,
-            seq=self._seq,
-            t_meas=t,
-            t_sent=t,
-            vehicle_ids=vids,
-            vehicle_pose=np.array(poses, dtype=np.float32).reshape(-1, 6),
-            vehicle_pose_cov=upper_from_sym(_make_pd(np.array(pose_covs).reshape(-1, 6, 6))).astype(np.float32),
-            object_id=np.array(ids, dtype=np.uint32),
-            object_cls=np.array(cls, dtype=np.uint8),
-            object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
-            object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
-            object_cov=upper_from_sym(_make_pd(np.array(covs).reshape(-1, 3, 3))).astype(np.float32),
-            messages_fused=sum(len(c.tkeys) for c in g.vehicles.values()),
-            flagged=sorted(self.monitor.flagged),
+        return fused_state(
+            self.fleet,
+            self.host_id,
+            self._seq,
+            t,
+            vids,
+            poses,
+            pose_covs,
+            ids,
+            cls,
+            ps,
+            vs,
+            covs,
+            sum(len(c.tkeys) for c in g.vehicles.values()),
+            sorted(self.monitor.flagged),
         )
 
     # ------------------------------------------------------------------ health

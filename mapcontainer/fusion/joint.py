@@ -54,10 +54,10 @@ from ..localization import Localizer, LocalizerParams
 from ..vehicle import camera_frame
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer, time_key
-from .container import IngestResult, _make_pd
+from .container import IngestResult, fused_state, vehicle_at
 from .motion import accel_psd, cv_model, cv_predict
 from .params import FusionParams
-from .poses import sym_from_upper, upper_from_sym
+from .poses import sym_from_upper
 
 __all__ = ["JointHost"]
 
@@ -485,14 +485,9 @@ class JointHost:
                 cov += bias_cov(self.loc_params.match_bias_sigma, float(pose[5]))
             else:
                 pose, cov, ts = np.asarray(res.pose, float).copy(), np.asarray(res.cov, float).copy(), res.t
-            dt = t - ts
-            if dt > pp.window_s:  # silent for longer than the distributed host keeps a vehicle
+            if t - ts > pp.window_s:  # silent for longer than the distributed host keeps a vehicle
                 continue
-            if dt != 0:
-                pose[:3] += res.velocity_map * dt
-                s_t2 = (pp.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * pp.vehicle_accel_sigma_mps2 * dt**2) ** 2
-                s_r2 = (pp.vehicle_rate_sigma_radps * dt) ** 2
-                cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
+            pose, cov = vehicle_at(pose, cov, res.velocity_map, t - ts, pp)
             vids.append(vid)
             poses.append(pose)
             covs.append(cov)
@@ -509,23 +504,8 @@ class JointHost:
             vs.append(self.mu[s][3:])
             Ps.append(C[:3, :3])
         self._seq += 1
-        return FusedState(
-            fleet=self.fleet,
-            sender=self.host_id,
-            seq=self._seq,
-            t_meas=t,
-            t_sent=t,
-            vehicle_ids=vids,
-            vehicle_pose=np.array(poses, dtype=np.float32).reshape(-1, 6),
-            vehicle_pose_cov=upper_from_sym(_make_pd(np.array(covs).reshape(-1, 6, 6))).astype(np.float32),
-            object_id=np.array(ids, dtype=np.uint32),
-            object_cls=np.array(cls, dtype=np.uint8),
-            object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
-            object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
-            object_cov=upper_from_sym(_make_pd(np.array(Ps).reshape(-1, 3, 3))).astype(np.float32),
-            messages_fused=self._cycle_frames,  # a filter has no window: the frames this cycle took in
-            flagged=[],
-        )
+        frames = self._cycle_frames  # a filter has no window: the frames this cycle took in
+        return fused_state(self.fleet, self.host_id, self._seq, t, vids, poses, covs, ids, cls, ps, vs, Ps, frames, [])
 
     def stats(self) -> dict:
         """Counters and figures (for health status and benchmarks)."""
