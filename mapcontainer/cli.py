@@ -369,7 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=EVAL_SEED0,
         help=f"first seed (evaluation seeds from {EVAL_SEED0}; development uses seeds below)",
     )
-    ef.add_argument("--duration", type=seconds, default=10.0, help="seconds per run (the fault starts at 3 s)")
+    ef.add_argument("--duration", type=seconds, default=15.0, help="seconds per run (the fault starts at 5 s)")
     ef.add_argument("--scenario", default="paper-urban")
     ef.add_argument("--faults", type=lambda t: [x for x in t.split(",") if x], default=None, help="a,b,...")
     ef.add_argument("--workers", type=positive_int, default=2, help="worker processes")

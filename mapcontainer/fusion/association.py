@@ -424,6 +424,16 @@ class Tracker:
         self._merge_streak = {p: c for p, c in streak.items() if p[0] not in gone and p[1] not in gone}
         return gone
 
+    def remove(self, track_id: int) -> bool:
+        """Delete the confirmed track ``track_id`` (others' views deny it); False if there is none."""
+        uid = self._uid_of.pop(track_id, None)
+        if uid is None:
+            return False
+        del self.tracks[uid]
+        self._instant = None
+        self.counts["denied"] += 1
+        return True
+
     def expire(self, t: float) -> list[int]:
         """Drop tracks not detected for too long; returns the global ids of deleted confirmed tracks.
 

@@ -112,6 +112,7 @@ class Container:
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
         self._candidates: dict[float, list[VehicleCandidate]] = {}
+        self._sole_source: dict[int, str] = {}  # track -> the one vehicle that reported it in the window
         self.monitor = MisbehaviourMonitor(params)
 
     # ------------------------------------------------------------------ input
@@ -131,7 +132,11 @@ class Container:
         return self._take(prior, t_recv)
 
     def _take(self, msg: VehiclePrior, t_recv: float) -> IngestResult:
-        reason = self._sender_refused(msg) or self.buffer.push(msg, float(t_recv))
+        reason = self._sender_refused(msg)
+        if reason is None:
+            reason = self.buffer.push(msg, float(t_recv))
+            if self.params.misbehaviour:
+                self.monitor.message(msg.sender, float(msg.t_meas), float(t_recv), reason)
         if reason is not None:
             return self._reject(reason)
         self._counts["accepted"] += 1
@@ -174,6 +179,12 @@ class Container:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
         self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
+        if self.params.misbehaviour:  # the tracks one vehicle alone reported in the window (ghost check)
+            self._sole_source = {}
+            for tid, tr in self.tracker.confirmed().items():
+                sources = {s for (s, _), ts in tr.frames.items() if ts >= t - self.params.misbehaviour_window_s}
+                if len(sources) == 1:
+                    self._sole_source[tid] = sources.pop()
         batch = []
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
@@ -184,6 +195,10 @@ class Container:
         self._cross_detections(t_min)
         if self.params.misbehaviour:
             self.monitor.update(t)
+            for tid in self.monitor.denied:  # nobody else sees it where it should be seen
+                if self.tracker.remove(tid):
+                    self.graph.remove_track(tid)
+                    self._counts["tracks_denied"] += 1
         for tid in self.tracker.expire(t):
             self.graph.remove_track(tid)
         self.graph.prune(t_min)
@@ -221,8 +236,9 @@ class Container:
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
         if self.params.misbehaviour:
-            reported = {v.vid: v.p_map for v in self._vehicle_candidates(t)}
-            self.monitor.observe(m.sender, t, p_map, np.asarray(objs.cls)[keep], reported)
+            reported = {v.vid: (v.p_map, v.cov) for v in self._vehicle_candidates(t)}
+            self.monitor.observe(m.sender, t, p_map, S_map, np.asarray(objs.cls)[keep], reported)
+            self._look(m, t, pose, p_map)
             if m.sender in self.monitor.flagged:  # its detections would carry its error into everyone's picture
                 self._counts["detections_of_flagged"] += len(p_map)
                 return []
@@ -273,6 +289,20 @@ class Container:
                     cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
                 batch.append((obs.key, state, z, cov, weight))
         return batch
+
+    def _look(self, m: VehiclePrior, t: float, pose: np.ndarray, p_map: np.ndarray) -> None:
+        """What ``m``'s sender should see of the tracks that one other vehicle alone reports (ghost check)."""
+        tracks, pos, occluders = [], [], [v.p_map[:2] for v in self._vehicle_candidates(t) if v.vid != m.sender]
+        for tid, tr in self.tracker.confirmed().items():
+            p = tr.x[:2] + tr.x[3:5] * (t - tr.t)
+            occluders.append(p)
+            source = self._sole_source.get(tid)
+            if source is not None and source != m.sender:
+                tracks.append((tid, source))
+                pos.append(p)
+        if tracks:
+            pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
+            self.monitor.look(m.sender, t, pose, pose_cov, p_map, tracks, np.array(pos), np.array(occluders))
 
     def _vehicle_candidates(self, t: float) -> list[VehicleCandidate]:
         """Every connected vehicle's reported position at t (its nearest frame, moved with its v_map),
@@ -408,6 +438,8 @@ class Container:
             "duplicate_instant": self._counts["duplicate_instant"],
             "too_close": self._counts["too_close"],
             "flagged": dict.fromkeys(sorted(self.monitor.flagged), 1.0),
+            "flagged_why": dict(sorted(self.monitor.flagged.items())),
             "flagged_total": self.monitor.flagged_total,
             "detections_of_flagged": self._counts["detections_of_flagged"],
+            "tracks_denied": self._counts["tracks_denied"],
         }

@@ -9,8 +9,14 @@ decimetres). A vehicle whose pose is biased by ``b`` is seen at ``-b`` from wher
 observer, instant after instant.
 
 Over the last ``misbehaviour_window_s`` seconds, each other vehicle O with at least
-``misbehaviour_min_sightings`` sightings of V has a *view* of V: the median of its offsets. The view
-agrees when it is within ``misbehaviour_offset_m`` of zero and disagrees otherwise. A disagreement says
+``misbehaviour_min_sightings`` sightings of V has a *view* of V: the median of its offsets, with the
+mean of their covariances (the detection's map covariance, which carries O's pose covariance, plus V's
+reported position covariance; the mean, not the mean over the count, because the errors that matter
+persist over the window: the poses' and the detector's). The view agrees when it is within
+``misbehaviour_offset_m`` of zero or within the ``misbehaviour_probability`` chi-square quantile of its
+covariance, and disagrees otherwise: a vehicle that says it is uncertain (on GNSS, just started) is not
+accused of what its covariance admits, and the map and calibration errors of honest vehicles, which put
+their views a few decimetres to a metre off at range, are inside the detector's covariance. A disagreement says
 that O or V is wrong, not which: the two are *disputed*, and while they are, neither cross-localizes
 the other (one lying vehicle must not pull its honest neighbours). V is *flagged* as the wrong one
 
@@ -22,6 +28,30 @@ the other (one lying vehicle must not pull its honest neighbours). V is *flagged
   where it said it was), V's did not.
 
 The flag stays until every current view of V agrees again.
+
+Two more kinds of misbehaviour are flagged:
+
+* *Ghosts.* A confirmed track that only V reported in the window (its sole source) is one that any other
+  vehicle O should see when it lies within ``ghost_range_m`` of O's reported position, inside
+  ``ghost_fov_deg`` about its heading and hidden behind no connected vehicle or other track (a 1.5 m
+  wide body on the line of sight), and O knows where it is (its reported position 1-sigma below
+  ``ghost_observer_sigma_m``). Each message of such an O is a *look* at the track: O saw it when one of
+  O's detections lies within ``ghost_gate_m``. A track that O looked at ``ghost_min_looks`` times in
+  the window and saw at most ``ghost_max_seen`` of them is *denied*: it is not there (or not where it
+  is said to be), and the container deletes it, as a multi-sensor tracker lowers the existence of a
+  track that sensors covering it do not detect. Honest detectors make such tracks now and then (a
+  false alarm that lasts seconds, a track pulled metres off by a persistent detection error), so one
+  denial says nothing about V; V is flagged when ``ghost_min_denials`` of its tracks are denied within
+  ``ghost_denial_window_s``: a vehicle that keeps reporting something that is not there makes a new
+  track of it each time the last one is deleted. Once flagged, V's detections make no tracks, so
+  there is nothing left to deny: the flag holds ``ghost_hold_s`` after the last denial, then V is
+  tried again.
+* *A clock that repeats itself.* A message of V refused as a duplicate or as stale whose ``t_meas`` is
+  not after the newest instant of V already taken repeats what V sent before (a frozen clock, or V
+  re-sending old messages). A network replay cannot do this in a signed fleet, because the verifier
+  refuses replayed signatures before the container sees them; a late but advancing message (a vehicle
+  that falls behind) is not counted. V is flagged while at least ``clock_min_repeats`` of its messages
+  received in the window, and ``clock_repeat_fraction`` of them, repeat.
 
 A flagged vehicle's detections are not fused and it cannot cross-localize others or be cross-localized
 (:class:`~mapcontainer.fusion.container.Container`): its error stays its own.
@@ -36,6 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..metrics import chi2_quantile
 from .params import FusionParams
 
 __all__ = ["MisbehaviourMonitor", "Sighting"]
@@ -48,6 +79,7 @@ class Sighting:
     t: float
     observer: str
     offset: np.ndarray
+    cov: np.ndarray  # (2, 2) of the offset: the detection's map covariance (with its observer's pose) and the vehicle's
 
 
 class MisbehaviourMonitor:
@@ -55,51 +87,196 @@ class MisbehaviourMonitor:
 
     def __init__(self, params: FusionParams):
         self.params = params
+        self._gate = float(chi2_quantile(params.misbehaviour_probability, 2))
         self._sightings: dict[str, deque[Sighting]] = {}
         self._agreed: dict[frozenset[str], float] = {}  # pair of vehicles -> last time a view between them agreed
-        self.flagged: dict[str, str] = {}  # vehicle -> why
+        self.flagged: dict[str, str] = {}  # vehicle -> why (every kind below)
+        self._seen_off: dict[str, str] = {}  # vehicle -> why: the others see it elsewhere
+        self._ghosts: dict[str, tuple[float, str]] = {}  # vehicle -> (time of the last denial, why)
+        self._denials: dict[str, deque[tuple[float, int, str]]] = {}  # vehicle -> (t, track, observer) denied
+        self.denied: list[int] = []  # tracks denied by the last update: the container deletes them
+        self._looks: dict[tuple[str, int], deque[tuple[float, str, bool]]] = {}  # (source, track) -> (t, observer, saw)
+        self._arrivals: dict[str, deque[tuple[float, bool]]] = {}  # vehicle -> (t_recv, repeats an instant)
+        self._newest: dict[str, float] = {}  # vehicle -> newest t_meas taken
         self.disputed: set[frozenset[str]] = set()  # pairs whose views disagree now
         self.flagged_total = 0  # flags raised (a vehicle flagged, cleared and flagged again counts twice)
 
-    def observe(self, observer: str, t: float, p_map: np.ndarray, cls: np.ndarray, reported: dict[str, np.ndarray]):
-        """One message's vehicle-like detections (map positions ``p_map`` (N, 3), classes ``cls``) by
-        ``observer`` at ``t``, against the other vehicles' reported positions at ``t`` (vid -> (3,))."""
+    def observe(
+        self,
+        observer: str,
+        t: float,
+        p_map: np.ndarray,
+        cov_map: np.ndarray,
+        cls: np.ndarray,
+        reported: dict[str, tuple[np.ndarray, np.ndarray]],
+    ):
+        """One message's detections (map positions ``p_map`` (N, 3) with covariances ``cov_map`` (N, 3, 3),
+        classes ``cls``) by ``observer`` at ``t``, against the other vehicles' reported positions and their
+        covariances at ``t`` (vid -> ((3,), (3, 3))). Only vehicle-like detections count."""
         r = self.params.misbehaviour_radius_m
-        p = np.asarray(p_map, dtype=float).reshape(-1, 3)[:, :2]
         vehicle_like = np.isin(np.asarray(cls), (0, 2))  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
-        p = p[vehicle_like]
+        p = np.asarray(p_map, dtype=float).reshape(-1, 3)[vehicle_like, :2]
+        S = np.asarray(cov_map, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2]
         if not len(p):
             return
-        for vid, pos in reported.items():
+        for vid, (pos, cov) in reported.items():
             if vid == observer:
                 continue
             d = p - np.asarray(pos, dtype=float)[:2]
             dist = np.hypot(d[:, 0], d[:, 1])
             k = int(np.argmin(dist))
             if dist[k] <= r:
-                self._sightings.setdefault(vid, deque()).append(Sighting(float(t), observer, d[k]))
+                C = S[k] + np.asarray(cov, dtype=float)[:2, :2]
+                self._sightings.setdefault(vid, deque()).append(Sighting(float(t), observer, d[k], C))
+
+    def message(self, sender: str, t_meas: float, t_recv: float, refused: str | None) -> None:
+        """One message of ``sender`` received at ``t_recv``, taken (``refused`` None) or refused with a reason."""
+        newest = self._newest.get(sender, float("-inf"))
+        repeat = refused in ("duplicate", "stale") and t_meas <= newest
+        self._arrivals.setdefault(sender, deque()).append((float(t_recv), repeat))
+        if refused is None:
+            self._newest[sender] = max(newest, float(t_meas))
+
+    def look(
+        self,
+        observer: str,
+        t: float,
+        pose: np.ndarray,
+        pose_cov: np.ndarray,
+        p_map: np.ndarray,
+        tracks: list[tuple[int, str]],
+        track_p: np.ndarray,
+        occluders: np.ndarray,
+    ) -> None:
+        """``observer`` at ``pose`` (map [x, y, z, roll, pitch, yaw], covariance ``pose_cov``) detected
+        ``p_map`` (N, 3) at ``t``;
+        ``tracks`` are (track id, its sole source) at map positions ``track_p`` (M, 2) at ``t``, and
+        ``occluders`` (K, 2) the connected vehicles' and tracks' positions that can hide a track."""
+        pp = self.params
+        if not tracks or np.linalg.eigvalsh(np.asarray(pose_cov, float)[:2, :2])[-1] > pp.ghost_observer_sigma_m**2:
+            return
+        o = np.asarray(pose, dtype=float)
+        rel = np.asarray(track_p, dtype=float).reshape(-1, 2) - o[:2]
+        r = np.hypot(rel[:, 0], rel[:, 1])
+        bearing = np.arctan2(rel[:, 1], rel[:, 0]) - o[5]
+        bearing = np.abs((bearing + np.pi) % (2 * np.pi) - np.pi)
+        inview = (r <= pp.ghost_range_m) & (r >= 3.0) & (bearing <= np.radians(pp.ghost_fov_deg) / 2)
+        if not inview.any():
+            return
+        det = np.asarray(p_map, dtype=float).reshape(-1, 3)[:, :2]
+        occ = np.asarray(occluders, dtype=float).reshape(-1, 2) - o[:2]
+        for i in np.flatnonzero(inview):
+            u = rel[i] / r[i]
+            along = occ @ u
+            perp = np.abs(occ[:, 0] * u[1] - occ[:, 1] * u[0])
+            between = (along > 1.0) & (along < r[i] - 1.0) & (perp < 1.5)
+            if between.any():
+                continue
+            saw = bool(len(det)) and float(np.min(np.hypot(*(det - track_p[i]).T))) <= pp.ghost_gate_m
+            tid, source = tracks[i]
+            self._looks.setdefault((source, tid), deque()).append((float(t), observer, saw))
 
     def disputes(self, a: str, b: str) -> bool:
         """Whether a and b see each other elsewhere than they say (cross-localization between them is off)."""
         return frozenset((a, b)) in self.disputed
 
     def update(self, t: float) -> dict[str, str]:
-        """Drop sightings older than the window before ``t``, form the views, decide disputes and flags."""
+        """Drop evidence older than the window before ``t`` and decide every kind of flag (module doc)."""
+        before = set(self.flagged)
+        self._update_seen_off(t)
+        self._update_ghosts(t)
+        repeats = self._repeats(t)
+        flagged: dict[str, list[str]] = {}
+        for kind in (self._seen_off, {v: why for v, (_, why) in self._ghosts.items()}, repeats):
+            for v, why in kind.items():
+                flagged.setdefault(v, []).append(why)
+        self.flagged = {v: "; ".join(why) for v, why in sorted(flagged.items())}
+        self.flagged_total += len(set(self.flagged) - before)
+        return dict(self.flagged)
+
+    def _update_ghosts(self, t: float) -> None:
+        pp = self.params
+        t_min = t - pp.misbehaviour_window_s
+        self.denied = []
+        for key, q in list(self._looks.items()):
+            while q and q[0][0] < t_min:
+                q.popleft()
+            if not q:
+                del self._looks[key]
+                continue
+            by_observer: dict[str, list[bool]] = {}
+            for _, o, saw in q:
+                by_observer.setdefault(o, []).append(saw)
+            deniers = [
+                o
+                for o, saws in by_observer.items()
+                if o not in self.flagged and len(saws) >= pp.ghost_min_looks and np.mean(saws) <= pp.ghost_max_seen
+            ]
+            if deniers:
+                source, tid = key
+                self.denied.append(tid)
+                self._denials.setdefault(source, deque()).append((t, tid, min(deniers)))
+                del self._looks[key]
+        for v, q in list(self._denials.items()):
+            while q and q[0][0] < t - pp.ghost_denial_window_s:
+                q.popleft()
+            if not q:
+                del self._denials[v]
+            elif len(q) >= pp.ghost_min_denials and q[-1][0] == t:
+                self._ghosts[v] = (
+                    t,
+                    f"reported {len(q)} objects in {pp.ghost_denial_window_s:g} s that others should see and did "
+                    f"not ({', '.join(f'#{tid} by {o}' for _, tid, o in q)})",
+                )
+        self._ghosts = {v: g for v, g in self._ghosts.items() if t - g[0] <= pp.ghost_hold_s}
+
+    def _repeats(self, t: float) -> dict[str, str]:
+        pp = self.params
+        out = {}
+        for v, q in list(self._arrivals.items()):
+            while q and q[0][0] < t - pp.misbehaviour_window_s:
+                q.popleft()
+            if not q:
+                del self._arrivals[v]
+                continue
+            n_rep = sum(rep for _, rep in q)
+            if n_rep >= pp.clock_min_repeats and n_rep >= pp.clock_repeat_fraction * len(q):
+                out[v] = (
+                    f"{n_rep} of its {len(q)} messages in the last {pp.misbehaviour_window_s:g} s repeat instants "
+                    "it had sent (a frozen clock or a replay)"
+                )
+        return out
+
+    def _agrees(self, offset: np.ndarray, cov: np.ndarray) -> bool:
+        """A view agrees unless it is farther off than the floor and than its covariance allows."""
+        if float(np.hypot(*offset)) <= self.params.misbehaviour_offset_m:
+            return True
+        try:
+            d2 = float(offset @ np.linalg.solve(cov, offset))
+        except np.linalg.LinAlgError:
+            return False
+        return d2 <= self._gate
+
+    def _update_seen_off(self, t: float) -> None:
         pp = self.params
         views: dict[tuple[str, str], np.ndarray] = {}  # (observer, observed) -> median offset
+        covs: dict[
+            tuple[str, str], np.ndarray
+        ] = {}  # ... -> its covariance (the sightings' mean: their errors persist)
         for vid, q in list(self._sightings.items()):
             while q and q[0].t < t - pp.misbehaviour_window_s:
                 q.popleft()
             if not q:
                 del self._sightings[vid]
                 continue
-            by_observer: dict[str, list[np.ndarray]] = {}
+            by_observer: dict[str, list[Sighting]] = {}
             for s in q:
-                by_observer.setdefault(s.observer, []).append(s.offset)
-            for o, d in by_observer.items():
-                if len(d) >= pp.misbehaviour_min_sightings:
-                    views[(o, vid)] = np.median(d, axis=0)
-        agrees = {k: float(np.hypot(*m)) <= pp.misbehaviour_offset_m for k, m in views.items()}
+                by_observer.setdefault(s.observer, []).append(s)
+            for o, ss in by_observer.items():
+                if len(ss) >= pp.misbehaviour_min_sightings:
+                    views[(o, vid)] = np.median([s.offset for s in ss], axis=0)
+                    covs[(o, vid)] = np.mean([s.cov for s in ss], axis=0)
+        agrees = {k: self._agrees(m, covs[k]) for k, m in views.items()}
         for (o, v), ok in agrees.items():
             if ok:
                 self._agreed[frozenset((o, v))] = t
@@ -114,7 +291,7 @@ class MisbehaviourMonitor:
         for v in sorted({v for _, v in views}):
             mine = {o: m for (o, vv), m in views.items() if vv == v}
             if all(agrees[(o, v)] for o in mine):
-                self.flagged.pop(v, None)
+                self._seen_off.pop(v, None)
                 continue
             accusers = {o: m for o, m in mine.items() if not agrees[(o, v)] and o not in self.flagged}
             if not accusers:
@@ -124,11 +301,8 @@ class MisbehaviourMonitor:
             by_many = len(accusers) >= pp.misbehaviour_min_observers and consistent
             by_trusted = [o for o in accusers if corroborated(o, v) and not corroborated(v, o)]
             if by_many or by_trusted:
-                if v not in self.flagged:
-                    self.flagged_total += 1
                 who = sorted(accusers) if by_many else by_trusted
-                self.flagged[v] = (
+                self._seen_off[v] = (
                     f"seen {float(np.hypot(*centre)):.1f} m from its reported position ({centre[0]:+.1f}, "
                     f"{centre[1]:+.1f}) by {', '.join(who)} in the last {pp.misbehaviour_window_s:g} s"
                 )
-        return dict(self.flagged)

@@ -89,20 +89,53 @@ class FusionParams(BaseModel):
     cross_localization: bool = Field(True, description="detections of connected vehicles constrain their poses")
 
     # ---- misbehaviour detection (mapcontainer/fusion/misbehaviour.py)
-    misbehaviour: bool = Field(True, description="flag vehicles the others see elsewhere than they say they are")
+    misbehaviour: bool = Field(
+        True,
+        description="flag vehicles seen elsewhere than they say, reporting what is not there, or repeating instants",
+    )
     misbehaviour_radius_m: float = Field(6.0, gt=0, description="a detection this near a vehicle is a sighting of it")
     misbehaviour_window_s: float = Field(2.0, gt=0, description="sightings of the last this many seconds decide")
     misbehaviour_min_sightings: int = Field(4, ge=1, description="an observer with this many sightings has a view")
     misbehaviour_min_observers: int = Field(
         2, ge=1, description="... by at least this many other vehicles (two vehicles alone cannot tell who lies)"
     )
-    misbehaviour_offset_m: float = Field(0.6, gt=0, description="a view farther off than this disagrees")
+    misbehaviour_offset_m: float = Field(
+        0.6, gt=0, description="a view farther off than this, and than its covariance allows, disagrees (m)"
+    )
+    misbehaviour_probability: float = Field(
+        0.999, gt=0, lt=1, description="... allows: its Mahalanobis distance within this chi-square quantile (2 dof)"
+    )
     misbehaviour_trust_s: float = Field(
         10.0, gt=0, description="a vehicle whose view of a third one agreed this recently is corroborated"
     )
     misbehaviour_spread_m: float = Field(
         1.0, gt=0, description="... consistently: the sightings' median distance from their median below this"
     )
+    ghost_range_m: float = Field(
+        40.0, gt=0, description="an object this near a vehicle, in its view and not hidden, is one it should see (m)"
+    )
+    ghost_fov_deg: float = Field(100.0, gt=0, le=360, description="... within this field of view about its heading")
+    ghost_observer_sigma_m: float = Field(
+        0.5, gt=0, description="... if the vehicle knows where it is: its reported position 1-sigma below this (m)"
+    )
+    ghost_gate_m: float = Field(2.5, gt=0, description="a detection this near an object is one of it (m)")
+    ghost_min_looks: int = Field(
+        8, ge=1, description="an object one vehicle alone reports, that another should see this often in the window"
+    )
+    ghost_max_seen: float = Field(
+        0.25, ge=0, lt=1, description="... and saw at most this fraction of those times, is denied: its track deleted"
+    )
+    ghost_min_denials: int = Field(
+        2, ge=1, description="a vehicle with this many tracks denied within ghost_denial_window_s is flagged"
+    )
+    ghost_denial_window_s: float = Field(3.0, gt=0, description="... (s)")
+    ghost_hold_s: float = Field(
+        5.0, gt=0, description="a vehicle flagged for ghosts stays flagged this long after the last denial (s)"
+    )
+    clock_min_repeats: int = Field(
+        5, ge=1, description="a vehicle with this many messages in the window that repeat an instant it sent ..."
+    )
+    clock_repeat_fraction: float = Field(0.3, gt=0, le=1, description="... and that are this fraction of its messages")
 
     # ---- motion models
     accel_psd_vehicle: float = Field(

@@ -211,7 +211,7 @@ def main(s: HostSettings) -> int:
             fig["inbox"] = inbox.qsize()
         except NotImplementedError:  # macOS multiprocessing queues
             pass
-        return {**core_stats["stats"], **fig}
+        return {**{k: v for k, v in core_stats["stats"].items() if k != "flagged_why"}, **fig}
 
     # the last publish (monotonic), the rejections until then, and its scenario time
     fused_at: dict[str, Any] = {"t": time.monotonic(), "rejects": {}, "t_meas": None}
@@ -230,9 +230,11 @@ def main(s: HostSettings) -> int:
             )
             if why is None and time.monotonic() - fused_at["t"] < 5.0:  # fusing: does it keep up?
                 why = fused_lag(clock.now(), fused_at.get("t_meas"), s.time_scale, s.max_fused_lag_s)
-            flagged = sorted(core_stats["stats"].get("flagged") or {})
+            flagged = core_stats["stats"].get("flagged_why") or {}
             if why is None and flagged:
-                why = f"misbehaviour: {', '.join(flagged)} seen elsewhere than they say (detections not fused)"
+                why = "misbehaviour (detections not fused): " + "; ".join(
+                    f"{v} {w}" for v, w in sorted(flagged.items())
+                )
             return ("degraded", why) if why else ("ok", None)
 
         svc.health_check = check
@@ -319,6 +321,12 @@ def main(s: HostSettings) -> int:
                         fig["standby_active"] = float(active)
                     svc.metrics.latency.add(solve_s)
                     fig["solve_ms"] = solve_s * 1e3
+                    was = core_stats["stats"].get("flagged_why") or {}
+                    now = stats.get("flagged_why") or {}
+                    for v in sorted(now.keys() - was.keys()):
+                        log.warning("flagged %s at t=%.2f: %s", v, t, now[v])
+                    for v in sorted(was.keys() - now.keys()):
+                        log.info("%s no longer flagged at t=%.2f", v, t)
                     core_stats["stats"] = stats
                 for accepted, reason, _ in results:
                     if not accepted:

@@ -182,7 +182,7 @@ def format_report(s: dict[str, Any]) -> str:
     flagged = s.get("flagged_first_t") or {}
     if flagged:
         first = ", ".join(f"{v} from t = {t:.1f} s" for v, t in flagged.items())
-        lines.append(f"  flagged       {first} (misbehaviour: seen elsewhere than reported)")
+        lines.append(f"  flagged       {first} (misbehaviour: why in the host's log and health)")
     by = s.get("restarts_by_process") or {}
     which = f" ({', '.join(f'{k} {v}' for k, v in by.items())})" if by else ""
     lines.append(f"  restarts      {s['restarts']}{which}")
