@@ -2,11 +2,12 @@
 
 from .generator import MapSpec, generate_map
 from .io import MapOrigin, load_map, save_map
-from .model import HDMap, LaneCenterline, LaneLine, PointFeature, PoleFeature, Polyline, WalkableArea
+from .model import HDMap, JunctionArea, LaneCenterline, LaneLine, PointFeature, PoleFeature, Polyline, WalkableArea
 from .query import MapIndex
 
 __all__ = [
     "HDMap",
+    "JunctionArea",
     "LaneCenterline",
     "LaneLine",
     "MapIndex",
