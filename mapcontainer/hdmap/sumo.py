@@ -275,7 +275,9 @@ def _walkable(net, edges: dict[str, _Edge], hd: HDMap, new_id: _Ids, notes: list
             shape = _shape(lane)
             poly = strip_outline(shape, lane.getWidth())
             hd.walkable.append(WalkableArea(new_id(), "sidewalk", poly, shape))
-    special = sorted((e for e in net.getEdges() if e.getFunction() in ("crossing", "walkingarea")), key=lambda e: e.getID())
+    special = sorted(
+        (e for e in net.getEdges() if e.getFunction() in ("crossing", "walkingarea")), key=lambda e: e.getID()
+    )
     skipped = 0
     for e in special:
         for lane in e.getLanes():
@@ -341,7 +343,9 @@ def _placed_landmarks(net, edges: dict[str, _Edge], rule: PlacementRule, classes
         for _tls, eid in signal_approaches(net, edges):
             ed = edges[eid]
             end = Polyline(ed.boundary(0)).length
-            hd.points.append(PointFeature(new_id(), "traffic_light", _at(ed, end, rule) + up * rule.traffic_light_height_m))
+            hd.points.append(
+                PointFeature(new_id(), "traffic_light", _at(ed, end, rule) + up * rule.traffic_light_height_m)
+            )
     rng = np.random.default_rng(rule.seed)
     for ed in edges.values():
         if not ed.road:
@@ -415,7 +419,7 @@ def _poi_landmarks(net, path: Path, rule: PlacementRule, notes: list[str]):
                 x, y = net.convertLonLat2XY(poi.x, poi.y)
             except (RuntimeError, ImportError) as exc:
                 raise MapFileError(
-                    f"{path}: POI {poi.id!r} is given in lon/lat, which needs the network's projection and pyproj ({exc})"
+                    f"{path}: POI {poi.id!r} is given in lon/lat, needing the net's projection and pyproj ({exc})"
                 ) from None
         else:
             x, y = poi.x, poi.y
@@ -423,7 +427,9 @@ def _poi_landmarks(net, path: Path, rule: PlacementRule, notes: list[str]):
         height = float(poi.attributes.get("height", default[cls]))
         found[cls].append(np.array([x, y, 0.0, height]))
     if unknown:
-        notes.append(f"{unknown} POIs of other types ignored (known: {sorted(n for v in POI_CLASSES.values() for n in v)})")
+        notes.append(
+            f"{unknown} POIs of other types ignored (known: {sorted(n for v in POI_CLASSES.values() for n in v)})"
+        )
     return found
 
 
