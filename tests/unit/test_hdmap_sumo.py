@@ -169,7 +169,9 @@ def test_pois_of_an_additional_file_replace_the_rule(net_file, tmp_path) -> None
     add = tmp_path / "pois.add.xml"
     add.write_text(
         '<additional>\n'
-        '  <poi id="l1" type="street_lamp" color="1,1,0" layer="0" x="100" y="105"><param key="height" value="6"/></poi>\n'
+        '  <poi id="l1" type="street_lamp" color="1,1,0" layer="0" x="100" y="105">\n'
+        '    <param key="height" value="6"/>\n'
+        '  </poi>\n'
         '  <poi id="l2" type="lamp" color="1,1,0" layer="0" lane="WC_1" pos="20"/>\n'
         '  <poi id="t" type="tree" color="0,1,0" layer="0" x="10" y="10"/>\n'
         '</additional>\n'
@@ -186,14 +188,18 @@ def test_gzipped_and_plain_give_the_same_map(net_file, imported, tmp_path) -> No
     gz.write_bytes(gzip.compress(net_file.read_bytes()))
     other = import_sumo(gz).hdmap
     assert len(other.lane_lines) == len(imported.hdmap.lane_lines)
-    assert all(np.array_equal(a.points, b.points) for a, b in zip(other.lane_lines, imported.hdmap.lane_lines))
+    assert all(
+        np.array_equal(a.points, b.points) for a, b in zip(other.lane_lines, imported.hdmap.lane_lines, strict=True)
+    )
 
 
 def test_geojson_round_trip_keeps_junctions(imported, tmp_path) -> None:
     path = save_map(imported.hdmap, tmp_path / "m.geojson")
     back = load_map(path)
     assert len(back.junctions) == len(imported.hdmap.junctions)
-    assert all(np.array_equal(a.polygon, b.polygon) for a, b in zip(back.junctions, imported.hdmap.junctions))
+    assert all(
+        np.array_equal(a.polygon, b.polygon) for a, b in zip(back.junctions, imported.hdmap.junctions, strict=True)
+    )
     assert back.feature_counts() == imported.hdmap.feature_counts()
 
 
