@@ -67,29 +67,34 @@ def principal_axis(polygon, z: float = 0.0) -> np.ndarray:
 
 def is_simple_polygon(polygon) -> bool:
     """Whether the closed ring through ``polygon`` (N, 2) has no repeated vertex and no two non-adjacent edges
-    that touch or cross (an O(N^2) orientation test: fine for junction and walking-area outlines)."""
+    that touch or cross.
+
+    Edges e_i = [p_i, p_i+1] and e_j cross or touch iff o(e_i, p_j) o(e_i, p_j+1) <= 0 and
+    o(e_j, p_i) o(e_j, p_i+1) <= 0, with o(ab, c) = (b - a) x (c - a); collinear pairs (all four zero) count
+    only when their extents overlap. Vectorised over j for each i: O(N^2) work, fine for outlines.
+    """
     p = np.asarray(polygon, dtype=float)[:, :2]
     n = len(p)
     if n < 3 or len(np.unique(np.round(p, 9), axis=0)) < n:
         return False
+    a, b = p, np.roll(p, -1, axis=0)
 
-    def orient(a, b, c) -> float:
-        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    def orient(a, b, c) -> np.ndarray:
+        return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
 
+    idx = np.arange(n)
     for i in range(n):
-        a, b = p[i], p[(i + 1) % n]
-        for j in range(i + 1, n):
-            if j == i or (j + 1) % n == i or j == (i + 1) % n:
-                continue
-            c, d = p[j], p[(j + 1) % n]
-            o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
-            if o1 * o2 <= 0 and o3 * o4 <= 0 and not (o1 == o2 == 0 and not _overlap(a, b, c, d)):
-                return False
+        others = (idx != i) & (idx != (i + 1) % n) & (idx != (i - 1) % n)
+        c, d = a[others], b[others]
+        o1, o2 = orient(a[i], b[i], c), orient(a[i], b[i], d)
+        o3, o4 = orient(c, d, a[i]), orient(c, d, b[i])
+        hit = (o1 * o2 <= 0) & (o3 * o4 <= 0)
+        collinear = (o1 == 0) & (o2 == 0)
+        if np.any(collinear & hit):
+            lo1, hi1 = np.minimum(a[i], b[i]), np.maximum(a[i], b[i])
+            lo2, hi2 = np.minimum(c, d), np.maximum(c, d)
+            overlap = np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
+            hit = np.where(collinear, overlap, hit)
+        if np.any(hit):
+            return False
     return True
-
-
-def _overlap(a, b, c, d) -> bool:
-    """Collinear segments ab and cd share a point (their x, y bounding boxes overlap)."""
-    lo1, hi1 = np.minimum(a, b), np.maximum(a, b)
-    lo2, hi2 = np.minimum(c, d), np.maximum(c, d)
-    return bool(np.all(lo1 <= hi2) and np.all(lo2 <= hi1))

@@ -243,7 +243,7 @@ def _signed_offsets(line: np.ndarray, centre: np.ndarray) -> np.ndarray:
         k = int(np.argmin(np.linalg.norm(foot - q, axis=1)))
         v = foot[k] - q
         tan = tangents[i] / max(np.linalg.norm(tangents[i]), 1e-12)
-        out[i] = np.cross(tan, v) if np.linalg.norm(v) > 0 else 0.0
+        out[i] = tan[0] * v[1] - tan[1] * v[0]  # the z of tan x v: positive when the line is on the left
         at_end = (k == 0 and t[0] == 0) or (k == len(a) - 1 and t[-1] == 1)
         if at_end and abs(np.dot(tan, v)) > _BOUND_TOL_M:
             out[i] = np.nan
