@@ -92,6 +92,7 @@ def _cmd_map_import(args: argparse.Namespace) -> int:
     imported = _read_map(args)
     import_s = time.perf_counter() - t0
     name = imported.hdmap.name
+    args.out.mkdir(parents=True, exist_ok=True)
     geojson = save_map(imported.hdmap, args.out / f"{name}.geojson", imported.origin)
     png = args.out / f"{name}.png"
     render_map(png, imported.hdmap, f"{name} ({imported.source.split(':', 1)[0]})")
@@ -105,6 +106,7 @@ def _cmd_map_show(args: argparse.Namespace) -> int:
 
     imported = _read_map(args)
     png = args.out if args.out is not None else Path.cwd() / f"{imported.hdmap.name}.png"
+    png.parent.mkdir(parents=True, exist_ok=True)
     render_map(png, imported.hdmap, f"{imported.hdmap.name} ({imported.source.split(':', 1)[0]})")
     print(jsonout.dumps({**imported.summary(), "png": str(png)}))
     return 0
@@ -124,6 +126,7 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
         imported = read_any_map(args.map)
         hdmap, origin = imported.hdmap, imported.origin
     origin = args.origin or origin
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.format == "geojson":
         print(jsonout.dumps({"out": str(save_map(hdmap, args.out, origin)), "features": hdmap.feature_counts()}))
         return 0
