@@ -40,12 +40,21 @@ from .geometry2d import dedup, offset_polyline, principal_axis, strip_outline
 from .io import MapOrigin
 from .model import HDMap, JunctionArea, LaneCenterline, LaneLine, PointFeature, PoleFeature, Polyline, WalkableArea
 
-__all__ = ["ROAD_CLASSES", "SHARED_BOUNDARY_M", "ImportedMap", "PlacementRule", "import_sumo", "sniff_sumo"]
+__all__ = [
+    "ROAD_CLASSES",
+    "SHARED_BOUNDARY_M",
+    "SIGNED_JUNCTIONS",
+    "ImportedMap",
+    "PlacementRule",
+    "import_sumo",
+    "sniff_sumo",
+]
 
 ROAD_CLASSES = (
     "passenger", "private", "taxi", "bus", "coach", "delivery", "truck", "trailer", "emergency",
     "motorcycle", "moped", "bicycle", "evehicle", "authority",
 )  # fmt: skip
+SIGNED_JUNCTIONS = ("priority", "priority_stop", "allway_stop", "zipper")  # right of way told by signs
 SHARED_BOUNDARY_M = 0.5  # two directions' inner boundaries this close are one painted line
 DOUBLE_LINE_GAP_M = 0.24  # centre-to-centre distance of the two lines of a double line
 _GZIP_MAGIC = b"\x1f\x8b"
@@ -61,8 +70,9 @@ class PlacementRule(BaseModel):
       none closer than ``end_margin_m`` to the edge's ends;
     * a sign ``sign_after_start_m`` after the start of every edge at least ``sign_min_edge_m`` long
       (a speed-limit sign after each junction), moved by U(-``sign_jitter_m``, +``sign_jitter_m``);
-    * a sign ``end_margin_m`` before the end of every edge arriving at an unsignalised junction of three or
-      more roads (a right-of-way sign);
+    * a sign ``end_margin_m`` before the end of every edge arriving at a junction of three or more roads whose
+      right of way signs tell (:data:`SIGNED_JUNCTIONS`: priority, stop, all-way stop, zipper; not a signal, not
+      right-before-left, which has no signs);
     * a traffic light at the stop line (the end of the outer road lane) of every approach to a signal.
 
     The random draws come from ``numpy.random.default_rng(seed)`` taken in the order of sorted edge ids,
@@ -289,7 +299,11 @@ def _walkable(net, edges: dict[str, _Edge], hd: HDMap, new_id: _Ids, notes: list
                 if len(poly) < 3:
                     skipped += 1
                     continue
-                path = principal_axis(poly, z=float(shape[:, 2].mean()))
+                try:
+                    path = principal_axis(poly, z=float(shape[:, 2].mean()))
+                except ValueError:  # all its points in one place
+                    skipped += 1
+                    continue
                 hd.walkable.append(WalkableArea(new_id(), "sidewalk", poly, path))
             else:
                 skipped += 1
@@ -312,7 +326,7 @@ def _junctions(net, hd: HDMap, new_id: _Ids) -> None:
         hd.junctions.append(JunctionArea(new_id(), pts[:, :2].copy(), float(pts[:, 2].mean())))
 
 
-def signal_approaches(net, edges: dict[str, _Edge]) -> list[tuple[str, str]]:
+def _signal_approaches(net, edges: dict[str, _Edge]) -> list[tuple[str, str]]:
     """(signal id, incoming road edge id) of every approach to a traffic light that has a signal program."""
     out = set()
     for tls in net.getTrafficLights():
@@ -340,7 +354,7 @@ def _placed_landmarks(net, edges: dict[str, _Edge], rule: PlacementRule, classes
 
     up = np.array([0.0, 0.0, 1.0])
     if "traffic_light" in classes:
-        for _tls, eid in signal_approaches(net, edges):
+        for _tls, eid in _signal_approaches(net, edges):
             ed = edges[eid]
             end = Polyline(ed.boundary(0)).length
             hd.points.append(
@@ -365,10 +379,14 @@ def _placed_landmarks(net, edges: dict[str, _Edge], rule: PlacementRule, classes
             base = _at(ed, rule.sign_after_start_m + jitter, rule)
             hd.points.append(PointFeature(new_id(), "sign", base + up * rule.sign_height_m))
         node = ed.edge.getToNode()
-        roads = {e.getID() for e in (*node.getIncoming(), *node.getOutgoing()) if e.getID() in edges}
+        roads = {
+            e.getID()
+            for e in (*node.getIncoming(), *node.getOutgoing())
+            if e.getID() in edges and edges[e.getID()].road
+        }
         neighbours = {e.getFromNode().getID() for e in node.getIncoming() if e.getID() in roads}
         neighbours |= {e.getToNode().getID() for e in node.getOutgoing() if e.getID() in roads}
-        if node.getType() != "traffic_light" and "traffic_light" not in node.getType() and len(neighbours) >= 3:
+        if node.getType() in SIGNED_JUNCTIONS and len(neighbours) >= 3:
             base = _at(ed, length - rule.end_margin_m, rule)
             hd.points.append(PointFeature(new_id(), "sign", base + up * rule.sign_height_m))
 
@@ -479,6 +497,8 @@ def import_sumo(
     if classes:
         notes.append(f"placed by the rule (seed {rule.seed}): {', '.join(sorted(classes))}")
 
+    dx, dy = net.getLocationOffset()
+    notes.append(f"network coordinates (netOffset {dx:g}, {dy:g} already in every shape, as SUMO writes them)")
     origin = None
     if net.hasGeoProj():
         try:

@@ -147,6 +147,23 @@ def test_traffic_lights_stand_at_the_stop_lines(imported, net) -> None:
     assert all(p[2] == pytest.approx(rule.traffic_light_height_m) for p in lights)
 
 
+def test_left_hand_traffic_puts_the_curb_on_the_left(tmp_path) -> None:
+    (tmp_path / "n.nod.xml").write_text(NODES)
+    (tmp_path / "e.edg.xml").write_text(EDGES)
+    subprocess.run(
+        [str(_netconvert()), "-n", "n.nod.xml", "-e", "e.edg.xml", "--lefthand", "-o", "lh.net.xml"],
+        cwd=tmp_path, check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    hd = import_sumo(tmp_path / "lh.net.xml").hdmap
+    net = sumolib.net.readNet(str(tmp_path / "lh.net.xml"))
+    for eid in ("WC", "NC", "SC"):  # the traffic light of each approach stands left of its outer lane's end
+        shape = np.array(_road_lanes(net.getEdge(eid))[0].getShape())
+        t, end = shape[-1] - shape[-2], shape[-1]
+        light = min((p.p_map for p in hd.points if p.cls == "traffic_light"), key=lambda p: np.linalg.norm(p[:2] - end))
+        v = light[:2] - end
+        assert t[0] * v[1] - t[1] * v[0] > 0
+
+
 def test_placement_is_seeded_and_follows_the_rule(net_file) -> None:
     a, b = import_sumo(net_file, PlacementRule(seed=3)), import_sumo(net_file, PlacementRule(seed=3))
     c = import_sumo(net_file, PlacementRule(seed=4))
