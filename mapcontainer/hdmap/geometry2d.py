@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["dedup", "is_simple_polygon", "offset_polyline", "principal_axis", "strip_outline"]
+__all__ = ["dedup", "distance_to_polyline", "is_simple_polygon", "offset_polyline", "principal_axis", "strip_outline"]
 
 _MITER_LIMIT = 4.0  # a corner's offset vertex moves at most this many offsets from the original one
 
@@ -17,6 +17,18 @@ def dedup(points, tol: float = 1e-6) -> np.ndarray:
         if np.linalg.norm(pts[i, :2] - pts[keep[-1], :2]) > tol:
             keep.append(i)
     return pts[keep]
+
+
+def distance_to_polyline(p, line) -> float:
+    """Distance (x, y) from point ``p`` to the nearest segment of the polyline ``line`` (N >= 2, 2 or 3 columns).
+
+    min_i | a_i + t_i (b_i - a_i) - p |, t_i = clip(((p - a_i) . (b_i - a_i)) / |b_i - a_i|^2, 0, 1).
+    """
+    q = np.asarray(p, dtype=float)[:2]
+    pts = np.asarray(line, dtype=float)[:, :2]
+    a, d = pts[:-1], np.diff(pts, axis=0)
+    t = np.clip(np.einsum("ij,ij->i", q - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(a + t[:, None] * d - q, axis=1)))
 
 
 def offset_polyline(points, d: float) -> np.ndarray:

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from .errors import MapFileError, require
-from .geometry2d import is_simple_polygon, offset_polyline, principal_axis
+from .geometry2d import distance_to_polyline, is_simple_polygon, offset_polyline, principal_axis
 from .io import MapOrigin
 from .model import HDMap, JunctionArea, LaneCenterline, LaneLine, PointFeature, PoleFeature, Polyline, WalkableArea
 from .sumo import ImportedMap
@@ -250,14 +250,6 @@ def _signed_offsets(line: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return out
 
 
-def _near(line: np.ndarray, p: np.ndarray, width: float) -> bool:
-    """Whether a segment of ``line`` passes within ``width`` of ``p`` (x, y) plus the tolerance."""
-    a, b = line[:-1, :2], line[1:, :2]
-    d = b - a
-    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0, 1)
-    return bool(np.min(np.linalg.norm(a + t[:, None] * d - p, axis=1)) <= width + 2 * _BOUND_TOL_M)
-
-
 def export_lanelet2(
     hdmap: HDMap, path: Path | str, origin: MapOrigin | None = None, projector: str = "local"
 ) -> dict[str, Any]:
@@ -311,9 +303,8 @@ def export_lanelet2(
             if whole:
                 mid = centre[len(centre) // 2, :2]
                 for ln, ls in lines:
-                    if ln.closed or np.min(np.linalg.norm(ln.points[:, :2] - mid, axis=1)) > width + 2 * _BOUND_TOL_M:
-                        if ln.closed or not _near(ln.points, mid, width):
-                            continue
+                    if ln.closed or distance_to_polyline(mid, ln.points) > width + 2 * _BOUND_TOL_M:
+                        continue  # a quick test before the vertex-by-vertex one
                     off = _signed_offsets(ln.points, centre)
                     if np.all(np.isfinite(off)) and np.all(np.abs(off - side * width / 2) < _BOUND_TOL_M):
                         along = np.dot(ln.points[-1, :2] - ln.points[0, :2], centre[-1, :2] - centre[0, :2])

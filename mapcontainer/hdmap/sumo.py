@@ -36,7 +36,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .errors import MapFileError, require
-from .geometry2d import dedup, offset_polyline, principal_axis, strip_outline
+from .geometry2d import dedup, distance_to_polyline, offset_polyline, principal_axis, strip_outline
 from .io import MapOrigin
 from .model import HDMap, JunctionArea, LaneCenterline, LaneLine, PointFeature, PoleFeature, Polyline, WalkableArea
 
@@ -234,13 +234,7 @@ def _opposite(ed: _Edge, edges: dict[str, _Edge]) -> _Edge | None:
         o = edges.get(other.getID())
         if o is None or not o.road or other.getToNode() is not ed.edge.getFromNode():
             continue
-        theirs = o.boundary(len(o.road))
-        d = float(np.min(np.linalg.norm(theirs[:, :2] - mid, axis=1)))
-        seg = np.diff(theirs[:, :2], axis=0)
-        if len(seg):  # distance to the segments, not only the vertices
-            a = theirs[:-1, :2]
-            t = np.clip(np.einsum("ij,ij->i", mid - a, seg) / np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-12), 0, 1)
-            d = float(np.min(np.linalg.norm(a + t[:, None] * seg - mid, axis=1)))
+        d = distance_to_polyline(mid, o.boundary(len(o.road)))
         if d < best_d:
             best, best_d = o, d
     return best if best_d <= SHARED_BOUNDARY_M else None
