@@ -3,7 +3,9 @@
 Everything stays in the network's own frame: SUMO stores every shape already shifted by
 ``netOffset`` (network x = projected x + netOffset), so the map's coordinates are the network's
 coordinates unchanged; the geodetic position of the map origin (0, 0) is known only when the network
-has a projection and pyproj is installed (``convertXY2LonLat(0, 0)``, sumolib's own conversion).
+has a projection and pyproj is installed (``convertXY2LonLat(0, 0)``, sumolib's own conversion); the axes
+are then the projection's grid axes (UTM: y differs from true north by the grid convergence, which the
+import notes), not exactly east and north.
 The import rules, in short (details in ``mapcontainer/hdmap/README.md``):
 
 * lanes: a lane that allows only pedestrians is a sidewalk; one that allows any road vehicle
@@ -13,6 +15,7 @@ The import rules, in short (details in ``mapcontainer/hdmap/README.md``):
   directions one solid line when each has one lane, a double solid line otherwise, written once
   (by the edge of the smaller id) when the opposite edge's boundary lies within
   :data:`SHARED_BOUNDARY_M`; a road without an opposite edge (one way, or a median) ends in a solid line;
+* stop lines: a solid bar across the road lanes' ends on every approach to a signal or a stop junction;
 * lane centre lines: each road lane's shape, in its driving direction, with its width;
 * walkable areas: sidewalk lanes and crossings as strips around their shapes (walking path = the
   shape), walking areas (the corners joining them) as their polygons with their principal axis as path;
@@ -55,6 +58,8 @@ ROAD_CLASSES = (
     "motorcycle", "moped", "bicycle", "evehicle", "authority",
 )  # fmt: skip
 SIGNED_JUNCTIONS = ("priority", "priority_stop", "allway_stop", "zipper")  # right of way told by signs
+STOP_JUNCTIONS = ("priority_stop", "allway_stop")  # approaches with a painted stop line, besides signals
+STOP_LINE_WIDTH_M = 0.3
 SHARED_BOUNDARY_M = 0.5  # two directions' inner boundaries this close are one painted line
 DOUBLE_LINE_GAP_M = 0.24  # centre-to-centre distance of the two lines of a double line
 _GZIP_MAGIC = b"\x1f\x8b"
@@ -320,6 +325,17 @@ def _junctions(net, hd: HDMap, new_id: _Ids) -> None:
         hd.junctions.append(JunctionArea(new_id(), pts[:, :2].copy(), float(pts[:, 2].mean())))
 
 
+def _stop_lines(net, edges: dict[str, _Edge], hd: HDMap, new_id: _Ids) -> None:
+    """A solid bar across the ends of the road lanes of every approach to a signal or a stop junction."""
+    stops = {eid for _, eid in _signal_approaches(net, edges)}
+    stops |= {eid for eid, ed in edges.items() if ed.road and ed.edge.getToNode().getType() in STOP_JUNCTIONS}
+    for eid in sorted(stops):
+        ed = edges[eid]
+        a, b = ed.boundary(0)[-1], ed.boundary(len(ed.road))[-1]
+        if np.linalg.norm(b[:2] - a[:2]) > 0.1:
+            hd.lane_lines.append(LaneLine(new_id(), np.stack([a, b]), "solid", width_m=STOP_LINE_WIDTH_M))
+
+
 def _signal_approaches(net, edges: dict[str, _Edge]) -> list[tuple[str, str]]:
     """(signal id, incoming road edge id) of every approach to a traffic light that has a signal program."""
     out = set()
@@ -467,6 +483,7 @@ def import_sumo(
     notes: list[str] = []
     new_id = _Ids()
     _lane_lines(edges, hd, new_id)
+    _stop_lines(net, edges, hd, new_id)
     for ed in edges.values():
         for lane in ed.road:
             hd.centerlines.append(LaneCenterline(new_id(), _shape(lane), width_m=float(lane.getWidth())))
@@ -498,6 +515,8 @@ def import_sumo(
         try:
             lon, lat = net.convertXY2LonLat(0.0, 0.0)
             origin = MapOrigin(float(lat), float(lon), 0.0)
+            gamma = net.getGeoProj().get_factors(lon, lat).meridian_convergence
+            notes.append(f"axes: the projection's grid, y {gamma:.2f} deg from true north at the origin (not ENU)")
         except (RuntimeError, ImportError):
             notes.append("the network has a projection but pyproj is not installed: no geodetic origin")
     return ImportedMap(hd, origin, f"sumo:{path}", notes)

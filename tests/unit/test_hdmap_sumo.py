@@ -17,7 +17,7 @@ sumo = pytest.importorskip("sumo")
 from mapcontainer.hdmap.errors import MapFileError, MissingExtraError  # noqa: E402
 from mapcontainer.hdmap.io import load_map, save_map  # noqa: E402
 from mapcontainer.hdmap.model import Polyline  # noqa: E402
-from mapcontainer.hdmap.sumo import DOUBLE_LINE_GAP_M, ROAD_CLASSES, PlacementRule, import_sumo  # noqa: E402
+from mapcontainer.hdmap.sumo import DOUBLE_LINE_GAP_M, ROAD_CLASSES, STOP_LINE_WIDTH_M, PlacementRule, import_sumo  # noqa: E402
 
 NODES = """<nodes>
   <node id="C" x="0" y="0" type="traffic_light"/>
@@ -107,9 +107,14 @@ def test_lane_line_kinds(imported, net) -> None:
     hd = imported.hdmap
     # Outer edges: one per edge (11). Dashed: between the two lanes of NC, CN and CE. Between directions:
     # WC/CW, SC/CS, WF/FW and WG/GW single solid lines, NC/CN a double line; CE (one way) ends in a solid line.
+    # Stop lines on the three approaches to the signal.
     kinds = [ln.kind for ln in hd.lane_lines]
     assert kinds.count("dashed") == 3
-    assert kinds.count("solid") == 11 + 4 + 2 + 1
+    assert kinds.count("solid") == 11 + 4 + 2 + 1 + 3
+    bars = [ln for ln in hd.lane_lines if ln.width_m == STOP_LINE_WIDTH_M]
+    widths = sorted(round(float(np.linalg.norm(np.diff(ln.points[:, :2], axis=0))), 1) for ln in bars)
+    lane_w = net.getEdge("WC").getLane(1).getWidth()
+    assert widths == pytest.approx([lane_w, lane_w, 2 * lane_w], abs=0.05)  # WC, SC one lane; NC two
     # The double line: two solid lines DOUBLE_LINE_GAP_M apart around the boundary of NC and CN.
     inner = _road_lanes(net.getEdge("NC"))[-1]
     shape = np.array(inner.getShape3D())
@@ -218,6 +223,17 @@ def test_geojson_round_trip_keeps_junctions(imported, tmp_path) -> None:
         np.array_equal(a.polygon, b.polygon) for a, b in zip(back.junctions, imported.hdmap.junctions, strict=True)
     )
     assert back.feature_counts() == imported.hdmap.feature_counts()
+
+
+def test_a_projected_network_has_a_geodetic_origin() -> None:
+    pytest.importorskip("pyproj")  # the roads extra
+    path = Path(sumo.__file__).parent / "tools/game/bs3d/bs.net.xml"
+    m = import_sumo(path)
+    # The network's (0, 0) is the lower-left corner of its UTM bounding box; its WGS84 bounding box is
+    # origBoundary="10.525796,52.269679,10.549189,52.288860". Rotated by the grid convergence, the corner lies
+    # tens of metres from the lon/lat box's corner, inside the box widened by 0.001 degrees.
+    assert 52.269679 - 1e-3 < m.origin.lat_deg < 52.288860 and 10.525796 - 1e-3 < m.origin.lon_deg < 10.549189
+    assert any("deg from true north" in n for n in m.notes)
 
 
 SAMPLES = {
