@@ -303,3 +303,20 @@ def test_missing_extra_names_it(monkeypatch, net_file) -> None:
     monkeypatch.setitem(sys.modules, "sumolib", None)  # import sumolib now raises ImportError
     with pytest.raises(MissingExtraError, match=r"map-container\[roads\]"):
         import_sumo(net_file)
+
+
+def test_an_imported_map_serves_the_map_readers(imported, net) -> None:
+    """The spatial index and the map-error model take an imported map as they take the ring road."""
+    from mapcontainer.hdmap.perturb import MapError, perturb_map
+    from mapcontainer.hdmap.query import MapIndex
+
+    hd = imported.hdmap
+    index = MapIndex(hd)
+    light = next(p for p in hd.points if p.cls == "traffic_light")
+    points, _ = index.landmarks_in_range(light.p_map, 1.0)
+    assert [p.id for p in points] == [light.id]
+    centre = net.getEdge("WC").getLane(1).getShape3D()[0]
+    assert index.nearest_lane_height(np.array(centre)) == pytest.approx(0.0)
+    assert len(index.lane_samples_in_range(np.array(centre), 10.0)) > 0
+    noisy = perturb_map(hd, MapError(landmark_sigma_m=(0.05, 0.02), line_sigma_m=0.05), np.random.SeedSequence(1))
+    assert noisy.feature_counts() == hd.feature_counts() and len(noisy.junctions) == len(hd.junctions)
