@@ -144,8 +144,9 @@ def import_lanelet2(path: Path | str, origin: MapOrigin | None = None, projector
         llmap, errors = lanelet2.io.loadRobust(str(path), _projector(origin, projector))
     except RuntimeError as exc:  # lanelet2's loader reports a file it cannot parse this way
         raise MapFileError(f"{path}: lanelet2 cannot load it ({exc})") from None
-    if errors:
-        notes.append(f"lanelet2 reported {len(errors)} problems, e.g. {errors[0]!r}")
+    problems = [e.strip(" \t-") for e in errors if not e.startswith("Errors oc")]  # without the header line
+    if problems:
+        notes.append(f"lanelet2 reported {len(problems)} problems, the first: {problems[0]}")
     if not (len(llmap.laneletLayer) or len(llmap.lineStringLayer) or len(llmap.pointLayer)):
         raise MapFileError(f"{path}: the Lanelet2 map is empty (no lanelets, line strings or points)")
 
@@ -224,6 +225,9 @@ def import_lanelet2(path: Path | str, origin: MapOrigin | None = None, projector
             )
         elif sub == "intersection":
             hd.junctions.append(JunctionArea(next(ids), ring[:, :2], float(ring[:, 2].mean())))
+    if not (hd.lane_lines or hd.centerlines or hd.points or hd.poles or hd.walkable or hd.junctions):
+        why = f" (lanelet2: {problems[0]})" if problems else ""
+        raise MapFileError(f"{path}: nothing in the map is a lane line, lanelet, landmark or area{why}")
     return ImportedMap(hd, origin, f"lanelet2:{path} ({projector} projector)", notes)
 
 

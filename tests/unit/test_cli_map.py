@@ -55,7 +55,7 @@ def test_export_a_scenario_then_show_and_import_it(capsys, tmp_path) -> None:
     assert load_map(doc["geojson"]).feature_counts() == {"lamp": 14, "traffic_light": 4, "sign": 4}
 
 
-def test_export_geojson_and_convert_sumo_to_lanelet2(capsys, tmp_path) -> None:
+def test_export_geojson_and_convert_sumo_to_lanelet2(capsys, tmp_path, monkeypatch) -> None:
     out = tmp_path / "urban.geojson"
     code, doc, err = _run(
         capsys, "map", "export", "--scenario", "paper-urban", "--format", "geojson", "--out", str(out)
@@ -64,6 +64,10 @@ def test_export_geojson_and_convert_sumo_to_lanelet2(capsys, tmp_path) -> None:
     assert load_map(out).feature_counts() == doc["features"] == {"lamp": 14, "traffic_light": 4, "sign": 4}
     code, doc, err = _run(capsys, "map", "show", str(out), "--out", str(tmp_path / "u.png"))
     assert code == 0 and (tmp_path / "u.png").read_bytes()[:8] == PNG_MAGIC
+    monkeypatch.chdir(tmp_path)
+    code, doc, err = _run(capsys, "map", "show", str(out))  # default: NAME.png in the working directory
+    png = tmp_path / f"{doc['name']}.png"
+    assert code == 0 and Path(doc["png"]) == png and png.read_bytes()[:8] == PNG_MAGIC
     pytest.importorskip("lanelet2")
     osm = tmp_path / "rilsa.osm"
     code, doc, err = _run(capsys, "map", "export", "--map", str(_rilsa()), "--format", "lanelet2", "--out", str(osm))

@@ -172,6 +172,12 @@ BAD = {
     "not_xml": (b"lat,lon\n1,2\n", "not XML"),
     "not_osm": (b'<net version="1.9"/>', "not an OSM"),
     "no_elements": (b'<osm version="0.6"/>', "empty"),
+    "truncated": (b'<osm version="0.6"><node id="1" lat="49" lon="8"/><way id="2"><nd ref=', "lanelet2 cannot load"),
+    "nothing_usable": (
+        b'<osm version="0.6"><node id="1" lat="49" lon="8"/><way id="2"><nd ref="1"/><nd ref="99"/>'
+        b'<tag k="type" v="line_thin"/></way></osm>',
+        "nothing in the map",
+    ),
 }
 
 
