@@ -6,8 +6,9 @@ import gzip
 from pathlib import Path
 
 from .errors import MapFileError
+from .imported import ImportedMap
 from .io import load_map, load_origin
-from .sumo import ImportedMap, PlacementRule
+from .sumo import PlacementRule
 
 __all__ = ["FORMATS", "detect_format", "read_any_map"]
 

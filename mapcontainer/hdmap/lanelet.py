@@ -47,9 +47,9 @@ import numpy as np
 
 from .errors import MapFileError, require
 from .geometry2d import distance_to_polyline, is_simple_polygon, offset_polyline, principal_axis
+from .imported import ImportedMap
 from .io import MapOrigin
 from .model import HDMap, JunctionArea, LaneCenterline, LaneLine, PointFeature, PoleFeature, Polyline, WalkableArea
-from .sumo import ImportedMap
 
 __all__ = ["DEFAULT_ORIGIN", "PROJECTORS", "export_lanelet2", "import_lanelet2", "sniff_osm"]
 

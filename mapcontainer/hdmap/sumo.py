@@ -30,7 +30,7 @@ from __future__ import annotations
 import gzip
 import xml.etree.ElementTree as ET
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from xml.sax import SAXException
@@ -40,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .errors import MapFileError, require
 from .geometry2d import dedup, distance_to_polyline, offset_polyline, principal_axis, strip_outline
+from .imported import ImportedMap
 from .io import MapOrigin
 from .model import HDMap, JunctionArea, LaneCenterline, LaneLine, PointFeature, PoleFeature, Polyline, WalkableArea
 
@@ -47,7 +48,8 @@ __all__ = [
     "ROAD_CLASSES",
     "SHARED_BOUNDARY_M",
     "SIGNED_JUNCTIONS",
-    "ImportedMap",
+    "STOP_JUNCTIONS",
+    "STOP_LINE_WIDTH_M",
     "PlacementRule",
     "import_sumo",
     "sniff_sumo",
@@ -96,33 +98,6 @@ class PlacementRule(BaseModel):
     sign_jitter_m: float = Field(2.0, ge=0)
     sign_height_m: float = Field(2.2, gt=0.5)
     traffic_light_height_m: float = Field(5.0, gt=1)
-
-
-@dataclass
-class ImportedMap:
-    """An imported map, the geodetic position of its origin when known, and what the import noticed."""
-
-    hdmap: HDMap
-    origin: MapOrigin | None = None
-    source: str = ""
-    notes: list[str] = field(default_factory=list)
-
-    def summary(self) -> dict[str, Any]:
-        """Counts of what the map holds, for the command line and the tests."""
-        hd = self.hdmap
-        kinds = [ln.kind for ln in hd.lane_lines]
-        areas = [w.kind for w in hd.walkable]
-        return {
-            "name": hd.name,
-            "source": self.source,
-            "lane_lines": {"solid": kinds.count("solid"), "dashed": kinds.count("dashed")},
-            "centerlines": len(hd.centerlines),
-            "walkable": {"sidewalk": areas.count("sidewalk"), "crossing": areas.count("crossing")},
-            "junctions": len(hd.junctions),
-            "landmarks": hd.feature_counts(),
-            "origin": None if self.origin is None else vars(self.origin),
-            "notes": self.notes,
-        }
 
 
 # ---------------------------------------------------------------------------------- reading the file
