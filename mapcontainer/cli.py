@@ -161,11 +161,12 @@ def output_file(value: str) -> Path:
     return path
 
 
-def _add_map_reader_args(p: argparse.ArgumentParser) -> None:
-    from .hdmap.formats import FORMATS
+MAP_FORMATS = ("geojson", "sumo", "lanelet2")  # mapcontainer.hdmap.formats.FORMATS, not imported to build the parser
 
+
+def _add_map_reader_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", help="a map: our GeoJSON, a SUMO network (.net.xml, .net.xml.gz) or a Lanelet2 .osm file")
-    p.add_argument("--format", choices=("auto", *FORMATS), default="auto", help="default: from the name or content")
+    p.add_argument("--format", choices=("auto", *MAP_FORMATS), default="auto", help="default: from the name or content")
     p.add_argument(
         "--seed", type=non_negative_int, default=0, help="SUMO: seed of the lamp and sign placement rule (default 0)"
     )

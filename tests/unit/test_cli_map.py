@@ -89,6 +89,13 @@ def test_unreadable_map_exits_2_with_one_line(capsys, tmp_path) -> None:
     assert code == 2 and "not a map this tool reads" in err
 
 
+def test_the_parser_knows_every_format() -> None:
+    from mapcontainer.cli import MAP_FORMATS
+    from mapcontainer.hdmap.formats import FORMATS
+
+    assert MAP_FORMATS == FORMATS
+
+
 def test_options_that_do_not_fit_the_format_exit_2(capsys, tmp_path) -> None:
     osm = tmp_path / "m.osm"
     osm.write_text('<osm version="0.6"/>')
