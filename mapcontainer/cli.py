@@ -74,6 +74,9 @@ def _import_args(args: argparse.Namespace):
     fmt = detect_format(Path(args.file)) if args.format == "auto" else args.format
     if args.additional is not None and fmt != "sumo":
         raise ConfigError(f"--additional (SUMO POIs) needs a SUMO network, {args.file} is read as {fmt}")
+    for flag, value in (("--origin", args.origin), ("--projector", args.projector)):
+        if value is not None and fmt != "lanelet2":
+            raise ConfigError(f"{flag} is for Lanelet2 maps, {args.file} is read as {fmt}")
     return fmt, PlacementRule(seed=args.seed)
 
 
@@ -81,7 +84,7 @@ def _read_map(args: argparse.Namespace):
     from .hdmap.formats import read_any_map
 
     fmt, rule = _import_args(args)
-    return read_any_map(args.file, fmt, rule, args.additional, args.origin, args.projector)
+    return read_any_map(args.file, fmt, rule, args.additional, args.origin, args.projector or "local")
 
 
 def _cmd_map_import(args: argparse.Namespace) -> int:
@@ -184,7 +187,7 @@ def _add_map_reader_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--projector",
         choices=("local", "utm"),
-        default="local",
+        default=None,
         help="Lanelet2: local east-north-up at the origin (default) or UTM minus the origin's UTM position",
     )
 

@@ -101,6 +101,8 @@ def test_options_that_do_not_fit_the_format_exit_2(capsys, tmp_path) -> None:
     osm.write_text('<osm version="0.6"/>')
     code, _, err = _run(capsys, "map", "import", str(osm), "--additional", "pois.xml", "--out", str(tmp_path))
     assert code == 2 and "--additional" in err
+    code, _, err = _run(capsys, "map", "show", str(_rilsa()), "--origin", "49,8")
+    assert code == 2 and "--origin is for Lanelet2 maps" in err
 
 
 def test_missing_extra_exits_2_naming_it(capsys, monkeypatch, tmp_path) -> None:
