@@ -7,6 +7,7 @@ import contextlib
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 from . import jsonout
@@ -63,6 +64,132 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     summary = record_episode(world, args.duration if args.duration is not None else sc.duration_s, Path(args.out))
     print(jsonout.dumps(summary))
     return 0
+
+
+def _import_args(args: argparse.Namespace):
+    """The reader's options from the command line; ConfigError for options that do not fit the format."""
+    from .hdmap.formats import detect_format
+    from .hdmap.sumo import PlacementRule
+
+    fmt = detect_format(Path(args.file)) if args.format == "auto" else args.format
+    if args.additional is not None and fmt != "sumo":
+        raise ConfigError(f"--additional (SUMO POIs) needs a SUMO network, {args.file} is read as {fmt}")
+    for flag, value in (("--origin", args.origin), ("--projector", args.projector)):
+        if value is not None and fmt != "lanelet2":
+            raise ConfigError(f"{flag} is for Lanelet2 maps, {args.file} is read as {fmt}")
+    return fmt, PlacementRule(seed=args.seed)
+
+
+def _read_map(args: argparse.Namespace):
+    from .hdmap.formats import read_any_map
+
+    fmt, rule = _import_args(args)
+    return read_any_map(args.file, fmt, rule, args.additional, args.origin, args.projector or "local")
+
+
+def _cmd_map_import(args: argparse.Namespace) -> int:
+    from .hdmap.io import save_map
+    from .sim.render import render_map
+
+    t0 = time.perf_counter()
+    imported = _read_map(args)
+    import_s = time.perf_counter() - t0
+    name = imported.hdmap.name
+    args.out.mkdir(parents=True, exist_ok=True)
+    geojson = save_map(imported.hdmap, args.out / f"{name}.geojson", imported.origin)
+    png = args.out / f"{name}.png"
+    render_map(png, imported.hdmap, f"{name} ({imported.source.split(':', 1)[0]})")
+    doc = {**imported.summary(), "import_s": round(import_s, 3), "geojson": str(geojson), "png": str(png)}
+    print(jsonout.dumps(doc))
+    return 0
+
+
+def _cmd_map_show(args: argparse.Namespace) -> int:
+    from .sim.render import render_map
+
+    imported = _read_map(args)
+    png = args.out if args.out is not None else Path.cwd() / f"{imported.hdmap.name}.png"
+    png.parent.mkdir(parents=True, exist_ok=True)
+    render_map(png, imported.hdmap, f"{imported.hdmap.name} ({imported.source.split(':', 1)[0]})")
+    print(jsonout.dumps({**imported.summary(), "png": str(png)}))
+    return 0
+
+
+def _cmd_map_export(args: argparse.Namespace) -> int:
+    from .hdmap.io import MapOrigin, save_map
+
+    if args.scenario is not None:
+        from .hdmap.generator import generate_map
+        from .sim.config import load_scenario
+
+        hdmap, origin = generate_map(load_scenario(args.scenario).map), None
+    else:
+        from .hdmap.formats import read_any_map
+
+        imported = read_any_map(args.map)
+        hdmap, origin = imported.hdmap, imported.origin
+    origin = args.origin or origin
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.format == "geojson":
+        print(jsonout.dumps({"out": str(save_map(hdmap, args.out, origin)), "features": hdmap.feature_counts()}))
+        return 0
+    from .hdmap.lanelet import export_lanelet2
+
+    doc = export_lanelet2(hdmap, args.out, origin if isinstance(origin, MapOrigin) else None, args.projector)
+    print(jsonout.dumps(doc))
+    return 0
+
+
+def origin_arg(text: str):
+    """``LAT,LON[,ALT]`` in degrees (WGS84) and metres: the geodetic position of the map origin."""
+    from .hdmap.io import MapOrigin
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not LAT,LON[,ALT]: {text!r}") from None
+    if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"not LAT,LON[,ALT]: {text!r}")
+    if not (-90 <= values[0] <= 90 and -180 <= values[1] <= 180):
+        raise argparse.ArgumentTypeError(f"latitude or longitude out of range: {text!r}")
+    return MapOrigin(*values)
+
+
+def output_file(value: str) -> Path:
+    """An output file whose directory exists (or can be made) and is writable; absolute."""
+    path = Path(value).expanduser().resolve()
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{value} is a directory, expected a file name")
+    output_dir(str(path.parent))
+    return path
+
+
+MAP_FORMATS = ("geojson", "sumo", "lanelet2")  # mapcontainer.hdmap.formats.FORMATS, not imported to build the parser
+
+
+def _add_map_reader_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", help="a map: our GeoJSON, a SUMO network (.net.xml, .net.xml.gz) or a Lanelet2 .osm file")
+    p.add_argument("--format", choices=("auto", *MAP_FORMATS), default="auto", help="default: from the name or content")
+    p.add_argument(
+        "--seed", type=non_negative_int, default=0, help="SUMO: seed of the lamp and sign placement rule (default 0)"
+    )
+    p.add_argument(
+        "--additional",
+        default=None,
+        help="SUMO: an additional file whose POIs give lamps, traffic lights and signs (replacing the rule's)",
+    )
+    p.add_argument(
+        "--origin",
+        type=origin_arg,
+        default=None,
+        help="Lanelet2: LAT,LON[,ALT] of the map origin (default: the file's first node)",
+    )
+    p.add_argument(
+        "--projector",
+        choices=("local", "utm"),
+        default=None,
+        help="Lanelet2: local east-north-up at the origin (default) or UTM minus the origin's UTM position",
+    )
 
 
 def _cmd_schemas_export(args: argparse.Namespace) -> int:
@@ -376,6 +503,35 @@ def build_parser() -> argparse.ArgumentParser:
     ef.add_argument("--quiet", action="store_true", help="no progress bar")
     ef.set_defaults(func=_cmd_experiment_faults)
 
+    mp = sub.add_parser(
+        "map", help="HD maps: import SUMO and Lanelet2 maps, draw any map, export a scenario's map"
+    ).add_subparsers(dest="sub", required=True)
+    mi = mp.add_parser(
+        "import",
+        help="read a SUMO network or Lanelet2 map (the roads extra) or our GeoJSON; write NAME.geojson and NAME.png",
+    )
+    _add_map_reader_args(mi)
+    mi.add_argument("--out", required=True, type=output_dir, help="output directory")
+    mi.set_defaults(func=_cmd_map_import)
+    ms = mp.add_parser("show", help="draw any supported map as a PNG")
+    _add_map_reader_args(ms)
+    ms.add_argument("--out", type=output_file, default=None, help="the PNG (default: ./NAME.png)")
+    ms.set_defaults(func=_cmd_map_show)
+    me = mp.add_parser("export", help="write a scenario's map (or any supported map) as Lanelet2 OSM or our GeoJSON")
+    src = me.add_mutually_exclusive_group(required=True)
+    src.add_argument("--scenario", default=None, help="a scenario preset (mapc scenario list) or YAML file")
+    src.add_argument("--map", default=None, help="a map file of any supported format")
+    me.add_argument("--format", choices=("lanelet2", "geojson"), required=True)
+    me.add_argument("--out", required=True, type=output_file, help="the file to write")
+    me.add_argument(
+        "--origin",
+        type=origin_arg,
+        default=None,
+        help="LAT,LON[,ALT] of the map origin (default: the map's own, else 49.0,8.4 for Lanelet2)",
+    )
+    me.add_argument("--projector", choices=("local", "utm"), default="local", help="Lanelet2 projector")
+    me.set_defaults(func=_cmd_map_export)
+
     sch = sub.add_parser("schemas", help="the wire contract").add_subparsers(dest="sub", required=True)
     ex = sch.add_parser("export", help="write JSON Schema files (default: schemas/json/)")
     ex.add_argument("--out", default=None)
@@ -437,7 +593,7 @@ def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except ConfigError as exc:
-        print(f"mapc: configuration error: {exc}", file=sys.stderr)
+        print(f"mapc: {getattr(exc, 'label', 'configuration error')}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

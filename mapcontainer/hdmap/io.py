@@ -28,7 +28,11 @@ lane_line  LineString, 3-D, >= 2 positions        ``line_kind``: "solid" | "dash
 centerline LineString, 3-D, >= 2 positions        ``closed``, ``width_m`` (driving direction = point order)
 walkable   Polygon [[ [x, y], ... ]] (one ring,   ``area_kind``: "sidewalk" | "crossing", ``closed``,
            2-D, first position repeated last)     ``path``: walking centre line [[x, y, z], ...] (>= 2)
+junction   Polygon, as walkable                   ``z``: the junction's height (m)
 ========== ====================================== ===========================================================
+
+The ``junction`` kind came after the first maps were written: a map without junction areas is the same
+file as before, and a reader that does not know the kind refuses a file that has one, naming it.
 
 Polyline vertices are stored exactly as the model holds them; ``closed: true`` means the last
 vertex connects back to the first (no repeated vertex needed). A polygon ring repeats its first
@@ -54,6 +58,7 @@ from .model import (
     POINT_CLASSES,
     POLE_CLASSES,
     HDMap,
+    JunctionArea,
     LaneCenterline,
     LaneLine,
     PointFeature,
@@ -135,6 +140,11 @@ def map_to_geojson(hdmap: HDMap, origin: MapOrigin | None = None) -> dict[str, A
                     "path": _coords(f.path),
                 },
             )
+        )
+    for f in hdmap.junctions:
+        ring = np.vstack([f.polygon, f.polygon[:1]])
+        feats.append(
+            _feature({"type": "Polygon", "coordinates": [_coords(ring)]}, {"kind": "junction", "id": f.id, "z": f.z})
         )
     props: dict[str, Any] = {
         "format": FORMAT,
@@ -223,7 +233,7 @@ def _parse_feature(feat: Any) -> tuple[str, Any]:
     if not isinstance(feat, dict) or feat.get("type") != "Feature":
         raise _Bad("not a GeoJSON Feature object")
     props = _get(feat, "properties", dict, "member")
-    kind = _choice(props, "kind", ("point", "pole", "lane_line", "centerline", "walkable"))
+    kind = _choice(props, "kind", ("point", "pole", "lane_line", "centerline", "walkable", "junction"))
     fid = _get(props, "id", int, "property")
     if kind == "point":
         p = _array([_geometry(feat, "Point")], 3, "Point coordinates")[0]
@@ -246,10 +256,12 @@ def _parse_feature(feat: Any) -> tuple[str, Any]:
         )
     rings = _geometry(feat, "Polygon")
     if len(rings) != 1:
-        raise _Bad(f"walkable Polygon must have exactly one ring (no holes), got {len(rings)}")
-    ring = _array(rings[0], 2, "walkable Polygon ring", min_rows=4)
+        raise _Bad(f"{kind} Polygon must have exactly one ring (no holes), got {len(rings)}")
+    ring = _array(rings[0], 2, f"{kind} Polygon ring", min_rows=4)
     if not np.array_equal(ring[0], ring[-1]):
-        raise _Bad("walkable Polygon ring must end with its first position")
+        raise _Bad(f"{kind} Polygon ring must end with its first position")
+    if kind == "junction":
+        return kind, JunctionArea(fid, ring[:-1], _number(props, "z", positive=False))
     path = _array(_get(props, "path", list, "property"), 3, "walkable path", min_rows=2)
     area_kind = _choice(props, "area_kind", AREA_KINDS)
     return kind, WalkableArea(fid, area_kind, ring[:-1], path, closed=_get(props, "closed", bool, "property"))
@@ -278,7 +290,7 @@ def map_from_geojson(doc: Any) -> HDMap:
     _check_header(doc)
     hd = HDMap(name=doc["name"])
     lists = {"point": hd.points, "pole": hd.poles, "lane_line": hd.lane_lines, "centerline": hd.centerlines,
-             "walkable": hd.walkable}
+             "walkable": hd.walkable, "junction": hd.junctions}
     seen: dict[int, int] = {}
     for i, feat in enumerate(doc["features"]):
         props = feat.get("properties") if isinstance(feat, dict) else None

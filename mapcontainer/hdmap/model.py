@@ -16,6 +16,7 @@ __all__ = [
     "POINT_CLASSES",
     "POLE_CLASSES",
     "HDMap",
+    "JunctionArea",
     "LaneCenterline",
     "LaneLine",
     "PointFeature",
@@ -159,6 +160,15 @@ class WalkableArea:
         return Polyline(self.path, self.closed)
 
 
+@dataclass(frozen=True)
+class JunctionArea:
+    """The paved area of a junction (intersection), where lanes cross and no lane lines are painted."""
+
+    id: int
+    polygon: np.ndarray  # (N, 2) map x, y
+    z: float = 0.0
+
+
 @dataclass
 class HDMap:
     """All features of one map. Spatial queries are in :mod:`mapcontainer.hdmap.query`."""
@@ -169,6 +179,7 @@ class HDMap:
     lane_lines: list[LaneLine] = field(default_factory=list)
     centerlines: list[LaneCenterline] = field(default_factory=list)
     walkable: list[WalkableArea] = field(default_factory=list)
+    junctions: list[JunctionArea] = field(default_factory=list)
 
     def feature_counts(self) -> dict[str, int]:
         """Landmarks by class, e.g. {"lamp": 14, "traffic_light": 4, "sign": 4}."""

@@ -104,6 +104,7 @@ def perturb_map(hdmap: HDMap, err: MapError, seed: np.random.SeedSequence) -> HD
         lane_lines=lane_lines,
         centerlines=centerlines,
         walkable=walkable,
+        junctions=list(hdmap.junctions),
     )
 
 

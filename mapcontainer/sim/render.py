@@ -17,13 +17,15 @@ from ..hdmap.model import HDMap  # noqa: E402
 from .actors import ActorState  # noqa: E402
 from .sensors import CameraObservation  # noqa: E402
 
-__all__ = ["draw_map", "render_birdseye", "render_camera_view"]
+__all__ = ["draw_map", "render_birdseye", "render_camera_view", "render_map"]
 
 _CLS_COLOR = {ObjectClass.PEDESTRIAN: "tab:orange", ObjectClass.VEHICLE: "tab:blue"}
 
 
 def draw_map(ax, hdmap: HDMap) -> None:
-    """Lane lines, walkable areas and landmarks on a matplotlib axis (map frame, metres)."""
+    """Junction and walkable areas, lane lines and landmarks on a matplotlib axis (map frame, metres)."""
+    for j in hdmap.junctions:
+        ax.fill(j.polygon[:, 0], j.polygon[:, 1], color="0.93", lw=0)
     for w in hdmap.walkable:
         ax.fill(w.polygon[:, 0], w.polygon[:, 1], color="0.85" if w.kind == "sidewalk" else "khaki", lw=0)
     for line in hdmap.lane_lines:
@@ -103,3 +105,30 @@ def render_camera_view(path: Path, obs: CameraObservation, title: str) -> None:
     legend = "green: lamp pole  red: traffic light  magenta: sign  grey: clutter  white: lane mask"
     cv2.putText(img, legend, (20, h - 20), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (230, 230, 230), 1)
     cv2.imwrite(str(path), img)
+
+
+def render_map(path: Path, hdmap: HDMap, title: str) -> None:
+    """A PNG of the whole map: junctions, walkable areas, lane lines (solid dark, dashed grey), lane centre
+    lines with their driving direction (faint arrows), and the landmarks."""
+    xy = [ln.points[:, :2] for ln in hdmap.lane_lines] + [w.polygon for w in hdmap.walkable]
+    xy += [j.polygon for j in hdmap.junctions] + [c.points[:, :2] for c in hdmap.centerlines]
+    pts = np.vstack(xy) if xy else np.zeros((1, 2))
+    span = np.ptp(pts, axis=0) + 1.0
+    width = 14.0
+    fig, ax = plt.subplots(figsize=(width, float(np.clip(width * span[1] / span[0], 4.0, 14.0))))
+    for c in hdmap.centerlines:
+        ax.plot(c.points[:, 0], c.points[:, 1], "-", lw=0.4, color="tab:cyan", alpha=0.6)
+        if len(c.points) >= 2 and c.polyline.length > 1.0:
+            mid = c.polyline.length / 2
+            p, t = c.polyline.point_at(mid), c.polyline.tangent_at(mid)
+            ax.annotate("", p[:2] + t[:2], p[:2], arrowprops={"arrowstyle": "->", "color": "tab:cyan", "lw": 0.6})
+    draw_map(ax, hdmap)
+    ax.plot([], [], "-", color="tab:cyan", label="lane centre line")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

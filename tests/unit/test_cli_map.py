@@ -1,0 +1,112 @@
+"""``mapc map import|show|export``: files written, JSON printed, and one-line errors with exit 2."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from mapcontainer.cli import main
+from mapcontainer.hdmap.io import load_map
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _run(capsys, *argv: str) -> tuple[int, dict | None, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    lines = out.strip().splitlines()
+    return code, json.loads(lines[-1]) if lines else None, err
+
+
+def _rilsa() -> Path:
+    sumolib = pytest.importorskip("sumolib")  # the roads extra; CI installs it
+    return Path(sumolib.__file__).parent / "scenario/scenarios/RiLSA1/rilsa1.net.xml"
+
+
+def test_import_a_sumo_network(capsys, tmp_path) -> None:
+    code, doc, err = _run(capsys, "map", "import", str(_rilsa()), "--out", str(tmp_path), "--seed", "2")
+    assert code == 0, err
+    assert doc["centerlines"] == 16 and doc["junctions"] == 5
+    assert doc["landmarks"]["traffic_light"] == 4 and doc["walkable"]["crossing"] == 4
+    assert Path(doc["png"]).read_bytes()[:8] == PNG_MAGIC
+    hd = load_map(doc["geojson"])
+    assert len(hd.lane_lines) == doc["lane_lines"]["solid"] + doc["lane_lines"]["dashed"]
+    assert hd.feature_counts() == doc["landmarks"]
+
+
+def test_export_a_scenario_then_show_and_import_it(capsys, tmp_path) -> None:
+    pytest.importorskip("lanelet2")
+    osm = tmp_path / "urban.osm"
+    code, doc, err = _run(
+        capsys, "map", "export", "--scenario", "paper-urban", "--format", "lanelet2", "--out", str(osm)
+    )
+    assert code == 0, err
+    assert doc["origin"] == {"lat_deg": 49.0, "lon_deg": 8.4, "alt_m": 0.0} and osm.stat().st_size > 0
+    png = tmp_path / "pic" / "urban.png"
+    code, doc, err = _run(capsys, "map", "show", str(osm), "--origin", "49.0,8.4", "--out", str(png))
+    assert code == 0, err
+    assert png.read_bytes()[:8] == PNG_MAGIC
+    assert doc["landmarks"] == {"lamp": 14, "traffic_light": 4, "sign": 4}
+    code, doc, err = _run(capsys, "map", "import", str(osm), "--origin", "49.0,8.4", "--out", str(tmp_path / "imp"))
+    assert code == 0, err
+    assert load_map(doc["geojson"]).feature_counts() == {"lamp": 14, "traffic_light": 4, "sign": 4}
+
+
+def test_export_geojson_and_convert_sumo_to_lanelet2(capsys, tmp_path, monkeypatch) -> None:
+    out = tmp_path / "urban.geojson"
+    code, doc, err = _run(
+        capsys, "map", "export", "--scenario", "paper-urban", "--format", "geojson", "--out", str(out)
+    )
+    assert code == 0, err
+    assert load_map(out).feature_counts() == doc["features"] == {"lamp": 14, "traffic_light": 4, "sign": 4}
+    code, doc, err = _run(capsys, "map", "show", str(out), "--out", str(tmp_path / "u.png"))
+    assert code == 0 and (tmp_path / "u.png").read_bytes()[:8] == PNG_MAGIC
+    monkeypatch.chdir(tmp_path)
+    code, doc, err = _run(capsys, "map", "show", str(out))  # default: NAME.png in the working directory
+    png = tmp_path / f"{doc['name']}.png"
+    assert code == 0 and Path(doc["png"]) == png and png.read_bytes()[:8] == PNG_MAGIC
+    pytest.importorskip("lanelet2")
+    osm = tmp_path / "rilsa.osm"
+    code, doc, err = _run(capsys, "map", "export", "--map", str(_rilsa()), "--format", "lanelet2", "--out", str(osm))
+    assert code == 0, err
+    assert doc["lanelets"] == 16 and doc["lanelet_bounds_painted"] == 32
+
+
+def test_unreadable_map_exits_2_with_one_line(capsys, tmp_path) -> None:
+    bad = tmp_path / "broken.net.xml"
+    bad.write_text("<net><edge")
+    code, doc, err = _run(capsys, "map", "import", str(bad), "--out", str(tmp_path / "o"))
+    assert code == 2 and doc is None
+    assert err.count("\n") == 1 and err.startswith("mapc: cannot read the map: ") and str(bad) in err
+    code, _, err = _run(capsys, "map", "show", str(tmp_path / "nothing.osm"))
+    assert code == 2 and "no such file" in err
+    what = tmp_path / "what.txt"
+    what.write_text("hello")
+    code, _, err = _run(capsys, "map", "show", str(what))
+    assert code == 2 and "not a map this tool reads" in err
+
+
+def test_the_parser_knows_every_format() -> None:
+    from mapcontainer.cli import MAP_FORMATS
+    from mapcontainer.hdmap.formats import FORMATS
+
+    assert MAP_FORMATS == FORMATS
+
+
+def test_options_that_do_not_fit_the_format_exit_2(capsys, tmp_path) -> None:
+    osm = tmp_path / "m.osm"
+    osm.write_text('<osm version="0.6"/>')
+    code, _, err = _run(capsys, "map", "import", str(osm), "--additional", "pois.xml", "--out", str(tmp_path))
+    assert code == 2 and "--additional" in err
+    code, _, err = _run(capsys, "map", "show", str(_rilsa()), "--origin", "49,8")
+    assert code == 2 and "--origin is for Lanelet2 maps" in err
+
+
+def test_missing_extra_exits_2_naming_it(capsys, monkeypatch, tmp_path) -> None:
+    net = _rilsa()
+    monkeypatch.setitem(sys.modules, "sumolib", None)
+    code, _, err = _run(capsys, "map", "import", str(net), "--out", str(tmp_path))
+    assert code == 2 and "mapc: missing optional dependency" in err and "map-container[roads]" in err
