@@ -427,6 +427,7 @@ class Verifier:
         self._ca_digest = certificate_digest(ca)
         self._window_us = round(self.window_s * 1e6)
         self._known: OrderedDict[bytes, _Known] = OrderedDict()
+        self._bad: OrderedDict[bytes, tuple[str, str]] = OrderedDict()  # digest -> refusal: a forgery costs one check
         self._seen: set[tuple[str, int]] = set()
         self._expiry: list[tuple[int, str]] = []  # heap of the generation times in _seen
         self._floor_us: float = -math.inf  # generation times at or below it are refused
@@ -480,23 +481,35 @@ class Verifier:
         if known is not None:
             self._known.move_to_end(digest)
             return known
+        bad = self._bad.get(digest)
+        if bad is not None:
+            self._bad.move_to_end(digest)
+            return self._reject(*bad)
         if cert.issuer != self._ca_digest:
             return self._reject(
                 "unknown_certificate",
                 f"{cert.subject}: issued by {cert.issuer.hex()}, not our CA {self._ca_digest.hex()}",
             )
         if not _valid(self._ca_key, cert.signature, certificate_bytes(cert, signed=False)):
-            return self._reject("forged", f"{cert.subject}: the CA's signature on the certificate does not hold")
+            return self._refuse_certificate(digest, "forged", f"{cert.subject}: the CA's signature does not hold")
         try:
             key = ec.EllipticCurvePublicKey.from_encoded_point(_CURVE, cert.public_key)
         except ValueError:
-            return self._reject("forged", f"{cert.subject}: the certified public key is not a P-256 point")
+            return self._refuse_certificate(digest, "forged", f"{cert.subject}: the certified key is not a P-256 point")
         valid_from, valid_until = max(cert.valid_from, self.ca.valid_from), min(cert.valid_until, self.ca.valid_until)
         known = _Known(cert.subject, key, digest, valid_from, valid_until)
         self._known[digest] = known
         if len(self._known) > self.max_certificates:
             self._known.popitem(last=False)
         return known
+
+    def _refuse_certificate(self, digest: bytes, reason: str, detail: str) -> Rejection:
+        """Refuse a certificate and remember it (bounded like the known ones), so that sending the same
+        forgery again costs a hash, not a signature check."""
+        self._bad[digest] = (reason, detail)
+        if len(self._bad) > self.max_certificates:
+            self._bad.popitem(last=False)
+        return self._reject(reason, detail)
 
     def _fresh(self, sender: str, t_us: int, now_us: float) -> bool:
         """Record (sender, t_us) unless it is a replay; forget what fell out of the window."""

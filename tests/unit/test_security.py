@@ -197,6 +197,25 @@ def test_a_certificate_claiming_our_ca_but_signed_by_another_is_forged(ca, creds
     assert_rejected(v.verify(signer.sign(prior("cv1"), NOW), NOW), "forged")
 
 
+def test_a_forged_certificate_sent_again_is_refused_without_another_signature_check(ca, creds, monkeypatch) -> None:
+    """A flood of one forged certificate must not make the host check the CA's signature each time."""
+    import mapcontainer.security as sec
+
+    stolen = creds["cv0"].certificate.model_copy(update={"subject": "cv1"})
+    signer = Signer(Credentials(creds["cv0"].private_key, stolen), full_cert_every_s=0.0)  # the certificate every time
+    v = verifier(ca)
+    checks = []
+    real = sec._valid
+    monkeypatch.setattr(sec, "_valid", lambda *a: checks.append(1) or real(*a))
+    assert_rejected(v.verify(signer.sign(prior("cv1"), NOW), NOW), "forged")
+    assert len(checks) == 1
+    for k in range(1, 20):
+        assert_rejected(v.verify(signer.sign(prior("cv1"), NOW + 0.01 * k), NOW + 0.01 * k), "forged")
+    assert len(checks) == 1 and v.rejected == {"forged": 20}
+    genuine = v.verify(Signer(creds["cv0"]).sign(prior("cv0"), NOW + 0.5), NOW + 0.5)
+    assert not isinstance(genuine, sec.Rejection)  # the genuine certificate is still learnt
+
+
 def test_a_certificate_outside_its_validity_is_expired(ca) -> None:
     old = issue(ca, "cv0", 60.0, NOW - 1000)  # valid NOW-1000 .. NOW-940
     future = issue(ca, "cv1", 60.0, NOW + 1000)
