@@ -40,10 +40,13 @@ Two more kinds of misbehaviour are flagged:
   the window and saw at most ``ghost_max_seen`` of them is *denied*: it is not there (or not where it
   is said to be), and the container deletes it, as a multi-sensor tracker lowers the existence of a
   track that sensors covering it do not detect. Honest detectors make such tracks now and then (a
-  false alarm that lasts seconds, a track pulled metres off by a persistent detection error), so one
-  denial says nothing about V; V is flagged when ``ghost_min_denials`` of its tracks are denied within
-  ``ghost_denial_window_s``: a vehicle that keeps reporting something that is not there makes a new
-  track of it each time the last one is deleted. Once flagged, V's detections make no tracks, so
+  false alarm that stays a few seconds where it appeared, a track pulled metres off by a persistent
+  detection error), so one denial says little about V, nor does the same false object denied again
+  where it was. V is flagged when, within ``ghost_denial_window_s``, its denied tracks lay at
+  ``ghost_min_places`` places (more than twice ``ghost_gate_m`` apart: objects that are not there in
+  several places, or one that moves with V), or ``ghost_min_denials`` of them were denied (a false
+  object that outlives honest false alarms: V makes a new track of it each time the last one is
+  deleted). Once flagged, V's detections make no tracks, so
   there is nothing left to deny: the flag holds ``ghost_hold_s`` after the last denial, then V is
   tried again.
 * *A clock that repeats itself.* A message of V refused as a duplicate or as stale whose ``t_meas`` is
@@ -93,9 +96,9 @@ class MisbehaviourMonitor:
         self.flagged: dict[str, str] = {}  # vehicle -> why (every kind below)
         self._seen_off: dict[str, str] = {}  # vehicle -> why: the others see it elsewhere
         self._ghosts: dict[str, tuple[float, str]] = {}  # vehicle -> (time of the last denial, why)
-        self._denials: dict[str, deque[tuple[float, int, str]]] = {}  # vehicle -> (t, track, observer) denied
+        self._denials: dict[str, deque[tuple[float, int, str, np.ndarray]]] = {}  # vehicle -> (t, track, by, where)
         self.denied: list[int] = []  # tracks denied by the last update: the container deletes them
-        self._looks: dict[tuple[str, int], deque[tuple[float, str, bool]]] = {}  # (source, track) -> (t, observer, saw)
+        self._looks: dict[tuple[str, int], deque[tuple[float, str, bool, np.ndarray]]] = {}  # (source, track) -> looks
         self._arrivals: dict[str, deque[tuple[float, bool]]] = {}  # vehicle -> (t_recv, repeats an instant)
         self._newest: dict[str, float] = {}  # vehicle -> newest t_meas taken
         self.disputed: set[frozenset[str]] = set()  # pairs whose views disagree now
@@ -174,7 +177,7 @@ class MisbehaviourMonitor:
                 continue
             saw = bool(len(det)) and float(np.min(np.hypot(*(det - track_p[i]).T))) <= pp.ghost_gate_m
             tid, source = tracks[i]
-            self._looks.setdefault((source, tid), deque()).append((float(t), observer, saw))
+            self._looks.setdefault((source, tid), deque()).append((float(t), observer, saw, track_p[i]))
 
     def disputes(self, a: str, b: str) -> bool:
         """Whether a and b see each other elsewhere than they say (cross-localization between them is off)."""
@@ -205,7 +208,7 @@ class MisbehaviourMonitor:
                 del self._looks[key]
                 continue
             by_observer: dict[str, list[bool]] = {}
-            for _, o, saw in q:
+            for _, o, saw, _ in q:
                 by_observer.setdefault(o, []).append(saw)
             deniers = [
                 o
@@ -215,18 +218,23 @@ class MisbehaviourMonitor:
             if deniers:
                 source, tid = key
                 self.denied.append(tid)
-                self._denials.setdefault(source, deque()).append((t, tid, min(deniers)))
+                self._denials.setdefault(source, deque()).append((t, tid, min(deniers), q[-1][3]))
                 del self._looks[key]
         for v, q in list(self._denials.items()):
             while q and q[0][0] < t - pp.ghost_denial_window_s:
                 q.popleft()
             if not q:
                 del self._denials[v]
-            elif len(q) >= pp.ghost_min_denials and q[-1][0] == t:
+                continue
+            places: list[np.ndarray] = []
+            for *_, p in q:
+                if all(np.hypot(*(p - c)) > 2 * pp.ghost_gate_m for c in places):
+                    places.append(p)
+            if q[-1][0] == t and (len(q) >= pp.ghost_min_denials or len(places) >= pp.ghost_min_places):
                 self._ghosts[v] = (
                     t,
-                    f"reported {len(q)} objects in {pp.ghost_denial_window_s:g} s that others should see and did "
-                    f"not ({', '.join(f'#{tid} by {o}' for _, tid, o in q)})",
+                    f"reported {len(q)} objects at {len(places)} place{'s' * (len(places) != 1)} in {pp.ghost_denial_window_s:g} s that "
+                    f"others should see and did not ({', '.join(f'#{tid} by {o}' for _, tid, o, _ in q)})",
                 )
         self._ghosts = {v: g for v, g in self._ghosts.items() if t - g[0] <= pp.ghost_hold_s}
 

@@ -126,9 +126,12 @@ class FusionParams(BaseModel):
         0.25, ge=0, lt=1, description="... and saw at most this fraction of those times, is denied: its track deleted"
     )
     ghost_min_denials: int = Field(
-        2, ge=1, description="a vehicle with this many tracks denied within ghost_denial_window_s is flagged"
+        3, ge=1, description="a vehicle with this many tracks denied within ghost_denial_window_s is flagged ..."
     )
-    ghost_denial_window_s: float = Field(3.0, gt=0, description="... (s)")
+    ghost_min_places: int = Field(
+        2, ge=1, description="... or with denied tracks at this many places (over 2 ghost_gate_m apart) in the window"
+    )
+    ghost_denial_window_s: float = Field(4.0, gt=0, description="... (s)")
     ghost_hold_s: float = Field(
         5.0, gt=0, description="a vehicle flagged for ghosts stays flagged this long after the last denial (s)"
     )

@@ -122,16 +122,29 @@ def look_for(
     return denied
 
 
-def test_an_object_another_vehicle_should_see_and_does_not_is_denied_and_twice_flags_its_reporter() -> None:
+def test_an_object_another_vehicle_should_see_and_does_not_is_denied_and_its_reporter_flagged_when_it_repeats() -> None:
     """One denied track is deleted and says nothing about its reporter (honest detectors make a few); a
-    second one within ghost_denial_window_s flags it (a spoofer's object comes back as a new track)."""
+    second one elsewhere within ghost_denial_window_s flags it (a spoofer's objects move with it)."""
     pp = FusionParams()
     mon = MisbehaviourMonitor(pp)
     elsewhere = [[40.0, 10.0, 0.0]]  # cv0 sees something, elsewhere
     assert look_for(mon, 0.0, pp.ghost_min_looks, elsewhere) == [7]
     assert mon.flagged == {}
-    assert look_for(mon, 0.1 * pp.ghost_min_looks, pp.ghost_min_looks, elsewhere, tid=8) == [8]
-    assert list(mon.flagged) == ["cv1"] and "#7 by cv0, #8 by cv0" in mon.flagged["cv1"]
+    assert look_for(mon, 0.1 * pp.ghost_min_looks, pp.ghost_min_looks, elsewhere, (30.0, 0.0), tid=8) == [8]
+    assert (
+        list(mon.flagged) == ["cv1"]
+        and "at 2 places" in mon.flagged["cv1"]
+        and "#7 by cv0, #8 by cv0" in mon.flagged["cv1"]
+    )
+
+
+def test_a_false_object_denied_again_where_it_was_flags_its_reporter_only_when_it_outlives_honest_ones() -> None:
+    pp = FusionParams()
+    mon = MisbehaviourMonitor(pp)
+    for k in range(pp.ghost_min_denials):
+        assert mon.flagged == {}
+        assert look_for(mon, 0.1 * k * pp.ghost_min_looks, pp.ghost_min_looks, [], tid=7 + k) == [7 + k]
+    assert list(mon.flagged) == ["cv1"] and "at 1 place " in mon.flagged["cv1"]
 
 
 def test_denials_further_apart_than_the_denial_window_flag_nobody() -> None:
@@ -170,7 +183,7 @@ def test_a_ghost_flag_holds_after_the_last_denial_then_clears() -> None:
     pp = FusionParams()
     mon = MisbehaviourMonitor(pp)
     look_for(mon, 0.0, pp.ghost_min_looks, [])
-    look_for(mon, 0.1 * pp.ghost_min_looks, pp.ghost_min_looks, [], tid=8)
+    look_for(mon, 0.1 * pp.ghost_min_looks, pp.ghost_min_looks, [], (30.0, 0.0), tid=8)
     t_flag = 0.1 * (2 * pp.ghost_min_looks - 1)
     mon.update(t_flag + pp.ghost_hold_s - 0.1)  # cv1's detections make no tracks now: no more looks
     assert "cv1" in mon.flagged
