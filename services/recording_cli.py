@@ -126,6 +126,167 @@ def _print_info(doc: dict, as_json: bool) -> None:
         print(f"  continued in {p} (a restarted recorder)")
 
 
+# ------------------------------------------------------------------------------ replay
+
+
+def publish_plan(session, items, stop=None) -> list[float]:
+    """Publish replay items on ``session`` at their times (``at_s`` after the call); the lateness of each
+    put in seconds (put wall time minus its scheduled time)."""
+    import threading
+    import time
+
+    import zenoh
+
+    stop = stop or threading.Event()
+    pubs = {}
+    for it in items:
+        if it.key not in pubs:
+            pubs[it.key] = session.declare_publisher(it.key, congestion_control=zenoh.CongestionControl.BLOCK)
+    late: list[float] = []
+    t0 = time.monotonic()
+    try:
+        for it in items:
+            delay = t0 + it.at_s - time.monotonic()
+            if delay > 0 and stop.wait(delay):
+                break
+            pubs[it.key].put(it.payload, attachment=it.attachment)
+            late.append(time.monotonic() - t0 - it.at_s)
+    finally:
+        for p in pubs.values():
+            p.undeclare()
+    return late
+
+
+def _wait_receivers(session, fleet: str, timeout_s: float) -> list[str]:
+    """The host and evaluator of ``fleet`` seen alive within ``timeout_s`` (their liveliness tokens)."""
+    import time
+
+    seen: list[str] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        replies = session.liveliness().get(f"mc/{fleet}/alive/*/*", timeout=1.0)
+        seen = sorted({str(r.ok.key_expr).split("/")[-2] for r in replies if r.ok is not None})
+        if "host" in seen and "evaluator" in seen:
+            break
+        time.sleep(0.2)
+    return seen
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from mapcontainer.recording import RecordingError
+
+    path = Path(args.file)
+    if not path.is_file():
+        return _fail(f"{path}: no such file")
+    try:
+        if args.refuse:
+            return _refuse(args, path)
+        return _live_replay(args, path)
+    except RecordingError as exc:
+        return _fail(str(exc))
+
+
+def _live_replay(args: argparse.Namespace, path: Path) -> int:
+    import time
+
+    from mapcontainer.recording.replay import DEFAULT_TOPICS, replay_plan
+
+    from .runtime import ZenohSettings, zenoh_config, zenoh_error_text
+
+    if args.fleet is None and not args.connect:
+        return _fail("replay: give --fleet NAME (a running fleet, e.g. `mapc fleet up --manifest replay`) or --refuse")
+    found = _fleet_endpoints(args.fleet, args.connect)
+    if isinstance(found, str):
+        return _fail(found)
+    fleet, connect, _ = found
+    topics = [t.strip() for t in args.topics.split(",") if t.strip()] if args.topics else list(DEFAULT_TOPICS)
+    lead_ns = 500_000_000  # the first message goes out this long after the plan is made
+    items, figures = replay_plan(path, fleet, time.time_ns() + lead_ns, args.speed, topics)
+    import zenoh
+
+    try:
+        session = zenoh.open(zenoh_config(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000)))
+    except Exception as e:  # ZError: nothing listens there
+        return _fail(f"cannot reach {', '.join(connect)}: {zenoh_error_text(e)}")
+    try:
+        seen = _wait_receivers(session, fleet, 5.0)
+        print(
+            f"replaying {figures['messages']} messages ({figures['duration_s']:.1f} s recorded, speed {args.speed:g}) "
+            f"onto fleet {fleet} (alive there: {', '.join(seen) or 'nobody'})",
+            file=sys.stderr,
+        )
+        from mapcontainer.recording.replay import ReplayItem
+
+        t_plan = time.time_ns()
+        lead = max(0.0, (lead_ns - (time.time_ns() - t_plan)) * 1e-9)
+        items = [ReplayItem(it.at_s + lead, it.key, it.payload, it.attachment, it.log_time_ns) for it in items]
+        late = publish_plan(session, items)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        session.close()
+    import numpy as np
+
+    ms = np.array(late) * 1e3
+    doc = {
+        "fleet": fleet,
+        **figures,
+        "published": len(late),
+        "lateness_ms_p50": float(np.percentile(ms, 50)) if len(ms) else None,
+        "lateness_ms_p99": float(np.percentile(ms, 99)) if len(ms) else None,
+        "lateness_ms_max": float(ms.max()) if len(ms) else None,
+    }
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        sig = "verified offline" if figures["signatures_verified"] else "NOT verified (no CA certificate)"
+        print(
+            f"replayed {doc['published']} messages onto fleet {fleet}; timing: p50 {doc['lateness_ms_p50']:.2f} ms, "
+            f"p99 {doc['lateness_ms_p99']:.2f} ms after the recorded offsets; signatures {sig}, "
+            f"{figures['refused_signatures']} refused"
+        )
+    return 0
+
+
+def _refuse(args: argparse.Namespace, path: Path) -> int:
+    from mapcontainer.config import read_yaml, validate_model
+    from mapcontainer.fusion import FusionParams
+    from mapcontainer.recording.replay import refuse
+
+    if not args.out:
+        return _fail("replay --refuse: give --out DIR")
+    params = None
+    if args.params:
+        params = read_yaml(Path(args.params))
+        validate_model(FusionParams, params, args.params)  # ConfigError: exit 2, one line
+    res = refuse(path, params=params, mode=args.mode, schedule=args.schedule)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = {"recording": str(path), "params": params, **res.summary()}
+    (out / "refuse.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
+    if args.json:
+        print(json.dumps(doc, default=str))
+        return 0
+    print(
+        f"re-fused {path} ({res.schedule} schedule, {res.setup.mode}, host {res.setup.host_id}): "
+        f"{len(res.fused)} fused states from {res.ingested} messages; recorded {len(res.live)}"
+    )
+    if res.schedule == "host":
+        print(f"  reproduction: {res.identical}/{res.compared} byte for byte, max |difference| {res.max_abs_diff:.3g}")
+    print(f"  {'':<26} {'recorded (live)':>16} {'re-fused':>12}")
+    for part in ("whole", "steady"):
+        a, b = res.scores["recorded"][part], res.scores["refused"][part]
+        for k, label in (("vehicle_rmse_m", "vehicle RMSE (m)"), ("object_rmse_m", "object RMSE (m)"),
+                         ("coverage", "coverage"), ("gospa_m", "GOSPA (m)")):  # fmt: skip
+            fa = "-" if a[k] is None else f"{a[k]:.4f}"
+            fb = "-" if b[k] is None else f"{b[k]:.4f}"
+            print(f"  {part + ' ' + label:<26} {fa:>16} {fb:>12}")
+    for n in res.notes:
+        print(f"  note: {n}")
+    print(f"  wrote {out / 'refuse.json'}")
+    return 0
+
+
 # ------------------------------------------------------------------------------ registration
 
 
@@ -144,3 +305,30 @@ def add_recording_commands(sub) -> None:
     ri.add_argument("file")
     ri.add_argument("--json", action="store_true", help="one JSON object")
     rec.set_defaults(func=_cmd_record)
+
+    rp = sub.add_parser(
+        "replay",
+        help="publish a recording onto a fleet with its timing (--fleet), or re-fuse it in process (--refuse)",
+    )
+    rp.add_argument("file", help="a recording (mapc fleet up --record, mapc record)")
+    rp.add_argument("--fleet", default=None, help="the fleet to publish onto (e.g. mapc fleet up --manifest replay)")
+    rp.add_argument("--connect", action="append", default=None, help="a Zenoh endpoint of that fleet")
+    rp.add_argument("--speed", type=positive_float, default=1.0, help="replay this many times faster (default 1)")
+    rp.add_argument(
+        "--topics", default=None, help="registry names to publish (default truth,prior_tx,raw_tx,prior_rx,raw_rx)"
+    )
+    rp.add_argument("--refuse", action="store_true", help="run the host's core in process on the recorded messages")
+    rp.add_argument(
+        "--params", default=None, help="--refuse: a YAML file of FusionParams fields (default: the recorded)"
+    )
+    rp.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="--refuse: the host's mode")
+    rp.add_argument(
+        "--schedule",
+        choices=["host", "arrival"],
+        default="host",
+        help="--refuse: the live host's recorded input sets and solve times (exact), or the recorded arrivals "
+        "through the frame gate",
+    )
+    rp.add_argument("--out", default=None, help="--refuse: directory for refuse.json")
+    rp.add_argument("--json", action="store_true", help="one JSON object")
+    rp.set_defaults(func=_cmd_replay)
