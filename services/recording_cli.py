@@ -129,13 +129,16 @@ def _print_info(doc: dict, as_json: bool) -> None:
 # ------------------------------------------------------------------------------ replay
 
 
-def publish_plan(session, items, stop=None) -> list[float]:
-    """Publish replay items on ``session`` at their times (``at_s`` after the call); the lateness of each
-    put in seconds (put wall time minus its scheduled time)."""
+def publish_plan(session, items, rec_start_ns: int, speed: float = 1.0, stop=None) -> list[float]:
+    """Publish replay items on ``session`` at their times (``at_s`` after the call), each attachment moved
+    from the recorded clock (``rec_start_ns``) to this replay's; the lateness of each put in seconds (put
+    time minus its scheduled time)."""
     import threading
     import time
 
     import zenoh
+
+    from mapcontainer.recording.replay import shift_attachment
 
     stop = stop or threading.Event()
     pubs = {}
@@ -143,13 +146,13 @@ def publish_plan(session, items, stop=None) -> list[float]:
         if it.key not in pubs:
             pubs[it.key] = session.declare_publisher(it.key, congestion_control=zenoh.CongestionControl.BLOCK)
     late: list[float] = []
-    t0 = time.monotonic()
+    t0, start_ns = time.monotonic(), time.time_ns()
     try:
         for it in items:
             delay = t0 + it.at_s - time.monotonic()
             if delay > 0 and stop.wait(delay):
                 break
-            pubs[it.key].put(it.payload, attachment=it.attachment)
+            pubs[it.key].put(it.payload, attachment=shift_attachment(it.attachment, rec_start_ns, start_ns, speed))
             late.append(time.monotonic() - t0 - it.at_s)
     finally:
         for p in pubs.values():
@@ -187,7 +190,6 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _live_replay(args: argparse.Namespace, path: Path) -> int:
-    import time
 
     from mapcontainer.recording.replay import DEFAULT_TOPICS, replay_plan
 
@@ -200,8 +202,7 @@ def _live_replay(args: argparse.Namespace, path: Path) -> int:
         return _fail(found)
     fleet, connect, _ = found
     topics = [t.strip() for t in args.topics.split(",") if t.strip()] if args.topics else list(DEFAULT_TOPICS)
-    lead_ns = 500_000_000  # the first message goes out this long after the plan is made
-    items, figures = replay_plan(path, fleet, time.time_ns() + lead_ns, args.speed, topics)
+    items, figures = replay_plan(path, fleet, args.speed, topics)
     import zenoh
 
     try:
@@ -215,12 +216,7 @@ def _live_replay(args: argparse.Namespace, path: Path) -> int:
             f"onto fleet {fleet} (alive there: {', '.join(seen) or 'nobody'})",
             file=sys.stderr,
         )
-        from mapcontainer.recording.replay import ReplayItem
-
-        t_plan = time.time_ns()
-        lead = max(0.0, (lead_ns - (time.time_ns() - t_plan)) * 1e-9)
-        items = [ReplayItem(it.at_s + lead, it.key, it.payload, it.attachment, it.log_time_ns) for it in items]
-        late = publish_plan(session, items)
+        late = publish_plan(session, items, figures["rec_start_ns"], args.speed)
     except KeyboardInterrupt:
         return 130
     finally:

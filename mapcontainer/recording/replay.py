@@ -111,14 +111,17 @@ def shift_attachment(attachment: bytes | None, rec_start_ns: int, replay_start_n
     return msgpack.packb(obj, use_bin_type=True)
 
 
-def _verifier(path: Path):
-    """A Verifier of the recording's CA certificate (attachment ``ca.cert.json``), or None without one."""
+def _verifier(path: Path, ca=None):
+    """A Verifier of the recording's CA certificate (attachment ``ca.cert.json``, or ``ca`` when given),
+    or None without one."""
     from pydantic import ValidationError
 
     from schemas.models import Certificate
 
     from ..security import Verifier
 
+    if ca is not None:
+        return Verifier(ca, window_s=VERIFY_WINDOW_S)
     data = _attachment(path, "ca.cert.json")
     if data is None:
         return None
@@ -172,13 +175,14 @@ DEFAULT_TOPICS = ("truth", "prior_tx", "raw_tx", "prior_rx", "raw_rx")
 def replay_plan(
     path: str | Path,
     fleet: str,
-    replay_start_ns: int,
     speed: float = 1.0,
     topics: Iterable[str] = DEFAULT_TOPICS,
 ) -> tuple[list[ReplayItem], dict[str, Any]]:
     """What to publish, when: the recording's messages on ``topics`` (registry names; by default what the
-    world, vehicles and channel emitted: the host's and the evaluator's input), moved to ``fleet`` and to
-    a clock that starts at ``replay_start_ns``. Returns the items and figures (messages, refused signatures)."""
+    world, vehicles and channel emitted: the host's and the evaluator's input), moved to ``fleet``. The
+    attachments stay on the recorded clock: the publisher moves each with :func:`shift_attachment` from
+    ``figures["rec_start_ns"]`` to its own start as it puts it. Returns the items and figures (messages,
+    refused signatures)."""
     if not (math.isfinite(speed) and speed > 0):
         raise ValueError(f"speed must be finite and > 0, got {speed}")
     path = Path(path)
@@ -187,7 +191,8 @@ def replay_plan(
     if not records:
         raise RecordingError(f"{path}: no messages")
     start = records[0].log_time_ns
-    verifier = _verifier(path)
+    verifiers: dict[str, Any] = {}  # one per key: a signed message travels on tx and again on rx, both recorded
+    ca = _verifier(path)
     items, refused, signed = [], 0, 0
     for r in records:
         tp = next((t for t in tps if t.parse(r.key) is not None), None)
@@ -197,7 +202,9 @@ def replay_plan(
         payload = r.payload
         if isinstance(peek(payload).get("payload"), bytes):
             signed += 1
-            inner = _unwrap(payload, verifier, r.log_time_ns * 1e-9, where.get("src"))
+            if ca is not None and r.key not in verifiers:
+                verifiers[r.key] = _verifier(path, ca.ca)
+            inner = _unwrap(payload, verifiers.get(r.key), r.log_time_ns * 1e-9, where.get("src"))
             if isinstance(inner, Rejection):
                 refused += 1
                 continue
@@ -208,16 +215,18 @@ def replay_plan(
                 (r.log_time_ns - start) * 1e-9 / speed,
                 key,
                 retarget(payload, fleet),
-                shift_attachment(r.attachment, start, replay_start_ns, speed),
+                r.attachment,
                 r.log_time_ns,
             )
         )
     figures = {
         "messages": len(items),
         "signed": signed,
-        "signatures_verified": verifier is not None,
+        "signatures_verified": ca is not None,
         "refused_signatures": refused,
         "duration_s": (records[-1].log_time_ns - start) * 1e-9,
+        "rec_start_ns": start,
+        "speed": speed,
     }
     return items, figures
 
