@@ -24,7 +24,8 @@ Layout of a recording (profile ``mapcontainer``):
 
 The writer finishes a chunk at ``chunk_bytes`` and whenever :meth:`RecordingWriter.flush` is called
 (the recorder does so every second), so a recorder killed with SIGKILL leaves a file readable up to
-its last finished chunk: :func:`read_records` streams records and stops at the first incomplete one.
+its last finished chunk: :func:`read_records` streams records and stops at the first incomplete one
+(the last message read may lack its attachment, when a chunk ended between the two).
 A file reaching ``max_bytes`` is finished (summary and footer written) and takes no more messages.
 """
 
