@@ -119,11 +119,12 @@ def _time(ns: int) -> dict:
 
 
 def _v(p) -> dict:
-    return {"x": float(p[0]), "y": float(p[1]), "z": float(p[2]) if len(p) > 2 else 0.0}
+    """A Vector3/Point3 to the millimetre (the JSON stays small; nothing here is finer)."""
+    return {"x": round(float(p[0]), 3), "y": round(float(p[1]), 3), "z": round(float(p[2]), 3) if len(p) > 2 else 0.0}
 
 
 def _c(rgba) -> dict:
-    return dict(zip("rgba", (float(x) for x in rgba), strict=True))
+    return dict(zip("rgba", (round(float(x), 3) for x in rgba), strict=True))
 
 
 def _quat(R: np.ndarray) -> dict:
@@ -142,7 +143,7 @@ def _quat(R: np.ndarray) -> dict:
         q[j] = (R[j, i] + R[i, j]) / s
         q[k] = (R[k, i] + R[i, k]) / s
         q[3] = (R[k, j] - R[j, k]) / s
-    return dict(zip("xyzw", (float(x) for x in q), strict=True))
+    return dict(zip("xyzw", (round(float(x), 6) for x in q), strict=True))
 
 
 def _pose(p, R=None) -> dict:
