@@ -202,6 +202,11 @@ def _live_replay(args: argparse.Namespace, path: Path) -> int:
         return _fail(found)
     fleet, connect, _ = found
     topics = [t.strip() for t in args.topics.split(",") if t.strip()] if args.topics else list(DEFAULT_TOPICS)
+    from schemas.topics import TOPICS
+
+    unknown = sorted(set(topics) - {t.name for t in TOPICS if t.model is not None})
+    if unknown:
+        return _fail(f"replay: unknown topics {', '.join(unknown)}; known: {', '.join(t.name for t in TOPICS)}")
     items, figures = replay_plan(path, fleet, args.speed, topics)
     import zenoh
 

@@ -210,21 +210,18 @@ def replay_plan(
                 continue
             payload = inner
         key = tp.key(**{**where, "fleet": fleet})
-        items.append(
-            ReplayItem(
-                (r.log_time_ns - start) * 1e-9 / speed,
-                key,
-                retarget(payload, fleet),
-                r.attachment,
-                r.log_time_ns,
-            )
-        )
+        items.append(ReplayItem(0.0, key, retarget(payload, fleet), r.attachment, r.log_time_ns))
+    start = items[0].log_time_ns if items else start  # the first replayed message goes out at once
+    items = [
+        ReplayItem((it.log_time_ns - start) * 1e-9 / speed, it.key, it.payload, it.attachment, it.log_time_ns)
+        for it in items
+    ]
     figures = {
         "messages": len(items),
         "signed": signed,
         "signatures_verified": ca is not None,
         "refused_signatures": refused,
-        "duration_s": (records[-1].log_time_ns - start) * 1e-9,
+        "duration_s": (items[-1].log_time_ns - start) * 1e-9 if items else 0.0,
         "rec_start_ns": start,
         "speed": speed,
     }

@@ -272,3 +272,23 @@ def test_replay_unwraps_verified_signed_messages_onto_the_target_fleet(tmp_path:
     assert not any(topic("fused").parse(it.key) for it in items)
     assert isinstance(decode(items[-1].payload, GroundTruth), GroundTruth)
     assert decode(rx[0].payload, VehiclePrior).sender == "cv0"
+
+
+def test_the_recorded_host_setup_comes_from_the_runs_config(tmp_path: Path) -> None:
+    from mapcontainer.recording.replay import host_setup
+
+    argv = ["python", "-m", "services.host", "--scenario", "overlap", "--seed", "7", "--mode", "distributed",
+            "--local", "cv0", "--known-senders", "cv0,cv1", "--fleet", "run1", "--id", "host"]  # fmt: skip
+    standby = [*argv, "--standby-for", "host"]
+    config = {"processes": [{"role": "host", "argv": standby}, {"role": "host", "argv": argv}]}
+    path = tmp_path / "c.mcap"
+    w = RecordingWriter(path, metadata={"fleet": "run1"}, files={"config.json": json.dumps(config).encode()})
+    w.close()
+    s = host_setup(path)
+    assert (s.fleet, s.host_id, s.scenario, s.seed, s.local, s.known_senders) == (
+        "run1", "host", "overlap", 7, ["cv0"], ["cv0", "cv1"]
+    )  # fmt: skip
+    bare = tmp_path / "bare.mcap"
+    RecordingWriter(bare).close()
+    with pytest.raises(RecordingError, match="which fleet"):
+        host_setup(bare)
