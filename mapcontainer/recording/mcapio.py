@@ -32,14 +32,11 @@ A file reaching ``max_bytes`` is finished (summary and footer written) and takes
 from __future__ import annotations
 
 import json
-import struct
-import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -279,6 +276,10 @@ class Scan:
 
 
 def _stream(path: Path, scan: Scan, on_message: Callable[[Channel, Message], None]) -> None:
+    """Read every record of ``path`` in file order. A file that ends inside a record (a writer killed
+    before finishing its chunk) stops there, ``scan.stopped`` saying so; a record that fails its CRC or
+    does not decode with bytes after it is corruption: RecordingError, as is a file that is not MCAP."""
+    size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(len(MAGIC))
         if head != MAGIC:
@@ -305,13 +306,13 @@ def _stream(path: Path, scan: Scan, on_message: Callable[[Channel, Message], Non
                     pass
                 elif type(rec).__name__ == "Header":
                     scan.profile = rec.profile
-        except (McapError, EOFError, struct.error, zlib.error, ValueError, OSError, KeyError, IndexError) as exc:
-            # the last chunk of a killed writer is cut off (or a byte went bad): keep what came before
-            scan.stopped = f"{type(exc).__name__}: {exc}".strip()[:200]
-        except Exception as exc:  # zstandard/lz4 raise their own error types on a cut-off chunk
-            if type(exc).__module__.split(".")[0] not in ("zstandard", "lz4", "_zstd"):
-                raise
-            scan.stopped = f"{type(exc).__name__}: {exc}".strip()[:200]
+        except Exception as exc:  # mcap, struct, zlib, zstandard and lz4 errors alike: where, decides what it is
+            what = f"{type(exc).__name__}: {exc}".strip(": ")[:160]
+            if f.tell() < size:
+                raise RecordingError(f"{path}: corrupt at byte {f.tell()} of {size} ({what})") from None
+            if not scan.profile:
+                raise RecordingError(f"{path}: cut off before its first record ({size} bytes)") from None
+            scan.stopped = f"the file ends inside a record at byte {size} (its recorder was killed?): {what}"
 
 
 def read_records(

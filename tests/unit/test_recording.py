@@ -292,3 +292,28 @@ def test_the_recorded_host_setup_comes_from_the_runs_config(tmp_path: Path) -> N
     RecordingWriter(bare).close()
     with pytest.raises(RecordingError, match="which fleet"):
         host_setup(bare)
+
+
+@pytest.mark.parametrize("damage", ["corrupt", "header-only"])
+def test_a_corrupt_file_or_one_cut_before_any_record_is_one_line_and_exit_2(tmp_path: Path, damage: str) -> None:
+    path = tmp_path / "ok.mcap"
+    w = RecordingWriter(path, chunk_bytes=20_000)
+    rng = np.random.default_rng(2)
+    for k in range(100):
+        w.add("mc/f/sim/truth", rng.bytes(1000), None, 10**9 + k)
+    w.close()
+    data = bytearray(path.read_bytes())
+    if damage == "corrupt":
+        data[len(data) // 3] ^= 0xFF  # inside a chunk: its CRC fails, with whole chunks after it
+        match = "corrupt at byte"
+    else:
+        data = data[:12]
+        match = "cut off before its first record"
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match=match):
+        info(bad)
+    r = subprocess.run(
+        [sys.executable, "-m", "services.cli", "record", "info", str(bad)], capture_output=True, text=True, cwd=REPO
+    )
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and match in r.stderr, r.stderr
