@@ -317,3 +317,18 @@ def test_a_corrupt_file_or_one_cut_before_any_record_is_one_line_and_exit_2(tmp_
         [sys.executable, "-m", "services.cli", "record", "info", str(bad)], capture_output=True, text=True, cwd=REPO
     )
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and match in r.stderr, r.stderr
+
+
+def test_a_restarted_recorder_continues_beside_the_first_file_and_readers_follow(tmp_path: Path) -> None:
+    from mapcontainer.recording import recording_files
+    from mapcontainer.recording.replay import replay_plan
+    from services.recorder.app import free_path
+
+    first = tmp_path / "recording.mcap"
+    for k in range(3):
+        path = free_path(first)
+        write(path, [("mc/f/sim/truth", encode(truth(0.1 * k)), None, 10**18 + k * 10**8)])
+    assert [p.name for p in recording_files(first)] == ["recording.mcap", "recording-1.mcap", "recording-2.mcap"]
+    items, fig = replay_plan(first, "g", topics=("truth",))
+    assert [decode(it.payload, GroundTruth).seq for it in items] == [0, 1, 2]
+    assert [it.at_s for it in items] == pytest.approx([0.0, 0.1, 0.2])
