@@ -155,3 +155,46 @@ def test_a_recorded_fleet_lists_every_key_and_refuses_byte_for_byte(tmp_path, fl
     assert res["signatures_verified"] and res["signature_refused"] == 0 and res["inputs_not_found"] == 0
     assert res["compared"] >= 20 and res["identical"] == res["compared"] and res["max_abs_diff"] == 0
     assert res["scores"]["refused"] == res["scores"]["recorded"]
+
+
+def _publish(session, key: str, payloads: list[bytes], wait_for) -> None:
+    pub = session.declare_publisher(key)
+    wait_for(lambda: pub.matching_status.matching, 10, "the recorder's subscriber")
+    for p in payloads:
+        pub.put(p)
+        time.sleep(0.005)
+    pub.undeclare()
+
+
+def test_mapc_record_writes_a_running_fleets_messages_until_ctrl_c(
+    rendezvous, fleet_name, spawn, stop, wait_for, watch_liveliness, tmp_path
+) -> None:
+    session, endpoint = rendezvous
+    watch = watch_liveliness(session, f"mc/{fleet_name}/alive/**")
+    out = tmp_path / "cli.mcap"
+    proc = spawn("services.cli", "record", "--fleet", fleet_name, "--connect", endpoint, "--out", str(out))
+    watch.wait(lambda: any("/alive/recorder/" in k for k in watch.alive), 30, "the recorder's token")
+    payloads = [encode(_truth(k, fleet_name)) for k in range(20)]
+    _publish(session, f"mc/{fleet_name}/sim/truth", payloads, wait_for)
+    wait_for(lambda: len(_safe(out)) >= 20, 15, "20 messages in the file", every=0.2)
+    assert stop(proc) == 0
+    assert [r.payload for r in read_records(out) if r.key.endswith("/sim/truth")] == payloads
+    printed = proc.log_path.read_text()
+    assert f"{out}: complete;" in printed and f"mc/{fleet_name}/sim/truth" in printed
+
+
+def test_a_recorder_whose_file_is_full_finishes_it_and_says_so(
+    rendezvous, fleet_name, spawn, stop, wait_for, watch_liveliness, tmp_path
+) -> None:
+    session, endpoint = rendezvous
+    watch = watch_liveliness(session, f"mc/{fleet_name}/alive/**")
+    out = tmp_path / "full.mcap"
+    proc = spawn("services.recorder", "--fleet", fleet_name, "--connect", endpoint, "--out", str(out), "--max-mb", "2")
+    watch.wait_alive(f"mc/{fleet_name}/alive/recorder/recorder", timeout=30)
+    rng = np.random.default_rng(0)
+    _publish(session, f"mc/{fleet_name}/sim/truth", [rng.bytes(100_000) for _ in range(30)], wait_for)
+    wait_for(lambda: "recording stopped" in proc.log_path.read_text(), 15, "the recorder to say the file is full")
+    assert proc.poll() is None  # it stays up, degraded: a fleet does not start it again into a new file
+    doc = info(out)
+    assert doc["complete"] and doc["file_bytes"] <= 2_000_000 and 10 <= doc["messages"] < 30
+    assert stop(proc) == 0
