@@ -12,6 +12,12 @@ frame ``map`` (local ENU, metres).
 * ``/viz/fused/<host>`` and ``/viz/fused/<host>/vehicles``: fused vehicles (orange boxes) with their
   position covariance as an ellipsoid, fused objects as covariance ellipsoids with their track ids.
 
+Rerun's MCAP import converts Foxglove's schemas in Protobuf only, and of them not SceneUpdate; so the
+same picture goes out a second time as ``foxglove.PointCloud`` in Protobuf (schema: the message's
+FileDescriptorSet, from the ``foxglove-schemas-protobuf`` package), which Rerun shows as coloured 3-D
+points and Foxglove as a point cloud: ``/viz/points/map`` (lane lines sampled every metre, landmarks),
+``/viz/points/truth``, ``/viz/points/fused/<host>`` (vehicles and objects, no covariances).
+
 Ellipsoids: the eigen-decomposition C = U diag(w) U^T of a 3x3 position covariance gives the axes;
 the sphere's ``size`` is the ellipsoid's diameters at ``SIGMAS`` standard deviations (2 sqrt(w) SIGMAS)
 and its orientation the rotation U (made proper).
@@ -31,7 +37,18 @@ from schemas.topics import topic
 
 from ..geometry import rpy_to_matrix
 
-__all__ = ["SCENE_UPDATE", "POSES_IN_FRAME", "SIGMAS", "fused_scene", "map_scene", "truth_scene", "visualizer"]
+__all__ = [
+    "POSES_IN_FRAME",
+    "SCENE_UPDATE",
+    "SIGMAS",
+    "fused_scene",
+    "map_points",
+    "map_scene",
+    "point_cloud",
+    "point_cloud_schema",
+    "truth_scene",
+    "visualizer",
+]
 
 SIGMAS = 2.0  # ellipsoids drawn at 2 standard deviations
 FRAME = "map"
@@ -260,11 +277,78 @@ def fused_scene(fused: FusedState, ns: int) -> tuple[bytes, bytes]:
     return _dump(scene), _dump(pif)
 
 
+def _fds(cls) -> bytes:
+    """The FileDescriptorSet of a protobuf message class and everything it imports (an MCAP protobuf schema)."""
+    from google.protobuf import descriptor_pb2
+
+    out, seen = descriptor_pb2.FileDescriptorSet(), set()
+
+    def add(fd) -> None:
+        if fd.name not in seen:
+            seen.add(fd.name)
+            for dep in fd.dependencies:
+                add(dep)
+            fd.CopyToProto(out.file.add())
+
+    add(cls.DESCRIPTOR.file)
+    return out.SerializeToString()
+
+
+def point_cloud_schema() -> tuple[str, bytes]:
+    """(name, FileDescriptorSet) of ``foxglove.PointCloud``, for a channel of message encoding ``protobuf``."""
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    return PointCloud.DESCRIPTOR.full_name, _fds(PointCloud)
+
+
+def point_cloud(points, colors, ns: int) -> bytes:
+    """A ``foxglove.PointCloud`` (Protobuf) of (N, 3) map-frame points with (N, 4) RGBA colours in [0, 1]:
+    x, y, z float32 and red, green, blue, alpha uint8 per point, 16 bytes each."""
+    from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    p = np.asarray(points, dtype="<f4").reshape(-1, 3)
+    c = np.clip(np.round(np.asarray(colors, dtype=float).reshape(-1, 4) * 255), 0, 255).astype(np.uint8)
+    rec = np.zeros(len(p), dtype=[("xyz", "<f4", 3), ("rgba", "u1", 4)])
+    rec["xyz"], rec["rgba"] = p, c
+    msg = PointCloud(frame_id=FRAME, point_stride=16, data=rec.tobytes())
+    msg.timestamp.FromNanoseconds(int(ns))
+    f32, u8 = PackedElementField.FLOAT32, PackedElementField.UINT8
+    msg.fields.extend(
+        [PackedElementField(name=n, offset=4 * i, type=f32) for i, n in enumerate("xyz")]
+        + [PackedElementField(name=n, offset=12 + i, type=u8) for i, n in enumerate(("red", "green", "blue", "alpha"))]
+    )
+    return msg.SerializeToString()
+
+
+def map_points(hdmap, ns: int) -> bytes:
+    """The HD map as one PointCloud: painted lane lines every metre, pole landmarks every 0.5 m, point landmarks."""
+    pts, cols = [], []
+    for ln in hdmap.lane_lines:
+        s = ln.painted_samples(1.0)
+        pts.append(s)
+        cols += [WHITE if ln.kind == "solid" else GREY] * len(s)
+    for f in hdmap.poles:
+        n = max(2, int(np.linalg.norm(np.asarray(f.top) - f.base) / 0.5) + 1)
+        pts.append(np.linspace(f.base, f.top, n))
+        cols += [YELLOW] * n
+    for f in hdmap.points:
+        pts.append(np.asarray(f.p_map, float).reshape(1, 3))
+        cols.append(RED if f.cls == "traffic_light" else BLUE)
+    return point_cloud(np.concatenate(pts) if pts else np.zeros((0, 3)), cols, ns)
+
+
+def _state_points(vehicles, objects, v_color, o_color, ns: int) -> bytes:
+    v = np.asarray(vehicles, float).reshape(-1, 6)[:, :3] + [0, 0, VEHICLE_SIZE[2] / 2]
+    o = np.asarray(objects, float).reshape(-1, 3)
+    return point_cloud(np.concatenate([v, o]), [v_color] * len(v) + [o_color] * len(o), ns)
+
+
 def visualizer() -> Callable[[str, bytes, int], list[tuple[str, str, bytes, bytes]]]:
     """The ``viz`` callable of :class:`~.mcapio.RecordingWriter`: truth and fused states to Foxglove
     channels (other keys give nothing; a message that does not decode gives nothing)."""
     truth_t, fused_t = topic("truth"), topic("fused")
-    su, pf = SCENE_UPDATE, POSES_IN_FRAME
+    su, pf, pc = SCENE_UPDATE, POSES_IN_FRAME, point_cloud_schema()
 
     def viz(key: str, payload: bytes, ns: int) -> list[tuple[str, str, bytes, bytes]]:
         if truth_t.parse(key) is not None:
@@ -272,7 +356,12 @@ def visualizer() -> Callable[[str, bytes, int], list[tuple[str, str, bytes, byte
             if not msg:
                 return []
             scene, poses = truth_scene(msg, ns)
-            return [("/viz/truth", *su, scene), ("/viz/truth/vehicles", *pf, poses)]
+            points = _state_points(msg.vehicle_pose, msg.obstacle_p_map, GREEN, TRUTH_OBSTACLE, ns)
+            return [
+                ("/viz/truth", *su, scene),
+                ("/viz/truth/vehicles", *pf, poses),
+                ("/viz/points/truth", *pc, points),
+            ]
         where = fused_t.parse(key)
         if where is not None and isinstance(peek(payload).get("vehicle_ids", []), list):
             msg = decode(payload, FusedState)
@@ -280,7 +369,12 @@ def visualizer() -> Callable[[str, bytes, int], list[tuple[str, str, bytes, byte
                 return []
             scene, poses = fused_scene(msg, ns)
             hid = where["hid"]
-            return [(f"/viz/fused/{hid}", *su, scene), (f"/viz/fused/{hid}/vehicles", *pf, poses)]
+            points = _state_points(msg.vehicle_pose, msg.object_p_map, ORANGE, FUSED_OBJECT, ns)
+            return [
+                (f"/viz/fused/{hid}", *su, scene),
+                (f"/viz/fused/{hid}/vehicles", *pf, poses),
+                (f"/viz/points/fused/{hid}", *pc, points),
+            ]
         return []
 
     return viz

@@ -180,10 +180,12 @@ class RecordingWriter:
         return cid
 
     def _viz_channel(self, topic: str, schema_name: str, schema: bytes) -> int:
+        """A visualization channel: JSON with a JSON Schema, or Protobuf when the schema is a FileDescriptorSet."""
         cid = self._channels.get(topic)
         if cid is None:
-            sid = self._schema(schema_name, "jsonschema", schema)
-            cid = self._channels[topic] = self._w.register_channel(topic, "json", sid, {})
+            proto = not schema.lstrip().startswith(b"{")
+            sid = self._schema(schema_name, "protobuf" if proto else "jsonschema", schema)
+            cid = self._channels[topic] = self._w.register_channel(topic, "protobuf" if proto else "json", sid, {})
         return cid
 
     # ------------------------------------------------------------------ writing

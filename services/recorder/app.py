@@ -22,7 +22,7 @@ from typing import Any
 from pydantic import Field
 
 from mapcontainer.recording import RecordingWriter
-from mapcontainer.recording.foxglove import SCENE_UPDATE, map_scene, visualizer
+from mapcontainer.recording.foxglove import SCENE_UPDATE, map_points, map_scene, point_cloud_schema, visualizer
 
 from ..runtime import Service, ServiceSettings, add_service_args, service_settings_from_args, setup_logging
 
@@ -106,12 +106,9 @@ def main(s: RecorderSettings) -> int:
         from mapcontainer.hdmap.generator import generate_map
         from mapcontainer.sim.config import load_scenario
 
-        writer.add_viz(
-            "/viz/map",
-            *SCENE_UPDATE,
-            map_scene(generate_map(load_scenario(s.scenario).map), time.time_ns()),
-            time.time_ns(),
-        )
+        hdmap, now = generate_map(load_scenario(s.scenario).map), time.time_ns()
+        writer.add_viz("/viz/map", *SCENE_UPDATE, map_scene(hdmap, now), now)
+        writer.add_viz("/viz/points/map", *point_cloud_schema(), map_points(hdmap, now), now)
     log.info("recording mc/%s/** to %s", s.fleet, path)
     inbox: queue.Queue[tuple[str, bytes, bytes | None, int]] = queue.Queue(maxsize=s.queue)
     fig: dict[str, Any] = {"recorded": 0, "dropped": 0, "file_bytes": 0, "full": 0}

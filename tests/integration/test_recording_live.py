@@ -147,6 +147,7 @@ def test_a_recorded_fleet_lists_every_key_and_refuses_byte_for_byte(tmp_path, fl
     want |= {f"mc/{f}/sim/cv{i}/sensors" for i in range(4)} | {f"mc/{f}/v2x/tx/cv{i}/prior" for i in range(4)}
     want |= {f"mc/{f}/v2x/rx/host/cv{i}/prior" for i in range(1, 4)}
     want |= {"/viz/map", "/viz/truth", "/viz/fused/host", "/viz/truth/vehicles", "/viz/fused/host/vehicles"}
+    want |= {"/viz/points/map", "/viz/points/truth", "/viz/points/fused/host"}
     assert want <= topics, want - topics
     assert doc["complete"] and {a["name"] for a in doc["attachments"]} == {"ca.cert.json", "config.json"}
     r = mapc("replay", str(rec), "--refuse", "--out", str(tmp_path / "refuse"), "--json", timeout=240)

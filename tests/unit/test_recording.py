@@ -332,3 +332,24 @@ def test_a_restarted_recorder_continues_beside_the_first_file_and_readers_follow
     items, fig = replay_plan(first, "g", topics=("truth",))
     assert [decode(it.payload, GroundTruth).seq for it in items] == [0, 1, 2]
     assert [it.at_s for it in items] == pytest.approx([0.0, 0.1, 0.2])
+
+
+def test_the_point_clouds_are_foxglove_protobuf_with_their_descriptors(tmp_path: Path) -> None:
+    """What Rerun's MCAP import turns into Points3D: foxglove.PointCloud in Protobuf, schema a FileDescriptorSet."""
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    from google.protobuf import descriptor_pb2
+
+    path = tmp_path / "p.mcap"
+    write(path, [("mc/f/sim/truth", encode(truth(1.0)), None, 10**18)], viz=visualizer())
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        ((schema, channel, message),) = list(reader.iter_messages(topics=["/viz/points/truth"]))
+    assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
+    assert schema.name == "foxglove.PointCloud"
+    files = descriptor_pb2.FileDescriptorSet.FromString(schema.data).file
+    assert "foxglove/PointCloud.proto" in {f.name for f in files}
+    pc = PointCloud.FromString(message.data)
+    assert pc.frame_id == "map" and pc.point_stride == 16 and [f.name for f in pc.fields][:3] == ["x", "y", "z"]
+    rec = np.frombuffer(pc.data, dtype=[("xyz", "<f4", 3), ("rgba", "u1", 4)])
+    assert len(rec) == 3  # two vehicles, one obstacle
+    assert rec["xyz"][2] == pytest.approx([21.0, 0.0, 0.0]) and rec["rgba"][0].tolist() == [26, 204, 51, 153]
