@@ -333,3 +333,7 @@ def add_recording_commands(sub) -> None:
     rp.add_argument("--out", default=None, help="--refuse: directory for refuse.json")
     rp.add_argument("--json", action="store_true", help="one JSON object")
     rp.set_defaults(func=_cmd_replay)
+
+    from .viewer import add_view_command
+
+    add_view_command(sub)
