@@ -93,7 +93,13 @@ def _cmd_view(args: argparse.Namespace) -> int:
             print(f"drawn: {json.dumps(view.drawn)}", flush=True)
             _wait(args.exit_after)
         else:
-            _live(view, fleet, connect, args.exit_after)
+            t0 = time.monotonic()
+            try:
+                _live(view, fleet, connect, args.exit_after)
+            finally:
+                dt = time.monotonic() - t0
+                rate = view.drawn["fused"] / dt if dt > 0 else 0.0
+                print(f"drawn: {json.dumps(view.drawn)} in {dt:.1f} s ({rate:.1f} fused states/s)", flush=True)
     except KeyboardInterrupt:
         pass
     return 0
