@@ -4,7 +4,8 @@
   Zenoh attachment, log and publish times) and reads it back, also from a file whose writer was killed;
 * :mod:`.foxglove` turns truth, fused states and the HD map into Foxglove's JSON schemas, for viewers;
 * :mod:`.replay` shifts a recording onto another fleet namespace and clock, and re-fuses its recorded
-  vehicle messages in process with the host's core.
+  vehicle messages in process with the host's core;
+* :mod:`.view` draws our messages in Rerun (``mapc view``; needs the ``view`` extra, imported on use).
 """
 
 from .mcapio import (
