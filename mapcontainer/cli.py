@@ -336,6 +336,7 @@ non_negative_seconds = _bounded(float, 0, strict=False, unit=" s")
 positive_int = _bounded(int, 1, strict=False)
 non_negative_int = _bounded(int, 0, strict=False)
 positive_days = _bounded(float, 0, strict=True, unit=" days")
+positive_float = _bounded(float, 0, strict=True)
 
 
 def vehicle_ids(text: str) -> list[str]:

@@ -281,9 +281,7 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     )
     up = fleet.add_parser("up", help="start every service as its own process (--manifest, default fleet)")
     add_fleet_args(up)
-    up.add_argument(
-        "--detach", action="store_true", help="run in the background; stop with `mapc fleet down`"
-    )
+    up.add_argument("--detach", action="store_true", help="run in the background; stop with `mapc fleet down`")
     up.add_argument("--dry-run", action="store_true", help="print the processes and their command lines only")
     up.add_argument(
         "--json", action="store_true", help="JSON output: the plan (--dry-run), the fleet (--detach), the final summary"
@@ -313,9 +311,7 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     dn.add_argument("--json", action="store_true")
     dn.set_defaults(func=_cmd_fleet_down)
 
-    h = sub.add_parser(
-        "health", help="every service's health (exit 0 all ok, 1 degraded/missing, 2 nothing answers)"
-    )
+    h = sub.add_parser("health", help="every service's health (exit 0 all ok, 1 degraded/missing, 2 nothing answers)")
     h.add_argument("--fleet", default=None, help="fleet name (default: the one running fleet)")
     h.add_argument("--connect", action="append", default=None, help="a Zenoh endpoint of the fleet")
     h.add_argument(
@@ -331,6 +327,9 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     h.set_defaults(func=_cmd_health)
 
     _add_live_network_args(parser)
+    from .recording_cli import add_recording_commands
+
+    add_recording_commands(sub)
 
 
 def main(argv: list[str] | None = None) -> int:

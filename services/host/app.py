@@ -7,7 +7,9 @@ loop with its receive time in scenario seconds (from the world's clock carried i
 attachments); the loop solves once per camera frame (10 Hz), when every known sender's message for
 the frame is in or ``--max-wait`` seconds after its first one (``mapcontainer.fusion.gate.FrameGate``), and the
 service publishes the FusedState on ``mc/{fleet}/host/{hid}/fused``. The attachment carries the
-world's clock and ``t_wall_ns``.
+world's clock, ``t_wall_ns``, the solve time ``t_fused`` and frame tolerance ``tol``, and ``inputs``: the
+``[sender, seq, t_recv]`` of every payload the container ingested since its previous solve, in order, which
+makes a recording re-fusable exactly (``mapc replay --refuse``).
 
 GTSAM holds the GIL for a whole solve, so by default the container runs in a worker process
 (``multiprocessing`` spawn context, started before the Zenoh session is opened) and this
@@ -309,12 +311,12 @@ def main(s: HostSettings) -> int:
                     continue
                 results = item[-1]
                 if item[0] == "fused":
-                    _, payload, t, solve_s, stats, results = item
+                    _, payload, t, solve_s, stats, solved, results = item
                     active = primary is None or not primary.is_set()
                     if active:
                         fused_pub.put(
                             payload,
-                            attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **clock.fields()),
+                            attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **solved, **clock.fields()),
                         )
                         fig["fused_published"] += 1
                     if primary is not None:

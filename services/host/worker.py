@@ -8,9 +8,12 @@ service's main process only does Zenoh I/O. The same loop runs in a thread with 
 Protocol (tuples on the queues):
   inbox:  ("ingest", payload: bytes, t_recv: float) | ("stop",)
   outbox: ("ready", pid) | ("error", text)
-          | ("fused", payload: bytes, t: float, solve_s: float, stats: dict, results)
+          | ("fused", payload: bytes, t: float, solve_s: float, stats: dict, solved, results)
           | ("results", results)
   results: [(accepted: bool, reason: str | None, ingest_s: float), ...]
+  solved: {"tol": the frame tolerance passed to fuse, "inputs": [[sender, seq, t_recv], ...]}: every payload
+          ingested since the previous solve, in order (the host publishes it in the fused state's attachment,
+          so that a recording can be re-fused exactly: mapcontainer.recording.replay)
 The loop solves once per camera frame, at the frame's ``t_meas`` (so the evaluator compares the
 state with the ground truth of that very frame), when :class:`mapcontainer.fusion.gate.FrameGate`
 releases it: the same gate decides when :func:`mapcontainer.pipeline.run_pipeline` solves, there on
@@ -94,6 +97,7 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
         set(spec["known_senders"] or ()) or None, spec.get("max_wait_s", MAX_WAIT_S), reference=spec.get("reference")
     )
     results: list[tuple[bool, str | None, float]] = []
+    inputs: list[list] = []  # [sender, seq, t_recv] of every payload ingested since the last solve
     last_flush = time.monotonic()
     while True:
         deadline = gate.next_deadline()
@@ -112,6 +116,9 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
         for item in items:
             if item[0] == "stop":
                 return
+            head = peek(item[1])
+            if isinstance(head.get("sender"), str) and isinstance(head.get("seq"), int):
+                inputs.append([head["sender"], head["seq"], float(item[2])])
             t0 = time.perf_counter()
             try:
                 r = core.ingest(item[1], item[2])
@@ -136,8 +143,8 @@ def fusion_loop(spec: FusionSpec, inbox, outbox, parent_pid: int | None = None) 
             solve_s = time.perf_counter() - t0
             if payload is not None:
                 stats = {**_stats(core), "frames_complete": gate.complete, "frames_timed_out": gate.timed_out}
-                outbox.put(("fused", payload, t, solve_s, stats, results))
-                results = []
+                outbox.put(("fused", payload, t, solve_s, stats, {"tol": gate.tolerance_s, "inputs": inputs}, results))
+                results, inputs = [], []
                 last_flush = time.monotonic()
         if results and time.monotonic() - last_flush > 0.5:
             outbox.put(("results", results))

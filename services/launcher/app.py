@@ -181,6 +181,12 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         help="also run a warm standby host that publishes the fused state while the host is gone",
     )
     p.add_argument(
+        "--record",
+        action="store_true",
+        default=None,
+        help="record every message of the fleet to <run dir>/recording.mcap (mapc record info, mapc replay)",
+    )
+    p.add_argument(
         "--manifest",
         default=None,
         help="fleet manifest: a name (fleet, fleet-host-a, fleet-host-b) or a YAML file (default fleet)",
@@ -213,6 +219,7 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "seed": a.seed,
         "time_scale": a.time_scale,
         "standby": a.standby,
+        "record": a.record,
         "signing": True if a.keys is not None and a.signing is None else a.signing,  # keys given: signed
         "keys": a.keys,
         "zenoh_config": a.zenoh_config,

@@ -130,6 +130,8 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
         argv += ["--vehicles", str(p.vehicles)]
     if p.standby:
         argv.append("--standby")
+    if p.record:
+        argv.append("--record")
     if not p.signing:
         argv.append("--no-signing")
     if p.keys is not None:

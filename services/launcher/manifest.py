@@ -86,6 +86,7 @@ class FleetParams(_Strict):
     host_id: str = Field("host", pattern=NAME)
     ego: str = Field("cv0", pattern=NAME, description="the vehicle the host container runs on")
     standby: bool = Field(False, description="run a warm standby host that takes over when the host is gone")
+    record: bool = Field(False, description="record every message of the fleet to {run_dir}/recording.mcap")
     signing: bool = Field(True, description="vehicles sign their V2X messages, the host accepts signed ones only")
     keys: str | None = Field(
         None, description="the fleet's keys directory (mapc keys init); None: a test CA made for the run"

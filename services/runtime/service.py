@@ -348,6 +348,24 @@ class Service:
         self._declared.append(sub)
         return sub
 
+    def subscribe_raw(self, key: str, callback: Callable[[str, bytes, bytes | None, int], None]):
+        """A callback subscriber handed ``(key, payload, attachment bytes or None, receive wall ns)``: the
+        bytes as they travelled (the recorder keeps them). Input is counted; exceptions as in :meth:`subscribe`."""
+
+        def on_sample(sample) -> None:
+            payload = sample.payload.to_bytes()
+            self.metrics.msgs_in.add(len(payload))
+            att = sample.attachment
+            try:
+                callback(str(sample.key_expr), payload, None if att is None else att.to_bytes(), time.time_ns())
+            except Exception as e:
+                self.metrics.error(f"{type(e).__name__}: {e}")
+                self.log.exception("subscriber callback on %s failed", sample.key_expr)
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        self._declared.append(sub)
+        return sub
+
     def watch_alive(self, key: str) -> threading.Event:
         """An event that is set while the liveliness token ``key`` exists (Zenoh tells of a killed process
         within milliseconds, of a frozen one after its lease)."""

@@ -1,0 +1,555 @@
+"""Replaying a recording: onto another fleet namespace and clock (:func:`replay_plan`), or through the
+host's core in process (:func:`refuse`), scored with the evaluator's scoring against the recorded truth.
+
+**Live replay.** Each recorded message is published again ``(log_time - first log_time) / speed``
+after the replay starts, on its key with the recorded fleet's chunk replaced by the target's. So that
+the services take it as live traffic:
+
+* the payload's ``fleet`` field (tag 1) is set to the target fleet (the host refuses another fleet's
+  messages); only that field changes, the other bytes stay as recorded;
+* signed messages (SecuredMessage) are verified offline against the recording's CA certificate at
+  their recorded receive time and published as the verified inner message: the live verifier refuses
+  a generation time more than 5 s from its own clock, and re-signing would need the vehicles' private
+  keys, which a recording never holds. The target fleet runs without signing (``--no-signing``);
+* the attachments' clock is moved to the replay: ``epoch_wall_ns`` and every ``*_wall_ns`` field are
+  shifted by the replay's start minus the recording's (and scaled by ``1 / speed``, ``time_scale``
+  multiplied by ``speed``), so scenario times, receive times and latencies come out as recorded.
+
+**Re-fusion.** The host container (``mapcontainer.host.make_host``) is fed the recorded vehicle
+messages and solved, two ways:
+
+* ``schedule="host"`` (exact): the live host publishes with every fused state the solve time, the
+  frame tolerance and the ``[sender, seq, t_recv]`` of each payload it ingested since its previous
+  solve, in order (services.host). Re-fusion ingests exactly those payloads with those receive times
+  and solves at those times: the container is deterministic for a given input sequence, so the same
+  parameters reproduce the recorded fused states byte for byte (the gate's wall-clock moments do not
+  matter any more: they are recorded as the input sets);
+* ``schedule="arrival"``: the recorder's arrival order and times drive the host's frame gate
+  (``FrameGate``, the pipeline's and the host's one solve policy), receive times in scenario seconds
+  from the world's clock in the attachments. Deterministic, for a recording without input sets or to
+  see another solve policy; it does not reproduce the live solve moments (the live gate ran on the
+  host's own clock and order of arrival).
+
+Signatures are verified offline with the recording's CA certificate (``ca.cert.json``) at each
+message's recorded receive time, with the live host's window, so what the live verifier refused is
+refused again; without a certificate the payloads are unwrapped unverified and the result says so.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict, deque
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from schemas.codec import Rejection, decode, encode, peek
+from schemas.models import FusedState, GroundTruth
+from schemas.tags import TAGS
+from schemas.topics import topic
+
+from ..evaluation import Totals, score_frame
+from .mcapio import Record, RecordingError, read_records, read_scan, recording_files
+
+__all__ = [
+    "HostSetup",
+    "RefuseResult",
+    "ReplayItem",
+    "host_setup",
+    "refuse",
+    "replay_plan",
+    "retarget",
+    "shift_attachment",
+]
+
+VERIFY_WINDOW_S = 5.0  # the live host's (services.host.app.VERIFY_WINDOW_S)
+TRUTH_TOL_S = 0.02  # the evaluator's t_tol_s: a fused state is scored against the truth this close in time
+BURNIN_S = 5.0  # the evaluator's steady state
+_FLEET_TAG = TAGS["fleet"]
+
+
+# ---------------------------------------------------------------------------- bytes
+
+
+def retarget(payload: bytes, fleet: str) -> bytes:
+    """``payload`` with its envelope's ``fleet`` (tag 1) set to ``fleet``; anything that is not one of our
+    messages (not a msgpack map with tag 1) is returned unchanged."""
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception:  # not msgpack: not ours to change
+        return payload
+    if not isinstance(obj, dict) or not isinstance(obj.get(_FLEET_TAG), str) or obj[_FLEET_TAG] == fleet:
+        return payload
+    obj[_FLEET_TAG] = fleet
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def shift_attachment(attachment: bytes | None, rec_start_ns: int, replay_start_ns: int, speed: float) -> bytes | None:
+    """An attachment moved from the recording's wall clock to the replay's (module docstring)."""
+    if not attachment:
+        return attachment
+    try:
+        obj = msgpack.unpackb(attachment, raw=False)
+    except Exception:  # instrumentation: an unreadable one is passed on as recorded
+        return attachment
+    if not isinstance(obj, dict):
+        return attachment
+
+    def move(ns: int) -> int:
+        return replay_start_ns + int(round((ns - rec_start_ns) / speed))
+
+    for k, v in list(obj.items()):
+        if isinstance(k, str) and k.endswith("wall_ns") and type(v) is int:
+            obj[k] = move(v)
+    if isinstance(obj.get("time_scale"), int | float):
+        obj["time_scale"] = float(obj["time_scale"]) * speed
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def _verifier(path: Path, ca=None):
+    """A Verifier of the recording's CA certificate (attachment ``ca.cert.json``, or ``ca`` when given),
+    or None without one."""
+    from pydantic import ValidationError
+
+    from schemas.models import Certificate
+
+    from ..security import Verifier
+
+    if ca is not None:
+        return Verifier(ca, window_s=VERIFY_WINDOW_S)
+    data = _attachment(path, "ca.cert.json")
+    if data is None:
+        return None
+    try:
+        return Verifier(Certificate.model_validate_json(data), window_s=VERIFY_WINDOW_S)
+    except ValidationError as exc:
+        raise RecordingError(f"{path}: its ca.cert.json is not a certificate ({exc.errors()[0]['msg']})") from None
+
+
+def _attachment(path: Path, name: str) -> bytes | None:
+    for a in read_scan(path).attachments:
+        if a.name == name:
+            return bytes(a.data)
+    return None
+
+
+def _unwrap(payload: bytes, verifier, now_s: float, sender: str | None) -> bytes | Rejection:
+    """The message inside a signed payload (verified when a verifier is given); unsigned ones as they are."""
+    if not isinstance(peek(payload).get("payload"), bytes):
+        return payload
+    if verifier is None:
+        return peek(payload)["payload"]
+    out = verifier.verify(payload, now_s, expected_sender=sender)
+    return out if isinstance(out, Rejection) else out.payload
+
+
+def _records(path: Path) -> list[Record]:
+    out: list[Record] = []
+    for p in recording_files(path):
+        out.extend(read_records(p))
+    return out
+
+
+# ---------------------------------------------------------------------------- live replay
+
+
+@dataclass(frozen=True)
+class ReplayItem:
+    """One message to publish ``at_s`` seconds after the replay starts."""
+
+    at_s: float
+    key: str
+    payload: bytes
+    attachment: bytes | None
+    log_time_ns: int
+
+
+DEFAULT_TOPICS = ("truth", "prior_tx", "raw_tx", "prior_rx", "raw_rx")
+
+
+def replay_plan(
+    path: str | Path,
+    fleet: str,
+    speed: float = 1.0,
+    topics: Iterable[str] = DEFAULT_TOPICS,
+) -> tuple[list[ReplayItem], dict[str, Any]]:
+    """What to publish, when: the recording's messages on ``topics`` (registry names; by default what the
+    world, vehicles and channel emitted: the host's and the evaluator's input), moved to ``fleet``. The
+    attachments stay on the recorded clock: the publisher moves each with :func:`shift_attachment` from
+    ``figures["rec_start_ns"]`` to its own start as it puts it. Returns the items and figures (messages,
+    refused signatures)."""
+    if not (math.isfinite(speed) and speed > 0):
+        raise ValueError(f"speed must be finite and > 0, got {speed}")
+    path = Path(path)
+    tps = [topic(n) for n in topics]
+    records = _records(path)
+    if not records:
+        raise RecordingError(f"{path}: no messages")
+    start = records[0].log_time_ns
+    verifiers: dict[str, Any] = {}  # one per key: a signed message travels on tx and again on rx, both recorded
+    ca = _verifier(path)
+    items, refused, signed = [], 0, 0
+    for r in records:
+        tp = next((t for t in tps if t.parse(r.key) is not None), None)
+        if tp is None:
+            continue
+        where = tp.parse(r.key)
+        payload = r.payload
+        if isinstance(peek(payload).get("payload"), bytes):
+            signed += 1
+            if ca is not None and r.key not in verifiers:
+                verifiers[r.key] = _verifier(path, ca.ca)
+            inner = _unwrap(payload, verifiers.get(r.key), r.log_time_ns * 1e-9, where.get("src"))
+            if isinstance(inner, Rejection):
+                refused += 1
+                continue
+            payload = inner
+        key = tp.key(**{**where, "fleet": fleet})
+        items.append(ReplayItem(0.0, key, retarget(payload, fleet), r.attachment, r.log_time_ns))
+    start = items[0].log_time_ns if items else start  # the first replayed message goes out at once
+    items = [
+        ReplayItem((it.log_time_ns - start) * 1e-9 / speed, it.key, it.payload, it.attachment, it.log_time_ns)
+        for it in items
+    ]
+    figures = {
+        "messages": len(items),
+        "signed": signed,
+        "signatures_verified": ca is not None,
+        "refused_signatures": refused,
+        "duration_s": (items[-1].log_time_ns - start) * 1e-9 if items else 0.0,
+        "rec_start_ns": start,
+        "speed": speed,
+    }
+    return items, figures
+
+
+# ---------------------------------------------------------------------------- re-fusion
+
+
+@dataclass
+class HostSetup:
+    """How the recorded host ran: what re-fusion needs to build the same container."""
+
+    fleet: str
+    host_id: str = "host"
+    mode: str = "distributed"
+    scenario: str = "paper-urban"
+    seed: int = 0
+    local: list[str] = field(default_factory=list)
+    known_senders: list[str] | None = None
+    max_wait_s: float = 0.1
+    params: dict[str, Any] | None = None
+
+
+def _flag(argv: list[str], name: str, many: bool = False):
+    vals = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == name]
+    return vals if many else (vals[-1] if vals else None)
+
+
+def host_setup(path: str | Path) -> HostSetup:
+    """The recorded host's setup, from the run's config.json kept in the recording (its command line),
+    else from the recording's metadata and keys."""
+    path = Path(path)
+    scan = read_scan(path)
+    meta = scan.metadata.get("recording", {})
+    conf = next((a for a in scan.attachments if a.name == "config.json"), None)
+    fleet = meta.get("fleet")
+    if conf is not None:
+        doc = json.loads(bytes(conf.data))
+        host = next(
+            (
+                p
+                for p in doc.get("processes", [])
+                if p.get("role") == "host" and "--standby-for" not in p.get("argv", [])
+            ),
+            None,
+        )
+        if host is not None:
+            argv = host["argv"]
+            known = _flag(argv, "--known-senders")
+            params = None
+            if _flag(argv, "--params"):
+                from ..config import read_yaml
+
+                params = read_yaml(Path(_flag(argv, "--params")))
+            return HostSetup(
+                fleet=_flag(argv, "--fleet") or fleet or "local",
+                host_id=_flag(argv, "--id") or "host",
+                mode=_flag(argv, "--mode") or "distributed",
+                scenario=_flag(argv, "--scenario") or "paper-urban",
+                seed=int(_flag(argv, "--seed") or 0),
+                local=_flag(argv, "--local", many=True),
+                known_senders=[x for x in known.split(",") if x] if known else None,
+                max_wait_s=float(_flag(argv, "--max-wait") or 0.1),
+                params=params,
+            )
+    if not fleet:
+        raise RecordingError(f"{path}: no config.json or metadata says which fleet and host were recorded")
+    return HostSetup(fleet=fleet, scenario=meta.get("scenario") or "paper-urban", seed=int(meta.get("seed") or 0))
+
+
+@dataclass
+class RefuseResult:
+    """Re-fused states beside the recorded ones, and both scored against the recorded truth."""
+
+    setup: HostSetup
+    schedule: str
+    fused: list[FusedState]  # re-fused, in order
+    live: list[FusedState]  # the recorded host's, in order
+    identical: int  # re-fused states byte for byte equal to the recorded payload (host schedule)
+    compared: int
+    max_abs_diff: float  # over poses, pose covariances, object positions/covariances of matching states
+    ingested: int
+    not_found: int  # inputs the host listed that the recording does not hold
+    signature_refused: int
+    signatures_verified: bool
+    scores: dict[str, Any]
+    notes: list[str]
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "setup": self.setup.__dict__,
+            "schedule": self.schedule,
+            "fused_states": len(self.fused),
+            "recorded_fused_states": len(self.live),
+            "compared": self.compared,
+            "identical": self.identical,
+            "max_abs_diff": self.max_abs_diff,
+            "ingested": self.ingested,
+            "inputs_not_found": self.not_found,
+            "signature_refused": self.signature_refused,
+            "signatures_verified": self.signatures_verified,
+            "scores": self.scores,
+            "notes": self.notes,
+        }
+
+
+def _state_diff(a: FusedState, b: FusedState) -> float | None:
+    """Largest absolute difference of two states' numbers, None if their vehicles or objects differ."""
+    if list(a.vehicle_ids) != list(b.vehicle_ids) or not np.array_equal(a.object_id, b.object_id):
+        return None
+    d = 0.0
+    for f in ("vehicle_pose", "vehicle_pose_cov", "object_p_map", "object_v_map", "object_cov"):
+        x, y = np.asarray(getattr(a, f), float), np.asarray(getattr(b, f), float)
+        if x.size:
+            d = max(d, float(np.max(np.abs(x - y))))
+    return d
+
+
+def _score(states: list[FusedState], truth: dict[int, GroundTruth], burnin_s: float) -> dict[str, Any]:
+    whole, steady = Totals(), Totals()
+    keys = np.array(sorted(truth))
+    for s in states:
+        k = int(round(float(s.t_meas) * 1000))
+        if not len(keys):
+            break
+        j = int(np.argmin(np.abs(keys - k)))
+        if abs(keys[j] - k) > TRUTH_TOL_S * 1000:
+            continue
+        sc = score_frame(s, truth[int(keys[j])])
+        whole.add(sc)
+        if float(s.t_meas) >= burnin_s:
+            steady.add(sc)
+    return {"whole": whole.summary(), "steady": steady.summary()}
+
+
+def refuse(
+    path: str | Path,
+    *,
+    params: dict[str, Any] | None = None,
+    mode: str | None = None,
+    schedule: str = "host",
+    burnin_s: float = BURNIN_S,
+    setup: HostSetup | None = None,
+) -> RefuseResult:
+    """Re-fuse a recording's vehicle messages with the host's core (module docstring); ``params``
+    (FusionParams fields) and ``mode`` replace the recorded host's."""
+    from ..fusion import FusionParams, limit_blas_threads
+    from ..fusion.gate import FrameGate
+    from ..host import make_host
+    from ..sim.config import load_scenario
+    from ..sim.errors import published_map
+
+    if schedule not in ("host", "arrival"):
+        raise ValueError(f"schedule must be 'host' or 'arrival', got {schedule!r}")
+    path = Path(path)
+    setup = setup or host_setup(path)
+    if mode is not None and mode != setup.mode:
+        raise RecordingError(
+            f"{path}: recorded in {setup.mode} mode; its vehicles sent "
+            f"{'priors' if setup.mode == 'distributed' else 'raw observations'}, which the {mode} host cannot fuse"
+        )
+    limit_blas_threads(1)  # as the live host's worker: the same BLAS path for the same numbers
+    fp = FusionParams(**params) if params is not None else FusionParams(**(setup.params or {}))
+    hdmap = published_map(load_scenario(setup.scenario), setup.seed)
+    known = set(setup.known_senders) if setup.known_senders else None
+    core = make_host(hdmap, fp, setup.fleet, setup.host_id, setup.mode, known_senders=known)
+    kind = "prior" if setup.mode == "distributed" else "raw"
+    rx, tx = topic(f"{kind}_rx"), topic(f"{kind}_tx")
+    fused_t, truth_t = topic("fused"), topic("truth")
+    verifier = _verifier(path)
+    records = _records(path)
+    notes: list[str] = []
+    if verifier is None:
+        notes.append("no CA certificate in the recording: signed payloads unwrapped without verification")
+
+    inputs: list[tuple[Record, str]] = []  # (record, source) the host subscribed to, in recorded order
+    live: list[tuple[Record, FusedState]] = []
+    truth: dict[int, GroundTruth] = {}
+    for r in records:
+        w = rx.parse(r.key)
+        if w is not None and w["fleet"] == setup.fleet and w["dst"] == setup.host_id:
+            inputs.append((r, w["src"]))
+            continue
+        w = tx.parse(r.key)
+        if w is not None and w["fleet"] == setup.fleet and w["src"] in setup.local:
+            inputs.append((r, w["src"]))
+            continue
+        w = fused_t.parse(r.key)
+        if w is not None and w["hid"] == setup.host_id:
+            m = decode(r.payload, FusedState)
+            if m:
+                live.append((r, m))
+            continue
+        if truth_t.parse(r.key) is not None:
+            m = decode(r.payload, GroundTruth)
+            if m:
+                truth[int(round(float(m.t_meas) * 1000))] = m
+
+    refused = 0
+
+    def inner(r: Record, src: str) -> bytes | None:
+        nonlocal refused
+        out = _unwrap(r.payload, verifier, r.log_time_ns * 1e-9, src)
+        if isinstance(out, Rejection):
+            refused += 1
+            return None
+        return out
+
+    fused: list[FusedState] = []
+    payloads: list[bytes] = []
+    ingested = not_found = 0
+    if schedule == "host":
+        by_id: dict[tuple[str, int], deque] = defaultdict(deque)
+        for r, src in inputs:
+            seq = peek(_unwrap(r.payload, None, 0.0, None)).get("seq")
+            by_id[(src, seq)].append((r, src))
+        if live and live[0][1].seq != 1:
+            notes.append(
+                f"the recording starts at the host's fused state {live[0][1].seq}, not its first: re-fusion starts "
+                "from an empty container and differs until the recorded window has turned over"
+            )
+        cache: dict[int, bytes | None] = {}
+        for r, _ in live:
+            att = msgpack.unpackb(r.attachment, raw=False) if r.attachment else {}
+            if not isinstance(att, dict) or "inputs" not in att or "t_fused" not in att:
+                raise RecordingError(
+                    f"{path}: the host's fused states carry no input sets (recorded from an older host): "
+                    "use --schedule arrival"
+                )
+            for sender, seq, t_recv in att["inputs"]:
+                q = by_id.get((sender, seq))
+                if not q:
+                    not_found += 1
+                    continue
+                rec, src = q.popleft()
+                if id(rec) not in cache:
+                    cache[id(rec)] = inner(rec, src)
+                data = cache[id(rec)]
+                if data is not None:
+                    core.ingest(data, float(t_recv))
+                    ingested += 1
+            out = core.fuse(float(att["t_fused"]), float(att.get("tol", 0.0)))
+            fused.append(out)
+            payloads.append(encode(out))
+        if not_found:
+            notes.append(f"{not_found} messages the host ingested are not in the recording (the recorder missed them)")
+    else:
+        clock = _Clock()
+        gate = FrameGate(known, setup.max_wait_s, reference=setup.local[0] if setup.local else None)
+
+        def release(now: float) -> bool:
+            t = gate.due(now)
+            if t is None:
+                return False
+            out = core.fuse(t, gate.tolerance_s)
+            fused.append(out)
+            payloads.append(encode(out))
+            return True
+
+        t0_ns = inputs[0][0].log_time_ns if inputs else 0
+        for r, src in inputs:
+            now = (r.log_time_ns - t0_ns) * 1e-9  # seconds since the first input: Unix seconds lose the ns
+            while (d := gate.next_deadline()) is not None and d <= now and release(d):
+                pass
+            clock.update(r.attachment)
+            t_recv = clock.now(r.log_time_ns)
+            data = inner(r, src)
+            if data is None or t_recv is None:
+                continue
+            res = core.ingest(data, t_recv)
+            ingested += 1
+            if getattr(res, "accepted", res):
+                head = peek(data)
+                gate.arrived(head["sender"], float(head["t_meas"]), now)
+            release(now)
+        while (d := gate.next_deadline()) is not None and release(d):
+            pass
+
+    identical = compared = 0
+    max_diff = 0.0
+    if schedule == "host":
+        for (r, m), p, f in zip(live, payloads, fused, strict=True):
+            compared += 1
+            identical += p == r.payload
+            d = _state_diff(f, m)
+            max_diff = max(max_diff, math.inf if d is None else d)
+    scores = {
+        "recorded": _score([m for _, m in live], truth, burnin_s),
+        "refused": _score(fused, truth, burnin_s),
+        "truth_frames": len(truth),
+    }
+    return RefuseResult(
+        setup=setup,
+        schedule=schedule,
+        fused=fused,
+        live=[m for _, m in live],
+        identical=identical,
+        compared=compared,
+        max_abs_diff=max_diff,
+        ingested=ingested,
+        not_found=not_found,
+        signature_refused=refused,
+        signatures_verified=verifier is not None,
+        scores=scores,
+        notes=notes,
+    )
+
+
+class _Clock:
+    """The world's clock from attachments (services.runtime.SimClock's arithmetic, for recorded times)."""
+
+    def __init__(self) -> None:
+        self.epoch_ns: int | None = None
+        self.scale: float | None = None
+
+    def update(self, attachment: bytes | None) -> None:
+        if not attachment:
+            return
+        try:
+            obj = msgpack.unpackb(attachment, raw=False)
+        except Exception:  # an unreadable attachment leaves the clock as it was
+            return
+        e, s = (obj.get("epoch_wall_ns"), obj.get("time_scale")) if isinstance(obj, dict) else (None, None)
+        if type(e) is int and isinstance(s, int | float) and 1e-3 <= s <= 100:
+            self.epoch_ns, self.scale = e, float(s)
+
+    def now(self, wall_ns: int) -> float | None:
+        if self.epoch_ns is None or self.scale is None:
+            return None
+        return (wall_ns - self.epoch_ns) * 1e-9 * self.scale
