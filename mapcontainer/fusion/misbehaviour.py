@@ -41,20 +41,21 @@ Two more kinds of misbehaviour are flagged:
   is said to be), and the container deletes it, as a multi-sensor tracker lowers the existence of a
   track that sensors covering it do not detect. Honest detectors make such tracks now and then (a
   false alarm that stays a few seconds where it appeared, a track pulled metres off by a persistent
-  detection error), so one denial says little about V, nor does the same false object denied again
-  where it was. V is flagged when, within ``ghost_denial_window_s``, its denied tracks lay at
-  ``ghost_min_places`` places (more than twice ``ghost_gate_m`` apart: objects that are not there in
-  several places, or one that moves with V), or ``ghost_min_denials`` of them were denied (a false
-  object that outlives honest false alarms: V makes a new track of it each time the last one is
-  deleted). Once flagged, V's detections make no tracks, so
-  there is nothing left to deny: the flag holds ``ghost_hold_s`` after the last denial, then V is
+  detection error), so one denial says little about V. V is flagged when ``ghost_min_denials`` of its
+  tracks were denied within ``ghost_denial_window_s`` (a false object that outlives honest false
+  alarms: V makes a new track of it each time the last one is deleted), or two within
+  ``ghost_together_s`` of each other (two false objects at once). On development seeds honest
+  vehicles' denied tracks came one at a time, the second one 1.7 s or more after the first, which is
+  why two denials alone do not flag. Once flagged, V's detections make no tracks, so there is nothing
+  left to deny: the flag holds ``ghost_hold_s`` after the last denial, then V is
   tried again.
 * *A clock that repeats itself.* A message of V refused as a duplicate or as stale whose ``t_meas`` is
-  not after the newest instant of V already taken repeats what V sent before (a frozen clock, or V
+  not after the newest instant of V's earlier messages repeats what V sent before (a frozen clock, or V
   re-sending old messages). A network replay cannot do this in a signed fleet, because the verifier
   refuses replayed signatures before the container sees them; a late but advancing message (a vehicle
-  that falls behind) is not counted. V is flagged while at least ``clock_min_repeats`` of its messages
-  received in the window, and ``clock_repeat_fraction`` of them, repeat.
+  that falls behind) is not counted. V is flagged when at least ``clock_min_repeats`` of its messages
+  received in the window, and ``clock_repeat_fraction`` of them, repeat, and stays flagged until none
+  in the window does.
 
 A flagged vehicle's detections are not fused and it cannot cross-localize others or be cross-localized
 (:class:`~mapcontainer.fusion.container.Container`): its error stays its own.
@@ -100,7 +101,7 @@ class MisbehaviourMonitor:
         self.denied: list[int] = []  # tracks denied by the last update: the container deletes them
         self._looks: dict[tuple[str, int], deque[tuple[float, str, bool, np.ndarray]]] = {}  # (source, track) -> looks
         self._arrivals: dict[str, deque[tuple[float, bool]]] = {}  # vehicle -> (t_recv, repeats an instant)
-        self._newest: dict[str, float] = {}  # vehicle -> newest t_meas taken
+        self._newest: dict[str, float] = {}  # vehicle -> newest t_meas of its messages so far
         self.disputed: set[frozenset[str]] = set()  # pairs whose views disagree now
         self.flagged_total = 0  # flags raised (a vehicle flagged, cleared and flagged again counts twice)
 
@@ -137,7 +138,7 @@ class MisbehaviourMonitor:
         newest = self._newest.get(sender, float("-inf"))
         repeat = refused in ("duplicate", "stale") and t_meas <= newest
         self._arrivals.setdefault(sender, deque()).append((float(t_recv), repeat))
-        if refused is None:
+        if refused != "future":
             self._newest[sender] = max(newest, float(t_meas))
 
     def look(
@@ -226,15 +227,14 @@ class MisbehaviourMonitor:
             if not q:
                 del self._denials[v]
                 continue
-            places: list[np.ndarray] = []
-            for *_, p in q:
-                if all(np.hypot(*(p - c)) > 2 * pp.ghost_gate_m for c in places):
-                    places.append(p)
-            if q[-1][0] == t and (len(q) >= pp.ghost_min_denials or len(places) >= pp.ghost_min_places):
+            times = [d[0] for d in q]
+            together = any(b - a <= pp.ghost_together_s for a, b in zip(times, times[1:], strict=False))
+            if q[-1][0] == t and (len(q) >= pp.ghost_min_denials or together):
+                which = ", ".join(f"#{tid} by {o}" for _, tid, o, _ in q)
                 self._ghosts[v] = (
                     t,
-                    f"reported {len(q)} objects at {len(places)} place{'s' * (len(places) != 1)} in {pp.ghost_denial_window_s:g} s that "
-                    f"others should see and did not ({', '.join(f'#{tid} by {o}' for _, tid, o, _ in q)})",
+                    f"reported {len(q)} objects in {pp.ghost_denial_window_s:g} s that others should see and did not "
+                    f"({which})",
                 )
         self._ghosts = {v: g for v, g in self._ghosts.items() if t - g[0] <= pp.ghost_hold_s}
 
@@ -248,7 +248,8 @@ class MisbehaviourMonitor:
                 del self._arrivals[v]
                 continue
             n_rep = sum(rep for _, rep in q)
-            if n_rep >= pp.clock_min_repeats and n_rep >= pp.clock_repeat_fraction * len(q):
+            held = n_rep and "repeat instants" in self.flagged.get(v, "")  # flagged: until it stops repeating
+            if held or (n_rep >= pp.clock_min_repeats and n_rep >= pp.clock_repeat_fraction * len(q)):
                 out[v] = (
                     f"{n_rep} of its {len(q)} messages in the last {pp.misbehaviour_window_s:g} s repeat instants "
                     "it had sent (a frozen clock or a replay)"

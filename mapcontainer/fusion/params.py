@@ -128,17 +128,19 @@ class FusionParams(BaseModel):
     ghost_min_denials: int = Field(
         3, ge=1, description="a vehicle with this many tracks denied within ghost_denial_window_s is flagged ..."
     )
-    ghost_min_places: int = Field(
-        2, ge=1, description="... or with denied tracks at this many places (over 2 ghost_gate_m apart) in the window"
+    ghost_together_s: float = Field(
+        0.5, gt=0, description="... or with two tracks denied within this of each other: two false objects at once (s)"
     )
     ghost_denial_window_s: float = Field(4.0, gt=0, description="... (s)")
     ghost_hold_s: float = Field(
         5.0, gt=0, description="a vehicle flagged for ghosts stays flagged this long after the last denial (s)"
     )
     clock_min_repeats: int = Field(
-        5, ge=1, description="a vehicle with this many messages in the window that repeat an instant it sent ..."
+        3, ge=1, description="a vehicle with this many messages in the window that repeat an instant it sent ..."
     )
-    clock_repeat_fraction: float = Field(0.3, gt=0, le=1, description="... and that are this fraction of its messages")
+    clock_repeat_fraction: float = Field(
+        0.3, gt=0, le=1, description="... and that are this fraction of its messages, is flagged while it repeats"
+    )
 
     # ---- motion models
     accel_psd_vehicle: float = Field(

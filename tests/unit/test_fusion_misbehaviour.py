@@ -123,28 +123,27 @@ def look_for(
 
 
 def test_an_object_another_vehicle_should_see_and_does_not_is_denied_and_its_reporter_flagged_when_it_repeats() -> None:
-    """One denied track is deleted and says nothing about its reporter (honest detectors make a few); a
-    second one elsewhere within ghost_denial_window_s flags it (a spoofer's objects move with it)."""
+    """One denied track is deleted and says nothing about its reporter (honest detectors make a few), nor
+    does a second one later; a third within ghost_denial_window_s flags it (a spoofer's object comes back
+    as a new track each time it is deleted)."""
     pp = FusionParams()
     mon = MisbehaviourMonitor(pp)
     elsewhere = [[40.0, 10.0, 0.0]]  # cv0 sees something, elsewhere
-    assert look_for(mon, 0.0, pp.ghost_min_looks, elsewhere) == [7]
-    assert mon.flagged == {}
-    assert look_for(mon, 0.1 * pp.ghost_min_looks, pp.ghost_min_looks, elsewhere, (30.0, 0.0), tid=8) == [8]
-    assert (
-        list(mon.flagged) == ["cv1"]
-        and "at 2 places" in mon.flagged["cv1"]
-        and "#7 by cv0, #8 by cv0" in mon.flagged["cv1"]
-    )
-
-
-def test_a_false_object_denied_again_where_it_was_flags_its_reporter_only_when_it_outlives_honest_ones() -> None:
-    pp = FusionParams()
-    mon = MisbehaviourMonitor(pp)
     for k in range(pp.ghost_min_denials):
         assert mon.flagged == {}
-        assert look_for(mon, 0.1 * k * pp.ghost_min_looks, pp.ghost_min_looks, [], tid=7 + k) == [7 + k]
-    assert list(mon.flagged) == ["cv1"] and "at 1 place " in mon.flagged["cv1"]
+        assert look_for(mon, 0.1 * k * pp.ghost_min_looks, pp.ghost_min_looks, elsewhere, tid=7 + k) == [7 + k]
+    assert list(mon.flagged) == ["cv1"] and "#7 by cv0, #8 by cv0, #9 by cv0" in mon.flagged["cv1"]
+
+
+def test_two_objects_denied_at_once_flag_their_reporter() -> None:
+    pp = FusionParams()
+    mon = MisbehaviourMonitor(pp)
+    two = np.array([[20.0, -1.5], [20.0, 1.5]])  # side by side, as the ghost fault places them
+    for k in range(pp.ghost_min_looks):
+        t = 0.1 * k
+        mon.look("cv0", t, EAST, KNOWS, np.zeros((0, 3)), [(7, "cv1"), (8, "cv1")], two, np.zeros((0, 2)))
+        mon.update(t)
+    assert sorted(mon.denied) == [7, 8] and list(mon.flagged) == ["cv1"]
 
 
 def test_denials_further_apart_than_the_denial_window_flag_nobody() -> None:
@@ -182,9 +181,9 @@ def test_an_observer_that_sees_the_object_often_enough_does_not_deny_it() -> Non
 def test_a_ghost_flag_holds_after_the_last_denial_then_clears() -> None:
     pp = FusionParams()
     mon = MisbehaviourMonitor(pp)
-    look_for(mon, 0.0, pp.ghost_min_looks, [])
-    look_for(mon, 0.1 * pp.ghost_min_looks, pp.ghost_min_looks, [], (30.0, 0.0), tid=8)
-    t_flag = 0.1 * (2 * pp.ghost_min_looks - 1)
+    for k in range(pp.ghost_min_denials):
+        look_for(mon, 0.1 * k * pp.ghost_min_looks, pp.ghost_min_looks, [], tid=7 + k)
+    t_flag = 0.1 * (pp.ghost_min_denials * pp.ghost_min_looks - 1)
     mon.update(t_flag + pp.ghost_hold_s - 0.1)  # cv1's detections make no tracks now: no more looks
     assert "cv1" in mon.flagged
     mon.update(t_flag + pp.ghost_hold_s + 0.1)
@@ -197,8 +196,9 @@ def test_a_vehicle_whose_messages_repeat_instants_it_sent_is_flagged_and_a_late_
     for k in range(10):  # cv1 and cv2 send 10 Hz
         for v in ("cv1", "cv2"):
             mon.message(v, 0.1 * k, 0.1 * k + 0.05, None)
+    mon.message("cv1", 1.0, 2.5, "stale")  # cv1's clock stops at 1.0 s; that message came late, and so do the next
     for k in range(10, 20):
-        mon.message("cv1", 0.9, 0.1 * k + 0.05, "duplicate")  # cv1's clock stopped at 0.9 s
+        mon.message("cv1", 1.0, 0.1 * k + 0.05, "duplicate" if k < 15 else "stale")
         mon.message("cv2", 0.1 * k, 0.1 * k + 1.5, "stale")  # cv2 fell behind: late, but advancing
     mon.update(3.0)
     assert list(mon.flagged) == ["cv1"] and "repeat instants" in mon.flagged["cv1"]
