@@ -52,10 +52,11 @@ def test_age_of_information_is_time_since_the_newest_arrival():
 
 
 def test_network_point_row_on_an_ideal_and_a_starved_link():
-    ideal = run_network_point(sweep_profile(0.0, 0.0, None), "distributed", seed=1, duration=1.5)
+    # scored after 2 s of the cold start: in its first 1.5 s a vehicle still on GNSS puts objects metres off
+    ideal = run_network_point(sweep_profile(0.0, 0.0, None), "distributed", seed=1, duration=3.0, warmup_s=2.0)
     assert tuple(ideal) == NETWORK_COLUMNS
     assert ideal["delivered_fraction"] == 1.0 and ideal["age_s_mean"] == 0.0 and ideal["latency_s_p50"] == 0.0
-    assert ideal["object_rmse_m"] < 1.0 and 0.0 < ideal["object_coverage"] <= 1.0
+    assert ideal["object_rmse_m"] < 0.6 and 0.0 < ideal["object_coverage"] <= 1.0
     assert 100 < ideal["bytes_per_message"] < 1000 and ideal["msgs_per_s_per_vehicle"] == pytest.approx(10.0)
     starved = run_network_point(sweep_profile(100.0, 0.0, 2e4), "centralized", seed=1, duration=1.5)
     assert starved["queue_bytes"] == MIN_QUEUE_BYTES and starved["delivered_fraction"] < 0.2
