@@ -319,7 +319,7 @@ class SumoTrafficConfig(_Strict):
     files for SUMO (signal programs, vehicle types); the signals run the network's programs unless those
     replace them. SUMO steps at the sensor rate. Before t = 0 SUMO runs at least ``warmup_s`` and until
     every connected vehicle has departed (at most ``max_warmup_s``; a connected vehicle not departed by
-    then is an error). A connected vehicle on the last edge of its route gets a new destination (seeded),
+    then is an error). A connected vehicle on the second last edge of its route gets a new destination (seeded),
     so it keeps driving; one that leaves the simulation all the same (teleported after ``time_to_teleport_s``
     of standing, removed) stops the episode with an error. Relative paths are relative to the scenario file.
     ``enabled`` (per-run variation): on, SUMO's seed and the random trips' (unless ``random.seed``) are the

@@ -16,8 +16,9 @@ Connected vehicles are SUMO vehicles (``traffic.connected``: listed ids, or the 
 type when given) renamed ``cv0``, ``cv1``, ... in that order; every other vehicle and person is an obstacle
 numbered 1, 2, ... in the order it first appears. SUMO time runs ahead of scenario time: before t = 0 SUMO
 runs at least ``warmup_s`` and until the last connected vehicle has departed (:class:`SumoTrafficError`
-if one has not by ``max_warmup_s``). A connected vehicle on the last edge of its route gets a new
-destination drawn from the run's seed, so the fleet stays the same through the episode; one that leaves
+if one has not by ``max_warmup_s``). A connected vehicle near the end of its route gets a new
+destination drawn from the run's seed (on the second last edge of its route: the last may lead only out of the
+network), so the fleet stays the same through the episode; one that leaves
 the simulation anyway (a teleport after standing ``time_to_teleport_s``, a removal) raises
 :class:`SumoTrafficError` on the step it happens: the vehicle's sensors and its track would end, which
 the fleet, the host and the evaluation do not expect, so the episode stops there rather than going on
@@ -169,7 +170,7 @@ class SumoTraffic:
         ]  # fmt: skip
         if cfg.additional:
             self._args += ["--additional-files", ",".join(str(p) for p in cfg.additional)]
-        self._reroute_rng = np.random.default_rng(np.random.SeedSequence([self.seed, REROUTE_STREAM]))
+        self._reroute_rng = np.random.default_rng(np.random.SeedSequence([run_seed, REROUTE_STREAM]))
         self._sizes: dict[str, tuple[float, float, float]] = {}
         self._ids: dict[str, str] = {}  # SUMO id -> our id
         self._n_obstacles = 0
@@ -299,15 +300,16 @@ class SumoTraffic:
         self._sumo_steps += 1
 
     def _keep_driving(self, vid: str) -> None:
-        """A new destination for vehicle ``vid`` when it is on the last edge of its route (seeded draws)."""
+        """A new destination for vehicle ``vid`` when it is on the second last edge of its route or beyond
+        (seeded draws; before the last edge, which may lead nowhere but out of the network)."""
         ls = self._ls
         if vid not in self._alive:
             return
         route = ls.vehicle.getRoute(vid)
-        if ls.vehicle.getRouteIndex(vid) < len(route) - 1:
+        if ls.vehicle.getRouteIndex(vid) < len(route) - 2:
             return
         edges = self._destinations(ls.vehicle.getVehicleClass(vid))
-        for _ in range(REROUTE_TRIES):
+        for _ in range(REROUTE_TRIES if edges else 0):
             edge = edges[int(self._reroute_rng.integers(len(edges)))]
             if edge == route[-1]:
                 continue
@@ -323,7 +325,8 @@ class SumoTraffic:
         return set(self._ls.vehicle.getIDList())
 
     def _destinations(self, vclass: str) -> list[str]:
-        """Normal edges a vehicle of ``vclass`` may drive on (sorted ids: the same list every run)."""
+        """Normal edges a vehicle of ``vclass`` may drive on that lead on to another edge (not into a dead
+        end: a vehicle there could go nowhere else), sorted by id: the same list every run."""
         if vclass not in self._dest_edges:
             ls = self._ls
             out = []
@@ -331,11 +334,9 @@ class SumoTraffic:
                 if e.startswith(":"):
                     continue
                 lanes = [f"{e}_{i}" for i in range(ls.edge.getLaneNumber(e))]
-                if any(self._allows(ls.lane.getAllowed(ln), vclass) for ln in lanes):
+                if any(self._allows(ls.lane.getAllowed(ln), vclass) and ls.lane.getLinks(ln) for ln in lanes):
                     out.append(e)
-            if not out:
-                raise SumoTrafficError(f"{self.cfg.net}: no edge allows vehicle class {vclass!r}")
-            self._dest_edges[vclass] = out
+            self._dest_edges[vclass] = out  # empty: nowhere to go on; the vehicle drives to its end
         return self._dest_edges[vclass]
 
     @staticmethod
