@@ -6,7 +6,13 @@ turns SUMO's states into :class:`~.actors.ActorState`. The conversion (:func:`su
 * SUMO's angle is in degrees clockwise from north; our yaw is counter-clockwise from east (map frame: x
   east, y north): ``yaw = radians(90 - angle)``, wrapped to (-pi, pi];
 * SUMO's position is the middle of the front bumper (of a person: its front, 0.2 m ahead of its centre);
-  our reference point is the centre of the footprint: ``p = p_front - (length / 2) (cos yaw, sin yaw)``;
+  our reference point is the centre of the footprint: ``p = p_front - (length / 2) (cos yaw, sin yaw)``.
+  For vehicles the heading is not SUMO's angle but the body's on the path the front has driven
+  (:class:`FrontTrail`): SUMO's angle is the direction of the lane under the front, which turns in steps
+  of 10-30 degrees where a junction's internal lane meets the next lane (and a rigid body would swing its
+  centre sideways by a metre with it); the rear follows the front's path ``length`` behind, the yaw is the
+  direction from rear to front and the centre their midpoint. On a straight lane both are SUMO's. Lane
+  changes take ``lane_change_s`` (SUMO's ``--lanechange.duration``) instead of SUMO's default instant jump;
 * the height is the HD map's road height under that point (``MapIndex.nearest_lane_height``), so the
   actors stand on the road the cameras see;
 * velocity = SUMO's speed along the heading; yaw rate = the central difference of yaw over one step each
@@ -135,6 +141,42 @@ def _close_active() -> None:
 atexit.register(_close_active)
 
 
+class FrontTrail:
+    """The path a vehicle's front has driven, and its body on it (module docstring).
+
+    The rear is on the path ``length`` (arc length) behind the front; yaw = direction of the chord from rear
+    to front; centre = the chord's midpoint. A new trail starts straight behind the front along ``yaw``.
+    """
+
+    def __init__(self, front_xy, yaw: float, length_m: float):
+        f = np.asarray(front_xy, dtype=float)
+        self.length = float(length_m)
+        self._pts = [f - self.length * np.array([math.cos(yaw), math.sin(yaw)]), f]
+        self._s = [0.0, self.length]
+
+    def add(self, front_xy) -> None:
+        """The front's position at the next step (no move: nothing changes)."""
+        f = np.asarray(front_xy, dtype=float)
+        d = float(np.hypot(*(f - self._pts[-1])))
+        if d < 1e-9:
+            return
+        self._pts.append(f)
+        self._s.append(self._s[-1] + d)
+        while len(self._s) > 2 and self._s[1] <= self._s[-1] - self.length:  # keep one point at or behind the rear
+            del self._pts[0], self._s[0]
+
+    def pose(self) -> tuple[float, float, float]:
+        """Centre (x, y) of the footprint and yaw."""
+        s_rear = self._s[-1] - self.length
+        i = max(0, int(np.searchsorted(self._s, s_rear, side="right")) - 1)
+        i = min(i, len(self._s) - 2)
+        w = (s_rear - self._s[i]) / (self._s[i + 1] - self._s[i])
+        rear = self._pts[i] + w * (self._pts[i + 1] - self._pts[i])
+        front = self._pts[-1]
+        c = 0.5 * (front + rear)
+        return float(c[0]), float(c[1]), float(np.arctan2(*(front - rear)[::-1]))
+
+
 class SumoTraffic:
     """One run of SUMO traffic for a scenario's ``traffic`` section and a seed; states per step (module docstring).
 
@@ -163,6 +205,7 @@ class SumoTraffic:
             "--seed", str(self.sumo_seed),
             "--time-to-teleport", repr(float(cfg.time_to_teleport_s)),
             "--collision.action", "warn",
+            "--lanechange.duration", repr(float(cfg.lane_change_s)),
             "--ignore-route-errors", "true",
             "--no-step-log", "true",
             "--no-warnings", "true",
@@ -179,6 +222,7 @@ class SumoTraffic:
         self._k_newest = -1
         self._closed = False
         self._dest_edges: dict[str, list[str]] = {}
+        self._trails: dict[str, FrontTrail] = {}
         self._commands: dict[int, list[tuple[str, str]]] = {}  # SUMO step -> (vehicle, new destination)
         self._start()
         self.sumo_ids = self._warm_up()
@@ -258,6 +302,7 @@ class SumoTraffic:
             if self._sumo_steps >= n_max:
                 break
             self._sim_step()
+            self._follow_fronts()
             new = list(ls.simulation.getDepartedIDList())
             if sel.type is not None:
                 new = [v for v in new if ls.vehicle.getTypeID(v) == sel.type]
@@ -343,10 +388,26 @@ class SumoTraffic:
     def _allows(allowed, vclass: str) -> bool:
         return not allowed or vclass in allowed
 
+    def _follow_fronts(self) -> set[str]:
+        """Every vehicle's front added to its trail (trails of vehicles gone dropped); the vehicles' ids."""
+        ls = self._ls
+        alive = self._alive
+        for sid in sorted(alive):
+            front = ls.vehicle.getPosition(sid)
+            trail = self._trails.get(sid)
+            if trail is None:
+                self._sizes[sid] = (ls.vehicle.getLength(sid), ls.vehicle.getWidth(sid), ls.vehicle.getHeight(sid))
+                self._trails[sid] = FrontTrail(front, float(sumo_yaw(ls.vehicle.getAngle(sid))), self._sizes[sid][0])
+            else:
+                trail.add(front)
+        for sid in [s for s in self._trails if s not in alive]:
+            del self._trails[sid]
+        return alive
+
     def _record(self, k: int) -> None:
         """SUMO's state after its latest step as scenario step ``k``."""
         ls = self._ls
-        alive = self._alive
+        alive = self._follow_fronts()
         lost = [f"{self._ids[s]} (SUMO vehicle {s!r})" for s in self.sumo_ids if s not in alive]
         if lost:
             raise SumoTrafficError(
@@ -357,8 +418,8 @@ class SumoTraffic:
             self._keep_driving(v)
         raw: dict[str, _Raw] = {}
         for sid in [*self.sumo_ids, *sorted(alive - set(self.sumo_ids))]:
-            cls = self._vehicle_class(sid)
-            raw[sid] = self._raw(sid, cls, ls.vehicle)
+            x, y, yaw = self._trails[sid].pose()
+            raw[sid] = _Raw(self._vehicle_class(sid), x, y, yaw, float(ls.vehicle.getSpeed(sid)))
         for sid in sorted(ls.person.getIDList()):
             raw[sid] = self._raw(sid, ObjectClass.PEDESTRIAN, ls.person)
         for sid in raw:

@@ -19,7 +19,7 @@ from mapcontainer.config import ConfigError  # noqa: E402
 from mapcontainer.hdmap.errors import MissingExtraError  # noqa: E402
 from mapcontainer.sim import World, load_scenario, with_error_sources, with_traffic  # noqa: E402
 from mapcontainer.sim.config import scale_scenario  # noqa: E402
-from mapcontainer.sim.sumo import KEEP_STEPS, SumoTrafficError, sumo_pose, sumo_yaw  # noqa: E402
+from mapcontainer.sim.sumo import KEEP_STEPS, FrontTrail, SumoTrafficError, sumo_pose, sumo_yaw  # noqa: E402
 from schemas import ObjectClass  # noqa: E402
 
 NODES = """<nodes>
@@ -82,6 +82,26 @@ def test_sumo_angle_is_clockwise_from_north_and_our_yaw_counter_clockwise_from_e
     assert (x, y, yaw) == pytest.approx((8.0, 5.0, 0.0))
     x, y, yaw = sumo_pose(10.0, 5.0, 0.0, 4.0)  # driving north
     assert (x, y, yaw) == pytest.approx((10.0, 3.0, np.pi / 2))
+
+
+def test_the_body_follows_the_path_its_front_drove():
+    length = 4.0
+    trail = FrontTrail((0.0, 0.0), 0.0, length)  # new: straight behind the front
+    assert trail.pose() == pytest.approx((-2.0, 0.0, 0.0))
+    for x in np.arange(0.5, 10.01, 0.5):  # east along y = 0
+        trail.add((x, 0.0))
+    assert trail.pose() == pytest.approx((8.0, 0.0, 0.0))
+    # a left quarter circle of radius 10 m about (10, 10): the front turns, the rear still on the straight
+    for a in np.linspace(0.0, np.pi / 2, 60)[1:]:
+        trail.add((10.0 + 10.0 * np.sin(a), 10.0 - 10.0 * np.cos(a)))
+    x, y, yaw = trail.pose()
+    # front at (20, 10) heading north; the rear 4 m back along the arc (0.4 rad): the chord's direction
+    rear = np.array([10.0 + 10.0 * np.sin(np.pi / 2 - 0.4), 10.0 - 10.0 * np.cos(np.pi / 2 - 0.4)])
+    chord = np.array([20.0, 10.0]) - rear
+    assert yaw == pytest.approx(np.arctan2(chord[1], chord[0]), abs=2e-3)
+    assert (x, y) == pytest.approx(tuple((rear + [20.0, 10.0]) / 2), abs=2e-3)
+    trail.add((20.0, 10.0))  # standing: nothing changes
+    assert trail.pose() == pytest.approx((x, y, yaw))
 
 
 def test_a_vehicle_driving_east_has_yaw_zero_and_its_centre_behind_its_front(road):
@@ -259,6 +279,22 @@ def test_traffic_variation_off_fixes_the_seeds_and_old_steps_are_refused(grid):
     assert not _same(one, other)
     # the error sources switch as on any scenario (the section survives a dump and validation)
     assert with_error_sources(grid, []).sumo == grid.sumo
+
+
+def test_sumo_actors_move_smoothly_through_junctions_and_lane_changes(grid):
+    # Each vehicle's centre advances by its speed x dt (within 0.1 m: no sideways jumps where a junction's lane
+    # meets the next, nor at lane changes), and turns at most 12 degrees a step.
+    with World(grid, seed=2) as world:
+        tracks = _trajectories(world, 200)
+    worst_m, worst_deg = 0.0, 0.0
+    for tr in tracks.values():
+        tr = tr[tr[:, -1] == ObjectClass.VEHICLE]
+        if len(tr) < 2 or np.any(np.diff(tr[:, 0]) != 1):
+            continue
+        step = np.hypot(*np.diff(tr[:, 1:3], axis=0).T)
+        worst_m = max(worst_m, float(np.max(step - 0.05 * (tr[1:, 5] + tr[:-1, 5]))))
+        worst_deg = max(worst_deg, float(np.degrees(np.max(np.abs(np.angle(np.exp(1j * np.diff(tr[:, 4]))))))))
+    assert worst_m < 0.1 and worst_deg < 12.0, (worst_m, worst_deg)
 
 
 def test_the_grid_preset_senses_sumo_actors_as_the_world_does_its_own(grid):
