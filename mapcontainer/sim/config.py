@@ -335,7 +335,9 @@ class SumoTrafficConfig(_Strict):
     warmup_s: NonNeg = 10.0
     max_warmup_s: Pos = 300.0
     time_to_teleport_s: float = Field(300.0, description="SUMO's --time-to-teleport; -1: never teleport")
-    lane_change_s: Pos = Field(3.0, description="how long a lane change takes (SUMO's --lanechange.duration)")
+    lateral_resolution_m: Pos = Field(
+        0.8, description="SUMO's sublane model (--lateral-resolution): continuous lane changes, none standing"
+    )
     enabled: bool = True
     seed: int = Field(0, ge=0)
     landmarks: PlacementRule = PlacementRule()

@@ -12,11 +12,13 @@ turns SUMO's states into :class:`~.actors.ActorState`. The conversion (:func:`su
   of 10-30 degrees where a junction's internal lane meets the next lane (and a rigid body would swing its
   centre sideways by a metre with it); the rear follows the front's path ``length`` behind, the yaw is the
   direction from rear to front and the centre their midpoint. On a straight lane both are SUMO's. Lane
-  changes take ``lane_change_s`` (SUMO's ``--lanechange.duration``) instead of SUMO's default instant jump;
+  changes are continuous (SUMO's sublane model, ``--lateral-resolution``), never at a standstill and no
+  faster sideways than forwards, instead of SUMO's default jump of a lane width in one step;
 * the height is the HD map's road height under that point (``MapIndex.nearest_lane_height``), so the
   actors stand on the road the cameras see;
-* velocity = SUMO's speed along the heading; yaw rate = the central difference of yaw over one step each
-  side (one-sided at an actor's first and last step).
+* velocity and yaw rate: central differences of the centre and the yaw over one step each side (one-sided
+  at an actor's first and last step), so the odometry measures the motion the pose makes (SUMO's speed is
+  the longitudinal one, without a lane change's sideways motion).
 
 Connected vehicles are SUMO vehicles (``traffic.connected``: listed ids, or the first N to depart, of one
 type when given) renamed ``cv0``, ``cv1``, ... in that order; every other vehicle and person is an obstacle
@@ -205,7 +207,7 @@ class SumoTraffic:
             "--seed", str(self.sumo_seed),
             "--time-to-teleport", repr(float(cfg.time_to_teleport_s)),
             "--collision.action", "warn",
-            "--lanechange.duration", repr(float(cfg.lane_change_s)),
+            "--lateral-resolution", repr(float(cfg.lateral_resolution_m)),
             "--ignore-route-errors", "true",
             "--no-step-log", "true",
             "--no-warnings", "true",
@@ -341,8 +343,15 @@ class SumoTraffic:
     # ------------------------------------------------------------------------------ stepping
 
     def _sim_step(self) -> None:
-        self._ls.simulationStep()
+        """One SUMO step; vehicles that departed in it do not move sideways standing (the sublane model's
+        ``lcMaxSpeedLatStanding`` = 0: a standing car cannot change lanes) and at most as fast as they drive
+        (``lcMaxSpeedLatFactor`` = 1, SUMO's default, set so a route file's vType cannot unset it)."""
+        ls = self._ls
+        ls.simulationStep()
         self._sumo_steps += 1
+        for vid in ls.simulation.getDepartedIDList():
+            ls.vehicle.setParameter(vid, "laneChangeModel.lcMaxSpeedLatStanding", "0")
+            ls.vehicle.setParameter(vid, "laneChangeModel.lcMaxSpeedLatFactor", "1")
 
     def _keep_driving(self, vid: str) -> None:
         """A new destination for vehicle ``vid`` when it is on the second last edge of its route or beyond
@@ -483,15 +492,13 @@ class SumoTraffic:
         out: dict[str, ActorState] = {}
         connected = set(self.sumo_ids)
         for sid, r in now.items():
-            a, b = before.get(sid), after.get(sid)
-            if a is not None and b is not None:
-                d_yaw, span = b.yaw - a.yaw, 2 * self.dt
-            elif a is not None or b is not None:
-                d_yaw, span = (r.yaw - a.yaw, self.dt) if a is not None else (b.yaw - r.yaw, self.dt)
-            else:
-                d_yaw, span = 0.0, self.dt
-            yaw_rate = float(np.angle(np.exp(1j * d_yaw))) / span
-            heading = np.array([math.cos(r.yaw), math.sin(r.yaw), 0.0])
+            a, b = before.get(sid, r), after.get(sid, r)  # central differences, one-sided at either end
+            span = self.dt * ((a is not r) + (b is not r))
+            if span > 0:
+                yaw_rate = float(np.angle(np.exp(1j * (b.yaw - a.yaw)))) / span
+                v_map = np.array([(b.x - a.x) / span, (b.y - a.y) / span, 0.0])
+            else:  # one step only: SUMO's speed along the heading
+                yaw_rate, v_map = 0.0, r.speed * np.array([math.cos(r.yaw), math.sin(r.yaw), 0.0])
             p = np.array([r.x, r.y, self._index.nearest_lane_height((r.x, r.y, 0.0))])
             our = self._ids[sid]
             b_motion = body(our, t) if body is not None and sid in connected else None
@@ -500,7 +507,7 @@ class SumoTraffic:
                 r.cls,
                 p,
                 r.yaw,
-                heading * r.speed,
+                v_map,
                 yaw_rate,
                 np.array(self._sizes[sid], dtype=float),
                 np.zeros(3) if b_motion is None else b_motion,
