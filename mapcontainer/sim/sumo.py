@@ -309,7 +309,7 @@ class SumoTraffic:
             if sel.type is not None:
                 new = [v for v in new if ls.vehicle.getTypeID(v) == sel.type]
             departed += new
-            for v in self.connected_candidates(departed):
+            for v in self._candidates(departed):
                 self._keep_driving(v)
         if sel.ids is not None:
             missing = [v for v in sel.ids if v not in departed]
@@ -335,7 +335,7 @@ class SumoTraffic:
             raise SumoTrafficError(f"connected vehicle(s) {gone} left the simulation during the warm-up (before t = 0)")
         return chosen
 
-    def connected_candidates(self, departed: list[str]) -> list[str]:
+    def _candidates(self, departed: list[str]) -> list[str]:
         """Vehicles that are (or may become) connected ones during the warm-up, kept driving like them."""
         sel = self.cfg.connected
         return [v for v in (sel.ids if sel.ids is not None else departed[: sel.first]) if v in departed]
