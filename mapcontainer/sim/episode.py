@@ -94,6 +94,7 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
         sc.sensors.detector.fov_deg,
         sc.sensors.detector.range_m,
         f"{sc.name}  seed {world.seed}  {duration_s:g} s",
+        classes,
     )
     for vid in world.vehicle_ids:
         render_camera_view(out_dir / f"camera_{vid}.png", middle.debug[vid].camera, f"{vid}  t = {middle.t:.1f} s")

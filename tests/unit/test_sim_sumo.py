@@ -311,3 +311,16 @@ def test_the_grid_preset_senses_sumo_actors_as_the_world_does_its_own(grid):
     seen = sum(len(t.frames[v].objects.p_body) for t in ticks for v in t.frames)
     landmarks = sum(len(t.frames[v].points_cls) for t in ticks for v in t.frames)
     assert seen > 0 and landmarks > 0
+
+
+def test_the_birdseye_draws_actors_that_left_by_their_tracks(grid, tmp_path):
+    from mapcontainer.sim.render import render_birdseye
+
+    with World(grid, seed=2) as world:
+        st = world.states(0.0)
+        hdmap = world.true_map
+    gone = next(a for a in st if not a.startswith("cv"))
+    tracks = {a: np.array([s.p_map[:2], s.p_map[:2] + 1.0]) for a, s in st.items()}
+    final = {a: s for a, s in st.items() if a != gone}  # `gone` left before the end: no final state
+    render_birdseye(tmp_path / "b.png", hdmap, tracks, final, ["cv0"], 60.0, 40.0, "t", {gone: st[gone].cls})
+    assert (tmp_path / "b.png").stat().st_size > 10_000
