@@ -36,8 +36,8 @@ def _cmd_scenario_list(args: argparse.Namespace) -> int:
         rows.append(
             {
                 "name": name,
-                "vehicles": len(sc.connected),
-                "obstacles": len(sc.obstacle_vehicles) + len(sc.pedestrians),
+                "vehicles": sc.n_connected,
+                "obstacles": len(sc.obstacle_vehicles) + len(sc.pedestrians) if sc.sumo is None else None,
                 "description": sc.description,
                 "file": str(path),
                 "builtin": path.is_relative_to(BUILTIN_DIR),
@@ -49,7 +49,8 @@ def _cmd_scenario_list(args: argparse.Namespace) -> int:
         width = max(len(r["name"]) for r in rows)
         for r in rows:
             own = "" if r["builtin"] else f"  ({r['file']})"
-            counts = f"{r['vehicles']} vehicles  {r['obstacles']:>2} obstacles"
+            others = "SUMO traffic" if r["obstacles"] is None else f"{r['obstacles']:>2} obstacles"
+            counts = f"{r['vehicles']} vehicles  {others}"
             print(f"{r['name']:<{width}}  {counts}  {r['description']}{own}")
     return 0
 
@@ -60,8 +61,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from .sim.world import World
 
     sc = load_scenario(args.scenario)
-    world = World(sc, seed=args.seed, fleet=args.fleet)
-    summary = record_episode(world, args.duration if args.duration is not None else sc.duration_s, Path(args.out))
+    with World(sc, seed=args.seed, fleet=args.fleet) as world:
+        summary = record_episode(world, args.duration if args.duration is not None else sc.duration_s, Path(args.out))
     print(jsonout.dumps(summary))
     return 0
 
@@ -119,10 +120,10 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
     from .hdmap.io import MapOrigin, save_map
 
     if args.scenario is not None:
-        from .hdmap.generator import generate_map
         from .sim.config import load_scenario
+        from .sim.maps import world_map
 
-        hdmap, origin = generate_map(load_scenario(args.scenario).map), None
+        hdmap, origin = world_map(load_scenario(args.scenario)), None
     else:
         from .hdmap.formats import read_any_map
 

@@ -28,6 +28,7 @@ starts), and that noise's covariance passed as ``initial_pose``.
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -42,7 +43,7 @@ from .faults import FaultInjector
 from .fusion import FusionParams
 from .fusion.gate import MAX_WAIT_S, FrameGate
 from .host import make_host
-from .sim import World, load_scenario
+from .sim import Tick, World, load_scenario
 from .sim.config import ScenarioConfig
 from .vehicle import Mode, VehicleAgent
 
@@ -245,7 +246,7 @@ def run_pipeline(
         timeouts(t_end)
 
     t_last = 0.0
-    for tick in world.run(duration):
+    for tick in _closing(world, duration):
         t = t_last = tick.t
         rec = TickRecord(t, tick.truth, {}, {}, {}, {})
         onboard: list[tuple[str, bytes]] = []
@@ -285,6 +286,14 @@ def run_pipeline(
     result.host_stats = {name: host.stats() for name, host in hosts.items()}
     result.gate_stats = {name: {"complete": g.complete, "timed_out": g.timed_out} for name, g in gates.items()}
     return result
+
+
+def _closing(world: World, duration_s: float) -> Iterator[Tick]:
+    """The World's frames of ``duration_s``; what it holds outside Python (SUMO) released after the last."""
+    try:
+        yield from world.run(duration_s)
+    finally:
+        world.close()
 
 
 SIGNING_EPOCH_S = 1.8e9  # Unix time of scenario time 0 in the pipeline's signatures (a fixed date in 2027)

@@ -5,11 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveInt, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, PositiveInt, Tag, model_validator
 
 from ..config import ConfigError, deep_merge, find_preset, list_presets, load_yaml_model, read_yaml, validate_model
 from ..faults import Fault
 from ..hdmap.generator import MapSpec
+from ..hdmap.sumo import PlacementRule
 
 __all__ = [
     "BodyConfig",
@@ -26,6 +27,9 @@ __all__ = [
     "PedestrianSpec",
     "ScenarioConfig",
     "SensorConfig",
+    "SumoConnected",
+    "SumoRandomTrips",
+    "SumoTrafficConfig",
     "TrafficConfig",
     "VehicleSpec",
     "list_scenarios",
@@ -244,6 +248,7 @@ class TrafficConfig(_Strict):
     with probability pedestrian_reverse_p, start uniform along the path (pedestrian_s0_uniform) or as listed.
     """
 
+    source: Literal["scenario"] = "scenario"
     enabled: bool = False
     platoon: bool = False
     s0_sigma_m: NonNeg = 0.0
@@ -268,20 +273,146 @@ class TrafficConfig(_Strict):
         return self
 
 
+class SumoRandomTrips(_Strict):
+    """Random trips from SUMO's ``tools/randomTrips.py``: ``vehicles`` vehicle trips and ``pedestrians`` person
+    trips departing evenly over SUMO time [0, ``period_s``) (one every period_s / count seconds), between random
+    edges at least ``min_distance_m`` apart (vehicles start and end at the network's fringe ``fringe_factor``
+    times as often as inside it). ``seed``: the trips' seed; None draws them per run from the run's seed."""
+
+    seed: int | None = Field(None, ge=0)
+    vehicles: int = Field(ge=1, le=10000)
+    pedestrians: int = Field(0, ge=0, le=10000)
+    period_s: float = Field(60.0, gt=0, le=86400)
+    min_distance_m: NonNeg = 100.0
+    fringe_factor: float = Field(5.0, ge=1)
+
+
+class SumoConnected(_Strict):
+    """Which SUMO vehicles are the connected vehicles (cv0, cv1, ... in this order): the listed ``ids``, or the
+    first ``first`` vehicles to depart (of vehicle type ``type`` when given)."""
+
+    ids: list[str] | None = Field(None, min_length=1)
+    first: int | None = Field(None, ge=1, le=256)
+    type: str | None = None
+
+    @model_validator(mode="after")
+    def _one(self):
+        if (self.ids is None) == (self.first is None):
+            raise ValueError("give the connected vehicles as ids: [...] or as first: N (optionally with type:)")
+        if self.ids is not None and self.type is not None:
+            raise ValueError("type: selects among the first N to depart; with ids: it has no meaning")
+        if self.ids is not None and len(set(self.ids)) != len(self.ids):
+            raise ValueError(f"connected ids repeat: {self.ids}")
+        return self
+
+    @property
+    def count(self) -> int:
+        return len(self.ids) if self.ids is not None else int(self.first)
+
+
+class SumoTrafficConfig(_Strict):
+    """Traffic driven by SUMO in process (libsumo; the ``roads`` extra): :mod:`mapcontainer.sim.sumo`.
+
+    ``net``: the SUMO network (.net.xml[.gz]); the world's HD map is imported from it (``landmarks``: the
+    importer's placement rule, ``pois``: an additional file with lamps, signs, traffic lights). Routes from
+    ``routes`` (route files: vehicles, persons, flows, vehicle types) or ``random`` trips, plus ``additional``
+    files for SUMO (signal programs, vehicle types); the signals run the network's programs unless those
+    replace them. SUMO steps at the sensor rate. Before t = 0 SUMO runs at least ``warmup_s`` and until
+    every connected vehicle has departed (at most ``max_warmup_s``; a connected vehicle not departed by
+    then is an error). A connected vehicle on the second last edge of its route gets a new destination (seeded),
+    so it keeps driving; one that leaves the simulation all the same (teleported after ``time_to_teleport_s``
+    of standing, removed) stops the episode with an error. Relative paths are relative to the scenario file.
+    ``enabled`` (per-run variation): on, SUMO's seed and the random trips' (unless ``random.seed``) are the
+    run's seed; off, both are ``seed``.
+    """
+
+    source: Literal["sumo"]
+    net: Path
+    routes: list[Path] = Field(default_factory=list)
+    random: SumoRandomTrips | None = None
+    additional: list[Path] = Field(default_factory=list)
+    connected: SumoConnected
+    warmup_s: NonNeg = 10.0
+    max_warmup_s: Pos = 300.0
+    time_to_teleport_s: float = Field(300.0, description="SUMO's --time-to-teleport; -1: never teleport")
+    lateral_resolution_m: Pos = Field(
+        0.8, description="SUMO's sublane model (--lateral-resolution): continuous lane changes, none standing"
+    )
+    enabled: bool = True
+    seed: int = Field(0, ge=0)
+    landmarks: PlacementRule = PlacementRule()
+    pois: Path | None = None
+
+    @model_validator(mode="after")
+    def _files(self):
+        if not self.routes and self.random is None:
+            raise ValueError("SUMO traffic needs routes: [FILE, ...] or random: {vehicles: N, ...}")
+        for what, paths in (("net", [self.net]), ("routes", self.routes), ("additional", self.additional)):
+            for p in paths:
+                if not p.is_file():
+                    raise ValueError(f"{what} file {p} does not exist")
+        if self.pois is not None and not self.pois.is_file():
+            raise ValueError(f"pois file {self.pois} does not exist")
+        if self.random is not None and not self.routes and self.connected.first is not None:
+            if self.connected.first > self.random.vehicles:
+                raise ValueError(
+                    f"connected.first = {self.connected.first} but random trips make only {self.random.vehicles}"
+                    " vehicles"
+                )
+        if self.max_warmup_s < self.warmup_s:
+            raise ValueError(f"max_warmup_s ({self.max_warmup_s:g}) is below warmup_s ({self.warmup_s:g})")
+        return self
+
+
+def _traffic_kind(v: Any) -> str:
+    source = v.get("source", "scenario") if isinstance(v, dict) else getattr(v, "source", "scenario")
+    return "sumo" if source == "sumo" else "scenario"
+
+
+Traffic = Annotated[
+    Annotated[TrafficConfig, Tag("scenario")] | Annotated[SumoTrafficConfig, Tag("sumo")],
+    Discriminator(_traffic_kind),
+]
+
+
 class ScenarioConfig(_Strict):
+    """A scenario. Actors come from the lists ``connected``, ``obstacle_vehicles`` and ``pedestrians`` on the
+    procedural ``map`` (varied per run by ``traffic``), or, with ``traffic.source: sumo``, from SUMO on the
+    network ``traffic.net``, whose import is then the map (the lists and ``map`` are left out)."""
+
     name: str
     description: str = ""
     map: MapSpec = MapSpec()
     sensors: SensorConfig
-    connected: list[VehicleSpec] = Field(min_length=1)
+    connected: list[VehicleSpec] = Field(default_factory=list)
     obstacle_vehicles: list[VehicleSpec] = Field(default_factory=list)
     pedestrians: list[PedestrianSpec] = Field(default_factory=list)
     duration_s: float = Field(30.0, gt=0, description="default episode length")
     faults: list[Fault] = Field(default_factory=list, description="misbehaving vehicles (mapcontainer.faults)")
-    traffic: TrafficConfig = TrafficConfig()
+    traffic: Traffic = TrafficConfig()
+
+    @property
+    def sumo(self) -> SumoTrafficConfig | None:
+        """The SUMO traffic section, or None when the actors are the scenario's own."""
+        return self.traffic if isinstance(self.traffic, SumoTrafficConfig) else None
+
+    @property
+    def n_connected(self) -> int:
+        return self.sumo.connected.count if self.sumo is not None else len(self.connected)
 
     @model_validator(mode="after")
     def _indices(self):
+        if self.sumo is not None:
+            listed = [k for k in ("connected", "obstacle_vehicles", "pedestrians") if getattr(self, k)]
+            listed += ["map"] if self.map != MapSpec() else []
+            if listed:
+                raise ValueError(
+                    f"with traffic.source: sumo the actors come from SUMO and the map from traffic.net: leave out"
+                    f" {', '.join(listed)}"
+                )
+            return self
+        if not self.connected:
+            raise ValueError("connected: a scenario needs at least one connected vehicle")
         lanes = 2 * self.map.lanes_per_direction
         areas = 2 + self.map.crossings
         for v in [*self.connected, *self.obstacle_vehicles]:
@@ -330,12 +461,35 @@ def _scenario_data(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
     if path in chain:
         raise ConfigError(f"{path}: scenarios extend each other in a cycle: {' -> '.join(str(p) for p in chain)}")
     data = read_yaml(path)
+    _resolve_sumo_paths(data, path.parent)
     base = data.pop("extends", None)
     if base is None:
         return data
     if not isinstance(base, str):
         raise ConfigError(f"{path}: extends must be the name of a scenario, got {base!r}")
     return deep_merge(_scenario_data(_scenario_path(base), (*chain, path)), data)
+
+
+_SUMO_PATHS = ("net", "pois")
+_SUMO_PATH_LISTS = ("routes", "additional")
+
+
+def _resolve_sumo_paths(data: dict[str, Any], base: Path) -> None:
+    """A SUMO traffic section's file names made absolute, relative to the scenario file's directory ``base``
+    (in place; other sections and absolute paths are left as they are)."""
+    tr = data.get("traffic")
+    if not isinstance(tr, dict) or tr.get("source") != "sumo":
+        return
+
+    def resolve(p: Any) -> Any:
+        return str(base / p) if isinstance(p, str) and not Path(p).is_absolute() else p
+
+    for key in _SUMO_PATHS:
+        if key in tr:
+            tr[key] = resolve(tr[key])
+    for key in _SUMO_PATH_LISTS:
+        if isinstance(tr.get(key), list):
+            tr[key] = [resolve(p) for p in tr[key]]
 
 
 def load_sensor_config(name: str = "default") -> SensorConfig:
@@ -346,12 +500,15 @@ def scale_scenario(sc: ScenarioConfig, vehicles: int | None) -> ScenarioConfig:
     """The scenario with ``vehicles`` connected vehicles (None: as defined).
 
     Fewer than defined: the first ones. More: extra vehicles are spread evenly over the ring's
-    lanes and around it, at about the defined vehicles' mean speed (0.9x to 1.1x).
+    lanes and around it, at about the defined vehicles' mean speed (0.9x to 1.1x). A SUMO scenario: the
+    first N SUMO vehicles to depart (or the first N listed ids).
     """
-    if vehicles is None or vehicles == len(sc.connected):
+    if vehicles is None or vehicles == sc.n_connected:
         return sc
     if vehicles < 1:
         raise ValueError(f"vehicles must be at least 1, got {vehicles}")
+    if sc.sumo is not None:
+        return _scale_sumo(sc, vehicles)
     connected = list(sc.connected[:vehicles])
     n_extra = vehicles - len(connected)
     if n_extra > 0:
@@ -369,3 +526,18 @@ def scale_scenario(sc: ScenarioConfig, vehicles: int | None) -> ScenarioConfig:
     data = sc.model_dump()
     data["connected"] = [v.model_dump() for v in connected]
     return ScenarioConfig.model_validate(data)
+
+
+def _scale_sumo(sc: ScenarioConfig, vehicles: int) -> ScenarioConfig:
+    """A SUMO scenario with ``vehicles`` connected vehicles: the first N to depart; of listed ids the first N
+    (ConfigError for more than listed)."""
+    sel = sc.sumo.connected
+    if sel.ids is not None:
+        if vehicles > len(sel.ids):
+            raise ConfigError(f"{sc.name} names {len(sel.ids)} connected SUMO vehicles, {vehicles} asked for")
+        sel = sel.model_copy(update={"ids": sel.ids[:vehicles]})
+    else:
+        sel = sel.model_copy(update={"first": vehicles})
+    data = sc.model_dump()
+    data["traffic"]["connected"] = sel.model_dump()
+    return validate_model(ScenarioConfig, data, sc.name)

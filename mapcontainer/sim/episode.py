@@ -44,6 +44,7 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
     truth_key = topic("truth").key(fleet=world.fleet)
     sensor_keys = {v: topic("sensors").key(fleet=world.fleet, vid=v) for v in world.vehicle_ids}
     tracks: dict[str, list[np.ndarray]] = {}
+    classes: dict[str, int] = {}
     frame_bytes: list[int] = []
     det_err2: list[float] = []
     gnss_err2: list[float] = []
@@ -64,6 +65,7 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
                 gnss_err2.append(float(np.sum((frame.gnss.p_map[:2] - tick.states[vid].p_map[:2]) ** 2)))
             for aid, st in tick.states.items():
                 tracks.setdefault(aid, []).append(st.p_map[:2])
+                classes[aid] = st.cls
             if tick.k == n_total // 2:
                 middle = tick
             last = tick
@@ -92,14 +94,16 @@ def record_episode(world: World, duration_s: float, out_dir: Path) -> dict:
         sc.sensors.detector.fov_deg,
         sc.sensors.detector.range_m,
         f"{sc.name}  seed {world.seed}  {duration_s:g} s",
+        classes,
     )
     for vid in world.vehicle_ids:
         render_camera_view(out_dir / f"camera_{vid}.png", middle.debug[vid].camera, f"{vid}  t = {middle.t:.1f} s")
 
-    obstacles: dict[str, int] = {}
-    for a in world.obstacles:
-        name = a.cls.name.lower()
-        obstacles[name] = obstacles.get(name, 0) + 1
+    obstacles: dict[str, int] = {}  # every obstacle that was in the world during the episode
+    for aid, cls in classes.items():
+        if aid not in world.vehicle_ids:
+            name = cls.name.lower()
+            obstacles[name] = obstacles.get(name, 0) + 1
     summary = {
         "scenario": sc.name,
         "seed": world.seed,

@@ -26,10 +26,10 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..hdmap.generator import generate_map
 from ..hdmap.model import HDMap
 from ..hdmap.perturb import MapError, perturb_map
 from .config import ScenarioConfig
+from .maps import world_map
 
 __all__ = [
     "ERROR_SOURCES",
@@ -109,12 +109,12 @@ def map_error(sc: ScenarioConfig) -> MapError | None:
 
 
 def published_map(sc: ScenarioConfig, seed: int, true_map: HDMap | None = None) -> HDMap:
-    """The HD map the vehicles and the host of run ``seed`` carry: the world's map (``generate_map(sc.map)``,
+    """The HD map the vehicles and the host of run ``seed`` carry: the world's map (:func:`.maps.world_map`,
     or ``true_map`` if given) with the scenario's map error drawn from ``SeedSequence([seed, MAP_STREAM])``;
     the world's map itself when the source is off. The in-process pipeline and the live services both
     call this, so they use the same map for a scenario and seed.
     """
-    truth = generate_map(sc.map) if true_map is None else true_map
+    truth = world_map(sc) if true_map is None else true_map
     err = map_error(sc)
     if err is None:
         return truth

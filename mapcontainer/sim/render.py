@@ -49,15 +49,22 @@ def render_birdseye(
     fov_deg: float,
     range_m: float,
     title: str,
+    classes: dict[str, int] | None = None,
 ) -> None:
-    """Map, every actor's trajectory (tracks: id -> (T, 2)), final boxes and the vehicles' fields of view."""
+    """Map, every actor's trajectory (tracks: id -> (T, 2)), final boxes and the vehicles' fields of view.
+
+    An actor without a final state (it left the world, as SUMO's do) is drawn by its track alone, in the
+    colour of its class in ``classes`` (id -> ObjectClass)."""
     fig, ax = plt.subplots(figsize=(12, 7))
     draw_map(ax, hdmap)
     for aid, xy in tracks.items():
-        st = final[aid]
+        st = final.get(aid)
         is_cv = aid in connected
-        color = "tab:red" if is_cv else _CLS_COLOR.get(st.cls, "k")
+        cls = st.cls if st is not None else (classes or {}).get(aid)
+        color = "tab:red" if is_cv else _CLS_COLOR.get(cls, "k")
         ax.plot(xy[:, 0], xy[:, 1], "-", lw=2.0 if is_cv else 0.8, color=color, alpha=0.8)
+        if st is None:
+            continue
         c, s = np.cos(st.yaw), np.sin(st.yaw)
         length, w = st.size[0], st.size[1]
         box = np.array([[length, w], [length, -w], [-length, -w], [-length, w], [length, w]]) / 2

@@ -3,14 +3,16 @@
 Two maps: ``true_map`` is the world (what the cameras see, where the actors drive); ``hdmap`` is the
 map the vehicles and the host carry (:func:`~mapcontainer.sim.errors.published_map`: the true one with
 the scenario's map error drawn for the seed). The traffic is the scenario's, varied per run from the
-seed when ``traffic`` is on (:mod:`.traffic`); every noise and error stream is drawn from the seed,
-each from a stream of its own.
+seed when ``traffic`` is on (:mod:`.traffic`), or SUMO's on the network the map is imported from
+(``traffic.source: sumo``, :mod:`.sumo`); every noise and error stream is drawn from the seed, each
+from a stream of its own.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,14 +27,17 @@ from schemas import (
 
 from .. import geometry as geo
 from .. import lanemask
-from ..hdmap.generator import generate_map
 from ..hdmap.model import HDMap
 from .actors import ActorState, BodyMotion, LaneFollower, PathWalker
 from .config import ScenarioConfig
 from .errors import published_map, vehicle_error_streams
+from .maps import world_map
 from .sensors import Camera, CameraObservation, Gnss, ObjectDetector
 from .sensors import Odometry as OdometrySensor
 from .traffic import Traffic, draw_traffic
+
+if TYPE_CHECKING:
+    from .sumo import SumoTraffic
 
 __all__ = ["FrameDebug", "Tick", "World"]
 
@@ -117,12 +122,19 @@ class World:
         self.scenario = scenario
         self.seed = seed
         self.fleet = fleet
-        self.true_map: HDMap = generate_map(scenario.map)
+        self.true_map: HDMap = world_map(scenario)
         self.hdmap: HDMap = published_map(scenario, seed, self.true_map)
         self.dt = 1.0 / scenario.sensors.rate_hz
+        self.sumo: SumoTraffic | None = None
+        self._bodies: dict[str, BodyMotion] = {}
+        if scenario.sumo is not None:
+            self._init_sumo(scenario, seed)
+            return
         lanes = [c.polyline for c in self.true_map.centerlines]
         areas = [w.polyline for w in self.true_map.walkable]
-        self.traffic: Traffic = draw_traffic(scenario, seed, [a.length for a in areas], [a.length for a in lanes])
+        self.traffic: Traffic | None = draw_traffic(
+            scenario, seed, [a.length for a in areas], [a.length for a in lanes]
+        )
 
         def follower(actor_id: str, spec) -> LaneFollower:
             return LaneFollower(
@@ -137,7 +149,7 @@ class World:
             )
 
         tr = self.traffic
-        n_cv, n_ov = len(tr.connected), len(tr.obstacle_vehicles)
+        n_ov = len(tr.obstacle_vehicles)
         self.connected = [follower(f"cv{i}", s) for i, s in enumerate(tr.connected)]
         obstacles = [follower(str(i + 1), s) for i, s in enumerate(tr.obstacle_vehicles)]
         if scenario.traffic.enabled and scenario.traffic.min_gap_m > 0:
@@ -148,24 +160,53 @@ class World:
             for i, p in enumerate(tr.pedestrians)
         ]
         self.obstacles = obstacles
+        self._vehicle_ids = [a.id for a in self.connected]
+        self._init_sensors(scenario, seed)
+        for a in self.connected:
+            a.body = self._bodies.get(a.id)
+
+    def _init_sumo(self, scenario: ScenarioConfig, seed: int) -> None:
+        """Actors from SUMO (:class:`~.sumo.SumoTraffic`): no procedural actors or drawn traffic."""
+        from .sumo import SumoTraffic
+
+        self.traffic = None
+        self.connected, self.obstacles = [], []
+        self.sumo = SumoTraffic(scenario.sumo, self.true_map, self.dt, seed)
+        self._vehicle_ids = self.sumo.vehicle_ids
+        self._init_sensors(scenario, seed)
+
+    def _init_sensors(self, scenario: ScenarioConfig, seed: int) -> None:
+        """Each connected vehicle's sensors, error streams and body motion (by index: cv0 first)."""
+        n_cv = len(self._vehicle_ids)
         root = np.random.SeedSequence(seed)
         errors = vehicle_error_streams(seed, n_cv)
         self._sensors = {
-            a.id: _VehicleSensors(self, ss, es)
-            for a, ss, es in zip(self.connected, root.spawn(n_cv), errors, strict=True)
+            vid: _VehicleSensors(self, ss, es)
+            for vid, ss, es in zip(self._vehicle_ids, root.spawn(n_cv), errors, strict=True)
         }
         self._last_k: dict[str, int] = {}  # the last frame each vehicle's sensors measured
         b = scenario.sensors.body
         static = (b.heave_static_m, b.roll_static_rad, b.pitch_static_rad)
         dynamic = (b.heave_dynamic_m, b.roll_dynamic_rad, b.pitch_dynamic_rad)
         if any(static) or any(dynamic):  # spawned after the sensors' streams: those stay as they were
-            for a, ss in zip(self.connected, root.spawn(n_cv), strict=True):
-                a.body = BodyMotion(static, dynamic, np.random.default_rng(ss))
+            for vid, ss in zip(self._vehicle_ids, root.spawn(n_cv), strict=True):
+                self._bodies[vid] = BodyMotion(static, dynamic, np.random.default_rng(ss))
         self._seq = 0
 
     @property
     def vehicle_ids(self) -> list[str]:
-        return [a.id for a in self.connected]
+        return list(self._vehicle_ids)
+
+    def close(self) -> None:
+        """Release what the World holds outside Python (SUMO's simulation); idempotent."""
+        if self.sumo is not None:
+            self.sumo.close()
+
+    def __enter__(self) -> World:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def camera(self, vid: str) -> Camera:
         return self._sensors[vid].camera
@@ -178,11 +219,17 @@ class World:
         return self._sensors[vid].clock_offset_s
 
     def states(self, t: float) -> dict[str, ActorState]:
+        """Every actor at time t, connected vehicles first. With SUMO: at the step nearest t (a step that
+        SUMO has not reached yet is simulated; one more than :data:`~.sumo.KEEP_STEPS` behind is refused)."""
+        if self.sumo is not None:
+            bodies = self._bodies
+            return self.sumo.states(int(round(t / self.dt)), lambda v, t: bodies[v](t) if v in bodies else None)
         return {a.id: a.state(t) for a in [*self.connected, *self.obstacles]}
 
     def truth(self, k: int, t: float, states: dict[str, ActorState]) -> GroundTruth:
-        cv = [states[a.id] for a in self.connected]
-        ob = [states[a.id] for a in self.obstacles]
+        cv_ids = set(self._vehicle_ids)
+        cv = [states[v] for v in self._vehicle_ids]
+        ob = [s for i, s in states.items() if i not in cv_ids]
         return GroundTruth(
             fleet=self.fleet,
             sender="world",

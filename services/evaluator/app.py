@@ -179,9 +179,9 @@ def main(s: EvaluatorSettings) -> int:
 
             hdmap = None
             if scenario is not None:
-                from mapcontainer.hdmap.generator import generate_map
+                from mapcontainer.sim.maps import world_map
 
-                hdmap = generate_map(scenario.map)
+                hdmap = world_map(scenario)
             render_birdseye(out / "birdseye.png", ev, hdmap, f"fleet {s.fleet}: {s.scenario}")
             render_errors(out / "errors.png", ev, f"fleet {s.fleet}: {s.scenario}")
         except Exception:  # the pictures are a convenience; the summary is already written

@@ -182,7 +182,7 @@ def vehicle_ids(params: FleetParams) -> list[str]:
     if n is None:
         from mapcontainer.sim.config import load_scenario
 
-        n = len(load_scenario(params.scenario).connected)
+        n = load_scenario(params.scenario).n_connected
     return [f"cv{i}" for i in range(n)]
 
 
