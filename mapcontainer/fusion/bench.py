@@ -25,7 +25,9 @@ from .params import FusionParams
 from .poses import sym_from_upper, upper_from_sym
 from .simfeed import pose_covariance
 
-__all__ = ["batch_solve_ms", "bench_fusion"]
+__all__ = ["CITY_OBJECTS_IN_RANGE", "batch_solve_ms", "bench_fusion"]
+
+CITY_OBJECTS_IN_RANGE = 25  # obstacles a vehicle sees within range at "city" density
 
 
 def _detector_cov(p_body: np.ndarray) -> np.ndarray:
@@ -58,11 +60,14 @@ def bench_fusion(
     pose_persistent: float = 0.5,
     pose_tau_s: float = 1.0,
     batch_samples: int = 0,
+    density: str = "dense",
 ) -> dict:
     """Run the container on a synthetic scene; returns timing and accuracy figures.
 
-    ``window`` is the number of frames in the sliding window (window_s = window / rate_hz). The scene
-    is a square sized so that a vehicle sees about half of the obstacles (at most all of them).
+    ``window`` is the number of frames in the sliding window (window_s = window / rate_hz). ``density``
+    sizes the square: ``"dense"``, so that a vehicle sees about half of the obstacles (at most all of
+    them); ``"city"``, so that a vehicle sees about :data:`CITY_OBJECTS_IN_RANGE` obstacles within
+    ``range_m`` whatever the fleet's size (constant density: the square grows with the fleet).
     Timings (ms, wall clock) skip the first ``window`` ticks, while the window fills. ``blas_threads``
     limits OpenBLAS for the whole process first (see :mod:`.blas`; None leaves it alone).
 
@@ -87,7 +92,12 @@ def bench_fusion(
         limit_blas_threads(blas_threads)
     dt = 1.0 / rate_hz
     rng = np.random.default_rng(seed)
-    side = max(60.0, range_m * np.sqrt((vehicles + objects) / 9.0))
+    if density == "dense":
+        side = max(60.0, range_m * np.sqrt((vehicles + objects) / 9.0))
+    elif density == "city":
+        side = max(2.0 * range_m, float(np.sqrt(objects * np.pi * range_m**2 / CITY_OBJECTS_IN_RANGE)))
+    else:
+        raise ValueError(f"bad density {density!r}: 'dense' or 'city'")
     veh_p0 = np.column_stack([rng.uniform(-side / 2, side / 2, (vehicles, 2)), np.zeros(vehicles)])
     heading = rng.uniform(-np.pi, np.pi, vehicles)
     speed = rng.uniform(5.0, 12.0, vehicles)
