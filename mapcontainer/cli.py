@@ -216,19 +216,24 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_fusion(args: argparse.Namespace) -> int:
-    from .fusion.bench import bench_fusion
+    from .fusion.bench import bench_fusion_sizes, parse_sizes
 
     if args.ticks <= args.window:
         raise ConfigError(f"--ticks must exceed --window ({args.window}): timings skip the first window")
-    result = bench_fusion(
-        vehicles=args.vehicles,
-        objects=args.objects,
+    try:
+        sizes = parse_sizes(args.sizes) if args.sizes else [(args.vehicles, args.objects)]
+    except ValueError as e:
+        raise ConfigError(f"--sizes: {e}") from None
+    result = bench_fusion_sizes(
+        sizes,
+        compare_exact=args.compare_exact,
         window=args.window,
         seed=args.seed,
         ticks=args.ticks,
         batch_samples=args.batch_samples,
+        density=args.density,
     )
-    print(jsonout.dumps(result))
+    print(jsonout.dumps(result["runs"][0] if not args.sizes else result))
     return 0
 
 
@@ -407,6 +412,25 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--window", type=positive_int, default=10, help="frames in the sliding window")
     bf.add_argument("--ticks", type=positive_int, default=100, help="frames to run (timings skip the first window)")
     bf.add_argument("--seed", type=non_negative_int, default=0)
+    bf.add_argument(
+        "--density",
+        choices=("dense", "city"),
+        default="dense",
+        help="dense: every vehicle sees about half of the obstacles; city: about 25 within range, the square "
+        "growing with the fleet (constant density)",
+    )
+    bf.add_argument(
+        "--sizes",
+        metavar="V/O,...",
+        help="several sizes in one process (e.g. 4/14,16/100,50/500; replaces --vehicles/--objects): one JSON "
+        "line with every run and the cost's growth between them",
+    )
+    bf.add_argument(
+        "--compare-exact",
+        action="store_true",
+        help="run each size again with the exact smoother (FusionParams(solver='exact'), the oracle) and print "
+        "its RMSE and ANEES beside",
+    )
     bf.add_argument(
         "--batch-samples",
         type=non_negative_int,
