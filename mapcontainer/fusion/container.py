@@ -112,6 +112,7 @@ class Container:
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
         self._candidates: dict[float, list[VehicleCandidate]] = {}
+        self._reported_at: dict[float, tuple] = {}  # _reported, per instant of the cycle
         # the confirmed tracks at the cycle's start, for the ghost check (_look): ids, states [p, v], their
         # times, and the one vehicle that reported each in the window ("" if several did)
         self._lookable = (np.zeros(0, dtype=int), np.zeros((0, 6)), np.zeros(0), np.zeros(0, dtype=str))
@@ -181,6 +182,7 @@ class Container:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
         self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
+        self._reported_at: dict[float, tuple] = {}
         if self.params.misbehaviour:  # the tracks one vehicle alone reported in the window (ghost check)
             ids, xs, ts, sole = [], [], [], []
             for tid, tr in self.tracker.confirmed().items():
@@ -189,7 +191,12 @@ class Container:
                 xs.append(tr.x)
                 ts.append(tr.t)
                 sole.append(sources.pop() if len(sources) == 1 else "")
-            self._lookable = (np.array(ids, dtype=int), np.array(xs).reshape(-1, 6), np.array(ts), np.array(sole, dtype=str))
+            self._lookable = (
+                np.array(ids, dtype=int),
+                np.array(xs).reshape(-1, 6),
+                np.array(ts),
+                np.array(sole, dtype=str),
+            )
         batch = []
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
@@ -241,8 +248,7 @@ class Container:
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
         if self.params.misbehaviour:
-            reported = {v.vid: (v.p_map, v.cov) for v in self._vehicle_candidates(t)}
-            self.monitor.observe(m.sender, t, p_map, S_map, np.asarray(objs.cls)[keep], reported)
+            self.monitor.observe(m.sender, t, p_map, S_map, np.asarray(objs.cls)[keep], self._reported(t))
             self._look(m, t, pose, p_map)
             if m.sender in self.monitor.flagged:  # its detections would carry its error into everyone's picture
                 self._counts["detections_of_flagged"] += len(p_map)
@@ -310,6 +316,18 @@ class Container:
         tracks = [(int(ids[i]), str(sole[i])) for i in look]
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         self.monitor.look(m.sender, t, pose, pose_cov, p_map, tracks, p[look], occluders)
+
+    def _reported(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_vehicle_candidates` at t as arrays (ids, positions, covariances), cached with them."""
+        out = self._reported_at.get(t)
+        if out is None:
+            cands = self._vehicle_candidates(t)
+            out = self._reported_at[t] = (
+                np.array([v.vid for v in cands], dtype=str),
+                np.array([v.p_map for v in cands]).reshape(-1, 3),
+                np.array([v.cov for v in cands]).reshape(-1, 3, 3),
+            )
+        return out
 
     def _vehicle_candidates(self, t: float) -> list[VehicleCandidate]:
         """Every connected vehicle's reported position at t (its nearest frame, moved with its v_map),
