@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from schemas import ObjectClass
 
@@ -390,8 +391,7 @@ class Tracker:
             self._merge_streak = {}
             return []
         x, P = self.predict_states(conf, t)
-        dist = np.linalg.norm(x[:, None, :3] - x[None, :, :3], axis=2)
-        pairs = np.argwhere(np.triu(dist <= self.params.pregate_m, 1))
+        pairs = cKDTree(x[:, :3]).query_pairs(self.params.pregate_m, output_type="ndarray").reshape(-1, 2)
         d2p = d2v = np.zeros(0)
         if len(pairs):
             a_, b_ = pairs[:, 0], pairs[:, 1]
