@@ -298,6 +298,34 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_experiment_scale(args: argparse.Namespace) -> int:
+    from .experiments.scale import analyse, run_scale_experiment
+
+    if args.duration <= args.warmup:
+        raise ConfigError(f"--duration ({args.duration:g} s) must exceed --warmup ({args.warmup:g} s)")
+    try:
+        sizes = sorted({int(x) for x in args.sizes.split(",")})
+    except ValueError:
+        raise ConfigError(f"--sizes: comma-separated vehicle counts, got {args.sizes!r}") from None
+    if not sizes or sizes[0] < 1:
+        raise ConfigError(f"--sizes: vehicle counts of at least 1, got {args.sizes!r}")
+    try:
+        rows = run_scale_experiment(
+            args.out,
+            sizes=sizes,
+            seed=args.seed,
+            duration=args.duration,
+            warmup_s=args.warmup,
+            scenario=args.scenario,
+            workers=args.workers,
+            progress=not args.quiet,
+        )
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    print(jsonout.dumps({"out": str(args.out), "points": len(rows), "analysis": analyse(rows)}))
+    return 0
+
+
 def _cmd_experiment_faults(args: argparse.Namespace) -> int:
     from .experiments.faults import run_fault_experiment
 
@@ -510,6 +538,21 @@ def build_parser() -> argparse.ArgumentParser:
     en.add_argument("--scenario", default="paper-urban")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
+
+    es = exp.add_parser(
+        "scale",
+        help="N connected vehicles on one SUMO scene, distributed vs centralized over a shared 6 Mbit/s medium: "
+        "bytes, delivery, age, host CPU, accuracy",
+    )
+    es.add_argument("--out", required=True, type=output_dir, help="output directory")
+    es.add_argument("--sizes", default="2,4,8,16,32,50,100", help="connected-vehicle counts (comma-separated)")
+    es.add_argument("--scenario", default="sumo-grid", help="a SUMO scenario (its first N vehicles connected)")
+    es.add_argument("--seed", type=non_negative_int, default=0)
+    es.add_argument("--duration", type=seconds, default=10.0, help="seconds per run (cold start)")
+    es.add_argument("--warmup", type=seconds, default=3.0, help="seconds before scoring")
+    es.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    es.add_argument("--quiet", action="store_true", help="no progress bar")
+    es.set_defaults(func=_cmd_experiment_scale)
 
     ef = exp.add_parser(
         "faults", help="each misbehaving-vehicle fault against a clean run: time to flag, false flags, others' RMSE"
