@@ -546,7 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     es.add_argument("--out", required=True, type=output_dir, help="output directory")
     es.add_argument("--sizes", default="2,4,8,16,32,50,100", help="connected-vehicle counts (comma-separated)")
-    es.add_argument("--scenario", default="sumo-grid", help="a SUMO scenario (its first N vehicles connected)")
+    es.add_argument("--scenario", default="sumo-town", help="a SUMO scenario (its first N vehicles connected)")
     es.add_argument("--seed", type=non_negative_int, default=0)
     es.add_argument("--duration", type=seconds, default=10.0, help="seconds per run (cold start)")
     es.add_argument("--warmup", type=seconds, default=3.0, help="seconds before scoring")

@@ -60,7 +60,7 @@ __all__ = [
 
 SIZES = (2, 4, 8, 16, 32, 50, 100)
 MODES = ("distributed", "centralized")
-DEFAULT_SCENARIO = "sumo-grid"
+DEFAULT_SCENARIO = "sumo-town"
 NETWORK = "dsrc"
 SATURATION_DROPS = 0.01
 
@@ -103,8 +103,9 @@ def scenario_with_connected(scenario: str | ScenarioConfig, n: int) -> ScenarioC
             f"scenario {sc.name!r} lists its own actors: the scaling experiment needs a SUMO scenario "
             "(traffic: {source: sumo}) whose connected vehicles are the first N to depart"
         )
-    connected = sc.sumo.connected.model_copy(update={"first": int(n), "ids": None})
-    return sc.model_copy(update={"traffic": sc.sumo.model_copy(update={"connected": connected})})
+    traffic = sc.sumo.model_dump()
+    traffic["connected"] = {"first": int(n), "type": sc.sumo.connected.type}
+    return ScenarioConfig.model_validate({**sc.model_dump(), "traffic": traffic})
 
 
 def _near_any(p: np.ndarray, centres: np.ndarray, radius_m: float) -> np.ndarray:
