@@ -132,13 +132,14 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
     wanted = list(dict.fromkeys(latest))
     # pass 1: the cliques on the paths, by their first frontal key, and which of them have a child there
     cliques: dict[int, tuple] = {}  # id -> (keys, R, S or None, parent id or None)
-    home: dict[int, int] = {}  # latest key -> its clique's id
+    mine: dict[int, list[tuple[int, int]]] = {}  # clique id -> its latest keys (position among its frontals, key)
     inner: set[int] = set()
     for key in wanted:
         clique = bt[key]
         c = clique.conditional()
         keys = c.keys()
-        home[key] = cid = keys[0]
+        cid = keys[0]
+        mine.setdefault(cid, []).append((keys.index(key), key))
         while cid not in cliques:
             R = c.R()
             below = len(keys) > R.shape[0] // 6
@@ -154,6 +155,7 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
     joint: dict[int, tuple[dict[int, int], np.ndarray]] = {}  # inner clique id -> (offset by key, joint)
     blocks: dict[int, np.ndarray] = {}
     below, root_dims = 0, 0
+    six = np.arange(6)
 
     def visit(cid: int) -> None:
         nonlocal below, root_dims
@@ -162,7 +164,7 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
         Rinv, info = lapack.dtrtri(R, lower=0)  # unblocked for small n: no BLAS thread wake-ups
         if info != 0:
             raise np.linalg.LinAlgError(f"singular conditional at {gtsam.DefaultKeyFormatter(cid)}")
-        mine = [(i, k) for i, k in enumerate(keys[: n // 6]) if k in home and home[k] == cid]
+        latest_here = mine.get(cid, ())
         if parent is None:
             root_dims = max(root_dims, n)
             J = Rinv @ Rinv.T
@@ -171,8 +173,8 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
             if parent not in joint:
                 visit(parent)
             at, Jp = joint[parent]
-            idx = np.concatenate([np.arange(at[k], at[k] + 6) for k in keys[n // 6 :]])
-            Sss = Jp[np.ix_(idx, idx)]
+            idx = (np.array([at[k] for k in keys[n // 6 :]])[:, None] + six).ravel()
+            Sss = Jp.take(idx, axis=0).take(idx, axis=1)
             if cid in inner:
                 G = -Rinv @ S
                 Sfs = G @ Sss
@@ -182,21 +184,21 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
                 J[n:, :n] = Sfs.T
                 J[n:, n:] = Sss
             else:  # a leaf of the visited tree: only its latest keys' blocks
-                rows = np.concatenate([np.arange(6 * i, 6 * i + 6) for i, _ in mine])
+                rows = (6 * np.array([i for i, _ in latest_here])[:, None] + six).ravel()
                 Ri = Rinv[rows]
                 Gr = -Ri @ S
                 C = Ri @ Ri.T + Gr @ Sss @ Gr.T
-                for j, (_, k) in enumerate(mine):
+                for j, (_, k) in enumerate(latest_here):
                     blocks[k] = C[6 * j : 6 * j + 6, 6 * j : 6 * j + 6]
                 return
-        for i, k in mine:
+        for i, k in latest_here:
             blocks[k] = J[6 * i : 6 * i + 6, 6 * i : 6 * i + 6]
         if cid in inner:
             joint[cid] = ({k: 6 * i for i, k in enumerate(keys)}, J)
 
     try:
-        for cid in dict.fromkeys(home.values()):
-            if cid not in joint and not any(k in blocks for k in cliques[cid][0] if home.get(k) == cid):
+        for cid, here in mine.items():
+            if here[0][1] not in blocks:  # not visited on the way to another
                 visit(cid)
     except (RuntimeError, np.linalg.LinAlgError):
         return None, -1, root_dims
