@@ -259,9 +259,13 @@ class Container:
             for j, i in enumerate(idx)
         ]
         mb = self.monitor
+        cands, (_, where, _) = self._vehicle_candidates(t), self._reported(t)
+        close = np.flatnonzero(
+            np.linalg.norm(where[:, None, :] - p_map[None], axis=2).min(axis=1, initial=np.inf) <= self.params.pregate_m
+        )  # the tracker's pre-gate, for the vehicles
         vehicles = [
             v
-            for v in self._vehicle_candidates(t)
+            for v in (cands[i] for i in close)
             if v.vid != m.sender and v.vid not in mb.flagged and not mb.disputes(m.sender, v.vid)
         ]
         assignments, _ = self.tracker.associate(dets, vehicles)

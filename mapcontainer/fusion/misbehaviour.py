@@ -120,7 +120,8 @@ class MisbehaviourMonitor:
         Only vehicle-like detections count; each other vehicle's nearest one within the radius is a
         sighting of it."""
         r = self.params.misbehaviour_radius_m
-        vehicle_like = np.isin(np.asarray(cls), (0, 2))  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
+        cls = np.asarray(cls)
+        vehicle_like = (cls == 0) | (cls == 2)  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
         p = np.asarray(p_map, dtype=float).reshape(-1, 3)[vehicle_like, :2]
         S = np.asarray(cov_map, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2]
         vids, pos, cov = reported

@@ -42,7 +42,10 @@ class FusionParams(BaseModel):
         0.99, gt=0, lt=1, description="chi-square (3 DoF) probability of the Mahalanobis gate in the map frame"
     )
     pregate_m: float = Field(
-        15.0, gt=0, description="tracks farther than this (Euclidean) from every detection of a message are not gated"
+        15.0,
+        gt=0,
+        description="tracks and connected vehicles farther than this (Euclidean) from every detection of a message"
+        " are not gated",
     )
     vehicle_gate_probability: float = Field(
         0.9999, gt=0, lt=1, description="gate for matching a detection to a connected vehicle's reported position"
