@@ -207,7 +207,7 @@ def test_detector_noise_matches_its_reported_covariance():
     )
     nees = []
     for _ in range(400):
-        p, cov, cls, ids = det.observe(me, [tgt], [me, tgt])
+        p, cov, cls, ids = det.observe(me, [tgt])
         assert ids == ["1"] and cls[0] == ObjectClass.PEDESTRIAN
         e = p[0] - tgt.p_map
         nees.append(e @ np.linalg.solve(cov[0], e))
