@@ -237,6 +237,14 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_world(args: argparse.Namespace) -> int:
+    from .sim.bench import bench_world
+
+    result = bench_world(args.vehicles, args.scenario, seed=args.seed, ticks=args.ticks, cull=not args.no_cull)
+    print(jsonout.dumps(result))
+    return 0
+
+
 def _cmd_bench_security(args: argparse.Namespace) -> int:
     from .security_bench import bench_security
 
@@ -373,6 +381,17 @@ positive_days = _bounded(float, 0, strict=True, unit=" days")
 positive_float = _bounded(float, 0, strict=True)
 
 
+def fleet_sizes(text: str) -> list[int]:
+    """``2,4,8``: two or more distinct fleet sizes, each at least 1."""
+    try:
+        sizes = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of integers: {text!r}") from None
+    if len(set(sizes)) < 2 or min(sizes) < 1:
+        raise argparse.ArgumentTypeError(f"need two or more different sizes, each >= 1, got {text!r}")
+    return sizes
+
+
 def vehicle_ids(text: str) -> list[str]:
     """``cv0,cv1,...``: distinct ids (letters, digits, '_' or '-'), none of them ``ca``."""
     from schemas.topics import is_chunk
@@ -467,6 +486,17 @@ def build_parser() -> argparse.ArgumentParser:
         "machine's speed (batch_ms_p50, cycle_over_batch); 0 skips it",
     )
     bf.set_defaults(func=_cmd_bench_fusion)
+    bw = bench.add_parser(
+        "world",
+        help="the world's cost per tick (every vehicle's sensor frames, encoded) against the fleet size, "
+        "with the growth exponent and a paired yardstick of the machine's speed",
+    )
+    bw.add_argument("--vehicles", type=fleet_sizes, default=[2, 4, 8, 16, 32], help="fleet sizes (default 2,4,8,16,32)")
+    bw.add_argument("--scenario", default="paper-urban", help="scaled to each size as mapc fleet up --vehicles does")
+    bw.add_argument("--ticks", type=positive_int, default=40, help="ticks timed per size (after 5 untimed)")
+    bw.add_argument("--seed", type=non_negative_int, default=0)
+    bw.add_argument("--no-cull", action="store_true", help="every sensor looks at every actor (what culling saves)")
+    bw.set_defaults(func=_cmd_bench_world)
     bs = bench.add_parser(
         "security",
         help="signed V2X messages: microseconds per sign and verify, bytes added to a typical VehiclePrior "

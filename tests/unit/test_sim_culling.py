@@ -1,6 +1,9 @@
 """Culling in the simulator: each sensor looks only at the actors within its reach, and its frames are
 byte for byte those of a sensor that looks at every actor."""
 
+import json
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -208,3 +211,21 @@ def test_growth_exponent():
     assert growth_exponent(n, 0.5 * n**2) == pytest.approx(2.0)
     with pytest.raises(ValueError, match="two different sizes"):
         growth_exponent([4, 4], [1.0, 2.0])
+
+
+def test_bench_world_reports_every_size_and_the_growth(capsys):
+    from mapcontainer.cli import main
+
+    assert main(["bench", "world", "--vehicles", "3,1", "--ticks", "2", "--scenario", "overlap"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [r["vehicles"] for r in result["sizes"]] == [1, 3] and result["cull"] is True
+    one, three = result["sizes"]
+    assert three["actors"] == one["actors"] + 2  # the vehicles added to the scenario's obstacles
+    for row in result["sizes"]:
+        assert row["ms_per_vehicle"] == pytest.approx(row["ms_per_tick_p50"] / row["vehicles"], abs=0.01)
+        assert row["vehicle_over_yardstick"] == pytest.approx(row["tick_over_yardstick"] / row["vehicles"], abs=1e-3)
+        assert row["yardstick_ms_p50"] > 0 and row["bytes_per_vehicle_mean"] > 1000  # a lane mask in every frame
+    assert math.isfinite(result["growth_exponent"]) and math.isfinite(result["growth_exponent_paired"])
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "world", "--vehicles", "4"])
+    assert exc.value.code == 2 and "two or more different sizes" in capsys.readouterr().err
