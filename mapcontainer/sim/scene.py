@@ -1,9 +1,11 @@
-"""Every actor's box at one instant as arrays, with a range index: what the sensors cull against.
+"""Range indexes the sensors cull against: every actor's box at one instant, and a camera's map features.
 
 A World builds one :class:`ActorBoxes` per tick and every vehicle's camera and detector share it. A
 sensor asks :meth:`ActorBoxes.near` for the actors that can matter within its range (the targets it
-may see, the boxes that may hide something from it) and does its projection and occlusion work on
-those alone, so a frame's cost follows what its camera can see, not how many actors the world holds.
+may see, the boxes that may hide something from it), and a camera asks its :class:`RangeIndex` of the
+map's landmarks and lane segments for those within its range; the projection and occlusion work is done
+on those alone, so a frame's cost follows what its camera can see, not how many actors the world holds
+or how large its map is.
 """
 
 from __future__ import annotations
@@ -15,9 +17,27 @@ from scipy.spatial import cKDTree
 
 from .actors import ActorState
 
-__all__ = ["ActorBoxes"]
+__all__ = ["ActorBoxes", "RangeIndex"]
 
 _MARGIN_M = 0.01  # a candidate query reaches this much farther than asked: its callers' exact tests decide
+
+
+class RangeIndex:
+    """Points in the plane (N, 2) with a k-d tree: which lie within a radius of a point. ``index`` False
+    (or no points): no tree, every point is a candidate (the brute force)."""
+
+    def __init__(self, xy, index: bool = True):
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        self.n = len(xy)
+        self._tree = cKDTree(xy) if index and self.n else None
+
+    def near(self, xy, radius_m: float) -> np.ndarray:
+        """Indices (ascending) of the points within ``radius_m`` of ``xy`` (its first two coordinates).
+        A superset (by ``_MARGIN_M``): callers keep their exact test."""
+        if self._tree is None or not np.isfinite(radius_m):
+            return np.arange(self.n)
+        idx = self._tree.query_ball_point(np.asarray(xy, float)[:2], radius_m + _MARGIN_M)
+        return np.sort(np.asarray(idx, dtype=int))
 
 
 class ActorBoxes:
@@ -40,7 +60,7 @@ class ActorBoxes:
         self.reach_m = float(np.hypot(self.size[:, 0], self.size[:, 1]).max(initial=0.0) / 2)
         self.z_range_m = (float(self.p_map[:, 2].min(initial=0.0)), float(self.p_map[:, 2].max(initial=0.0)))
         self._index = {aid: i for i, aid in enumerate(self.ids)}
-        self._tree = cKDTree(self.p_map[:, :2]) if index and n else None
+        self._range = RangeIndex(self.p_map[:, :2], index)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -52,11 +72,7 @@ class ActorBoxes:
     def near(self, xy, radius_m: float, skip: int | None = None) -> np.ndarray:
         """Indices (ascending) of the actors whose footprint centre is within ``radius_m`` of ``xy``
         horizontally, ``skip`` left out. A superset (by ``_MARGIN_M``): callers keep their exact test."""
-        if self._tree is None or not np.isfinite(radius_m):
-            idx = np.arange(len(self))
-        else:
-            idx = np.sort(np.asarray(self._tree.query_ball_point(np.asarray(xy, float)[:2], radius_m + _MARGIN_M)))
-            idx = idx.astype(int)
+        idx = self._range.near(xy, radius_m)
         return idx if skip is None else idx[idx != skip]
 
     def corners(self, idx: np.ndarray) -> np.ndarray:

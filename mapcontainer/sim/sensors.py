@@ -20,7 +20,7 @@ from .. import geometry as geo
 from ..hdmap.model import HDMap
 from .actors import ActorState
 from .config import CalibrationErrorConfig, CameraConfig, DetectorConfig, GnssConfig, OdometryConfig
-from .scene import ActorBoxes, as_boxes
+from .scene import ActorBoxes, RangeIndex, as_boxes
 
 __all__ = ["Camera", "CameraObservation", "Gnss", "ObjectDetector", "Odometry", "occluded", "true_calibration"]
 
@@ -117,6 +117,8 @@ class Camera:
     ``reported_intr`` and ``T_body_cam_reported`` are the calibration the vehicle believes (its
     CameraInfo); ``intr`` and ``T_body_cam`` the true ones it renders with (equal without calibration
     error: ``calib_rng`` None or ``cfg.calibration_error`` off). ``clutter`` False: no false landmarks.
+    ``cull`` False: every frame projects every landmark and lane segment of the map (the brute force);
+    otherwise those within range are found by :class:`~.scene.RangeIndex`, with the same frames.
     """
 
     def __init__(
@@ -126,6 +128,7 @@ class Camera:
         rng: np.random.Generator,
         calib_rng: np.random.Generator | None = None,
         clutter: bool = True,
+        cull: bool = True,
     ):
         self.cfg = cfg
         self.rng = rng
@@ -166,6 +169,13 @@ class Camera:
         self._lane_b = np.vstack(b) if b else np.zeros((0, 3))
         self._lane_run = np.concatenate(run) if run else np.zeros(0, int)
         self._n_runs = n_runs
+        self._pt_index = RangeIndex(self._pt_xyz[:, :2], cull)
+        # A pole's samples lie over the segment from its base to its top: within its half length (in the
+        # plane; 0 when upright) of its middle.
+        lean = np.linalg.norm(self._pole_top[:, :2] - self._pole_base[:, :2], axis=1) / 2
+        self._pole_reach_m = float(lean.max(initial=0.0))
+        self._pole_index = RangeIndex((self._pole_base[:, :2] + self._pole_top[:, :2]) / 2, cull)
+        self._lane_index = RangeIndex(self._lane_a[:, :2], cull)
 
     def _p_detect(self, r: np.ndarray) -> np.ndarray:
         c = self.cfg
@@ -186,36 +196,41 @@ class Camera:
         # A box hides a point within range_m only if the box comes within range_m of the camera.
         hiders = boxes.near(cam_c, c.range_m + boxes.reach_m, skip)
 
-        # Point landmarks.
-        uv, z = geo.project_points(self.intr, T_cam_map, self._pt_xyz)
-        r = np.linalg.norm(self._pt_xyz - cam_c, axis=1)
+        # Point landmarks: those within range (horizontally first) are projected.
+        near = self._pt_index.near(cam_c, c.range_m)
+        xyz = self._pt_xyz[near]
+        uv, z = geo.project_points(self.intr, T_cam_map, xyz)
+        r = np.linalg.norm(xyz - cam_c, axis=1)
         vis = (z > c.min_depth_m) & (r <= c.range_m)
         vis[vis] &= self.intr.in_image(uv[vis])
-        vis[vis] &= ~occluded(cam_c, self._pt_xyz[vis], boxes, idx=hiders)
-        det = vis & (rng.random(len(vis)) < self._p_detect(r))
+        vis[vis] &= ~occluded(cam_c, xyz[vis], boxes, idx=hiders)
+        u = rng.random(len(self._pt_xyz))  # one draw per landmark of the map: the stream stays aligned
+        det = vis & (u[near] < self._p_detect(r))
         pts = uv[det] + rng.normal(0.0, c.pixel_sigma_px, (int(det.sum()), 2))
-        pts_cls, pts_id = self._pt_cls[det], self._pt_id[det]
+        pts_cls, pts_id = self._pt_cls[near[det]], self._pt_id[near[det]]
 
         # Poles: the visible run of samples between base and top.
         poles, pole_ids = [], []
-        if len(self._pole_id):
+        near = self._pole_index.near(cam_c, c.range_m + self._pole_reach_m)
+        if len(near):
+            base, top = self._pole_base[near], self._pole_top[near]
             f = np.linspace(0.0, 1.0, _POLE_SAMPLES)
-            samples = self._pole_base[:, None] + f[None, :, None] * (self._pole_top - self._pole_base)[:, None]
+            samples = base[:, None] + f[None, :, None] * (top - base)[:, None]
             flat = samples.reshape(-1, 3)
             suv, sz = geo.project_points(self.intr, T_cam_map, flat)
             ok = (sz > c.min_depth_m) & (np.linalg.norm(flat - cam_c, axis=1) <= c.range_m)
             ok[ok] &= self.intr.in_image(suv[ok])
             ok[ok] &= ~occluded(cam_c, flat[ok], boxes, idx=hiders)
-            ok = ok.reshape(len(self._pole_id), _POLE_SAMPLES)
-            suv = suv.reshape(len(self._pole_id), _POLE_SAMPLES, 2)
-            r_pole = np.linalg.norm(self._pole_base - cam_c, axis=1)
+            ok = ok.reshape(len(near), _POLE_SAMPLES)
+            suv = suv.reshape(len(near), _POLE_SAMPLES, 2)
+            r_pole = np.linalg.norm(base - cam_c, axis=1)
             for i in np.flatnonzero(ok.sum(axis=1) >= 2):
                 idx = np.flatnonzero(ok[i])
                 seg = np.concatenate([suv[i, idx[0]], suv[i, idx[-1]]])
                 if np.hypot(*(seg[2:] - seg[:2])) < 15.0 or rng.random() >= self._p_detect(r_pole[i]):
                     continue
                 poles.append(seg + rng.normal(0.0, c.pixel_sigma_px, 4))
-                pole_ids.append(self._pole_id[i])
+                pole_ids.append(self._pole_id[near[i]])
 
         # Clutter.
         n_cp = rng.poisson(c.clutter_points_per_frame if self.clutter else 0.0)
@@ -247,9 +262,10 @@ class Camera:
         """
         c, rng = self.cfg, self.rng
         mask = np.zeros((c.height, c.width), np.uint8)
-        near = np.linalg.norm(self._lane_a[:, :2] - cam_c[:2], axis=1) <= c.lane_range_m
-        kept_runs = rng.random(self._n_runs) >= c.lane_dropout
-        sel = near & kept_runs[self._lane_run]
+        near = self._lane_index.near(cam_c, c.lane_range_m)
+        near = near[np.linalg.norm(self._lane_a[near, :2] - cam_c[:2], axis=1) <= c.lane_range_m]
+        kept_runs = rng.random(self._n_runs) >= c.lane_dropout  # one draw per run of the map
+        sel = near[kept_runs[self._lane_run[near]]]
         a, b = self._lane_a[sel], self._lane_b[sel]
         uv_a, z_a = geo.project_points(self.intr, T_cam_map, a)
         uv_b, z_b = geo.project_points(self.intr, T_cam_map, b)

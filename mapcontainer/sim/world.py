@@ -69,7 +69,9 @@ class _VehicleSensors:
         cam_ss, gnss_ss, odo_ss, det_ss = seed.spawn(4)
         calib_rng, bias_rng, confusion_rng, clock_rng = (np.random.default_rng(ss) for ss in errors.spawn(4))
         clutter = cfg.clutter.enabled
-        self.camera = Camera(cfg.camera, world.true_map, np.random.default_rng(cam_ss), calib_rng, clutter)
+        self.camera = Camera(
+            cfg.camera, world.true_map, np.random.default_rng(cam_ss), calib_rng, clutter, cull=world.cull
+        )
         self.gnss = Gnss(cfg.gnss, np.random.default_rng(gnss_ss))
         self.odometry = OdometrySensor(cfg.odometry, np.random.default_rng(odo_ss))
         # The object detector looks through the same camera: its body-frame positions carry the extrinsic error.
@@ -116,8 +118,9 @@ class World:
 
     ``true_map``: the world the cameras see and the actors drive in. ``hdmap``: the map the vehicles and
     the host carry (the published map: ``true_map`` with the scenario's map error). ``traffic``: the
-    actors of this run. ``cull`` False: every sensor looks at every actor instead of those within its
-    reach (the same frames, at a cost growing with the square of the actors: a check of the culling).
+    actors of this run. ``cull`` False: every sensor looks at every actor and map feature instead of
+    those within its reach (the same frames, at a cost growing with the square of the actors and with
+    the map: a check of the culling).
     """
 
     def __init__(self, scenario: ScenarioConfig, seed: int, fleet: str = "sim", cull: bool = True):

@@ -73,21 +73,27 @@ def _crowd(rng, n: int, half_m: float) -> list[ActorState]:
 
 
 def test_camera_and_detector_in_a_crowd_see_what_they_see_without_culling():
-    """A dense crowd (every actor a possible occluder, most of them out of range) around landmarks: the
-    culled sensors and the brute-force ones, from the same seeds, give the same frames."""
+    """A dense crowd (every actor a possible occluder, most of them out of range) among landmarks, most of
+    them out of range too: the culled sensors and the brute-force ones, from the same seeds, give the same
+    frames."""
     rng = np.random.default_rng(4)
     hd = HDMap(
         name="crowd",
         points=[PointFeature(i, "sign", np.array([*rng.uniform(-150, 150, 2), rng.uniform(1, 6)])) for i in range(300)],
-        poles=[
-            PoleFeature(1000 + i, "lamp", np.array([x, y, 0.0]), np.array([x, y, 8.0]))
-            for i, (x, y) in enumerate(rng.uniform(-150, 150, (80, 2)))
+        poles=[  # some lean (a pole of an imported map need not stand upright)
+            PoleFeature(1000 + i, "lamp", np.array([x, y, 0.0]), np.array([x + dx, y, 8.0]))
+            for i, (x, y, dx) in enumerate(
+                zip(*rng.uniform(-150, 150, (2, 80)), rng.choice([0.0, 6.0], 80), strict=True)
+            )
         ],
     )
     crowd = _crowd(rng, 400, 150.0)
     culled, brute = ActorBoxes(crowd), ActorBoxes(crowd, index=False)
     sensors = load_sensor_config()
-    cams = [Camera(sensors.camera, hd, np.random.default_rng(9), np.random.default_rng(8)) for _ in range(2)]
+    cams = [
+        Camera(sensors.camera, hd, np.random.default_rng(9), np.random.default_rng(8), cull=cull)
+        for cull in (True, False)
+    ]
     dets = [ObjectDetector(sensors.detector, (1.5, 0.0, 1.5), np.random.default_rng(7)) for _ in range(2)]
     sure = sensors.camera.model_copy(
         update={
@@ -117,7 +123,7 @@ def test_camera_and_detector_in_a_crowd_see_what_they_see_without_culling():
     assert seen > 0 and hidden > 0
 
 
-def test_a_box_centred_beyond_range_still_hides_a_landmark_in_range():
+def test_a_box_or_pole_centred_beyond_range_still_counts_in_range():
     sure = load_sensor_config().camera.model_copy(
         update={
             "p_detect_near": 1.0,
@@ -132,6 +138,10 @@ def test_a_box_centred_beyond_range_still_hides_a_landmark_in_range():
     assert 1 in cam.observe(np.zeros(6), []).point_ids
     truck = _actor("7", x_cam + 61.0, 0.0, size=(9.0, 2.5, 3.8))  # its centre out of range, its tail in it
     assert 1 not in cam.observe(np.zeros(6), ActorBoxes([truck])).point_ids
+    # A leaning pole: base 70 m away, top 56 m, middle 63 m: its top is in range.
+    pole = PoleFeature(2, "lamp", np.array([x_cam + 70.0, 0.0, 0.0]), np.array([x_cam + 56.0, 0.0, 8.0]))
+    cam = Camera(sure, HDMap(name="one pole", poles=[pole]), np.random.default_rng(0))
+    assert 2 in cam.observe(np.zeros(6), []).pole_ids
 
 
 def test_near_is_a_superset_of_the_actors_in_range_and_corners_are_box_corners():
