@@ -240,7 +240,9 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
 def _cmd_bench_world(args: argparse.Namespace) -> int:
     from .sim.bench import bench_world
 
-    result = bench_world(args.vehicles, args.scenario, seed=args.seed, ticks=args.ticks, cull=not args.no_cull)
+    result = bench_world(
+        args.vehicles, args.scenario, seed=args.seed, ticks=args.ticks, cull=not args.no_cull, density=args.density
+    )
     print(jsonout.dumps(result))
     return 0
 
@@ -496,6 +498,13 @@ def build_parser() -> argparse.ArgumentParser:
     bw.add_argument("--ticks", type=positive_int, default=40, help="ticks timed per size (after 5 untimed)")
     bw.add_argument("--seed", type=non_negative_int, default=0)
     bw.add_argument("--no-cull", action="store_true", help="every sensor looks at every actor (what culling saves)")
+    bw.add_argument(
+        "--density",
+        choices=("fixed", "constant"),
+        default="fixed",
+        help="fixed: the scenario's scene with the vehicles added (denser as the fleet grows, as mapc fleet up "
+        "--vehicles); constant: the ring grows with the fleet, obstacles and landmarks copied along it",
+    )
     bw.set_defaults(func=_cmd_bench_world)
     bs = bench.add_parser(
         "security",

@@ -5,7 +5,9 @@ connected vehicle's camera, lane mask, GNSS, odometry and object detections) and
 every SensorFrame and of the GroundTruth. The scenario is scaled to each size by
 :func:`~.config.scale_scenario` (the vehicles beyond the scenario's own spread around its ring), so the
 scene gets denser as the fleet grows: each camera has more actors in range, reported beside the cost
-(``actors_in_range_mean``, ``detections_per_frame_mean``).
+(``actors_in_range_mean``, ``detections_per_frame_mean``). With ``density="constant"`` the ring grows
+with the fleet instead (:func:`spread_scene`), so what a camera sees stays about the same and the cost
+per vehicle shows the simulator's own growth.
 
 The yardstick of the machine's speed at the time is a fixed job of the same kind (numpy projection,
 OpenCV line drawing, zlib compression of a camera-sized mask; no code of ours) timed alternately with
@@ -24,10 +26,10 @@ import numpy as np
 
 from schemas import encode
 
-from .config import load_scenario, scale_scenario
+from .config import ScenarioConfig, load_scenario, scale_scenario
 from .world import World
 
-__all__ = ["Yardstick", "bench_world", "growth_exponent"]
+__all__ = ["Yardstick", "bench_world", "growth_exponent", "spread_scene"]
 
 
 def growth_exponent(sizes, costs) -> float:
@@ -36,6 +38,50 @@ def growth_exponent(sizes, costs) -> float:
     if len(x) < 2 or np.ptp(x) == 0:
         raise ValueError(f"need at least two different sizes to fit an exponent, got {list(sizes)}")
     return float(np.polyfit(x, y, 1)[0])
+
+
+def spread_scene(sc: ScenarioConfig, vehicles: int) -> ScenarioConfig:
+    """Scenario ``sc`` with ``vehicles`` connected vehicles on a ring stretched to keep the scene's density.
+
+    Factor f = max(1, vehicles / the scenario's connected vehicles): the ring's straights are lengthened
+    so that its length (about 2 (length + width)) is f times the scenario's; the obstacle vehicles and
+    pedestrians are copied n = round(f) times, copy j moved by j / n of the ring (copies of a pedestrian
+    on a crossing walk another crossing where there is one); lamps and signs are n times as many, the
+    crossings too up to the generator's four (one on each straight), with their pairs of traffic lights.
+    The connected vehicles then come from :func:`~.config.scale_scenario` on that ring.
+    """
+    if sc.sumo is not None:
+        raise ValueError(f"{sc.name}: a SUMO scenario has its own network, it cannot be stretched")
+    m = sc.map
+    f = max(1.0, vehicles / len(sc.connected))
+    n = max(1, round(f))
+    ring_m = f * 2 * (m.length_m + m.width_m)
+    step = ring_m / n
+    crossings = min(m.crossings * n, _MAX_CROSSINGS)
+    lights = m.traffic_lights * crossings // m.crossings if m.crossings else m.traffic_lights * n
+    data = sc.model_dump()
+    data["map"].update(
+        length_m=ring_m / 2 - m.width_m,
+        lamps=m.lamps * n,
+        traffic_lights=lights,
+        signs=m.signs * n,
+        crossings=crossings,
+    )
+    data["obstacle_vehicles"] = [
+        {**v.model_dump(), "s0_m": v.s0_m + j * step} for j in range(n) for v in sc.obstacle_vehicles
+    ]
+    peds = []
+    for j in range(n):
+        for p in sc.pedestrians:
+            if p.area < 2:  # a sidewalk: around the ring
+                peds.append({**p.model_dump(), "s0_m": p.s0_m + j * step})
+            else:  # a crossing: the same one or another
+                peds.append({**p.model_dump(), "area": 2 + (p.area - 2 + j * m.crossings) % crossings})
+    data["pedestrians"] = peds
+    return scale_scenario(ScenarioConfig.model_validate(data), vehicles)
+
+
+_MAX_CROSSINGS = 4  # the ring generator puts at most one crossing on each of its four straights
 
 
 class Yardstick:
@@ -59,8 +105,9 @@ class Yardstick:
         return len(zlib.compress(np.packbits(mask > 0).tobytes(), 6)) + int(uv.size)
 
 
-def _one_size(scenario: str, vehicles: int, seed: int, ticks: int, warmup: int, cull: bool, ref: Yardstick) -> dict:
-    sc = scale_scenario(load_scenario(scenario), vehicles)
+def _one_size(
+    sc: ScenarioConfig, vehicles: int, seed: int, ticks: int, warmup: int, cull: bool, ref: Yardstick
+) -> dict:
     with World(sc, seed=seed, fleet="bench", cull=cull) as world:
         range_m = sc.sensors.detector.range_m
         for k in range(warmup):
@@ -109,6 +156,7 @@ def bench_world(
     ticks: int = 40,
     warmup: int = 5,
     cull: bool = True,
+    density: str = "fixed",
 ) -> dict:
     """Time ``ticks`` ticks (after ``warmup`` untimed ones) of the scenario scaled to each fleet size in
     ``vehicles``; one World per size, in this process.
@@ -119,19 +167,26 @@ def bench_world(
     avoid). Over the sizes: ``growth_exponent`` b of ms_per_tick = a N^b (and ``growth_exponent_paired``,
     the same fitted to tick_over_yardstick), and ``per_vehicle_growth``, ms per vehicle at the largest
     size over that at the smallest (paired figures). ``cull`` False: every sensor looks at every actor
-    (:class:`World`'s brute force) to show what culling saves.
+    (:class:`World`'s brute force) to show what culling saves. ``density``: "fixed", the scenario's scene
+    with the vehicles added (:func:`~.config.scale_scenario`, as ``mapc fleet up --vehicles``), or
+    "constant", a ring grown with the fleet (:func:`spread_scene`).
     """
     sizes = sorted(set(vehicles))
     if len(sizes) < 2 or sizes[0] < 1 or ticks < 1 or warmup < 0:
         raise ValueError(f"need two or more fleet sizes >= 1 and ticks >= 1, got {vehicles}, ticks={ticks}")
+    if density not in ("fixed", "constant"):
+        raise ValueError(f"density must be 'fixed' or 'constant', got {density!r}")
+    sc = load_scenario(scenario)
+    scenes = {n: scale_scenario(sc, n) if density == "fixed" else spread_scene(sc, n) for n in sizes}
     ref = Yardstick()
-    rows = [_one_size(scenario, n, seed, ticks, warmup, cull, ref) for n in sizes]
+    rows = [_one_size(scenes[n], n, seed, ticks, warmup, cull, ref) for n in sizes]
     paired = [r["vehicle_over_yardstick"] for r in rows]
     return {
         "scenario": scenario,
         "seed": seed,
         "ticks": ticks,
         "cull": cull,
+        "density": density,
         "sizes": rows,
         "growth_exponent": round(growth_exponent(sizes, [r["ms_per_tick_p50"] for r in rows]), 3),
         "growth_exponent_paired": round(growth_exponent(sizes, [r["tick_over_yardstick"] for r in rows]), 3),

@@ -12,7 +12,7 @@ from mapcontainer import geometry as geo
 from mapcontainer.hdmap.model import HDMap, PointFeature, PoleFeature
 from mapcontainer.sim import World, load_scenario
 from mapcontainer.sim.actors import ActorState, LaneFollower, box_corners
-from mapcontainer.sim.bench import growth_exponent
+from mapcontainer.sim.bench import growth_exponent, spread_scene
 from mapcontainer.sim.config import load_sensor_config, scale_scenario
 from mapcontainer.sim.scene import ActorBoxes
 from mapcontainer.sim.sensors import Camera, ObjectDetector, _draw_lines, _in_view
@@ -239,3 +239,17 @@ def test_bench_world_reports_every_size_and_the_growth(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["bench", "world", "--vehicles", "4"])
     assert exc.value.code == 2 and "two or more different sizes" in capsys.readouterr().err
+
+
+def test_a_spread_scene_keeps_the_scenarios_density():
+    sc = load_scenario("paper-urban")
+    big = spread_scene(sc, 16)
+    assert len(big.connected) == 16 and len(big.obstacle_vehicles) == 4 * len(sc.obstacle_vehicles)
+    assert len(big.pedestrians) == 4 * len(sc.pedestrians)
+    ring, big_ring = (2 * (s.map.length_m + s.map.width_m) for s in (sc, big))
+    assert big_ring == pytest.approx(4 * ring)
+    small_world, big_world = World(sc, seed=0), World(big, seed=0)
+    assert big_world.true_map.feature_counts()["lamp"] == 4 * small_world.true_map.feature_counts()["lamp"]
+    n_actors = [len(w.states(0.0)) for w in (small_world, big_world)]
+    assert n_actors[1] == 4 * n_actors[0]
+    assert spread_scene(sc, 3) == scale_scenario(sc, 3)  # no larger than the scenario: its own ring
