@@ -3,7 +3,7 @@ scored by the evaluator.
 
 The fleet runs on a clock at a quarter of real time: eight vehicles localizing at 10 Hz, the world
 rendering eight cameras, the channel, the host and the evaluator are more than two cores do in real
-time (mapc fleet up --vehicles 16 needs about the same scale, see the README).
+time (about 2.5 core-seconds per scenario second; sixteen vehicles about 5, see the README).
 """
 
 from __future__ import annotations

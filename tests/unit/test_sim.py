@@ -127,8 +127,9 @@ def test_the_camera_sees_from_the_pitched_body():
     assert np.sqrt(np.mean(np.square(res_rigid))) > 2.0 * rms_body
 
 
-def _camera(**overrides) -> tuple[Camera, HDMap]:
-    cfg = load_sensor_config().camera.model_copy(
+def sure_camera_config(**overrides):
+    """The default camera, detecting every landmark it sees and no clutter."""
+    return load_sensor_config().camera.model_copy(
         update={
             "p_detect_near": 1.0,
             "p_detect_far": 1.0,
@@ -137,6 +138,10 @@ def _camera(**overrides) -> tuple[Camera, HDMap]:
             **overrides,
         }
     )
+
+
+def _camera(**overrides) -> tuple[Camera, HDMap]:
+    cfg = sure_camera_config(**overrides)
     hd = HDMap(
         name="probe",
         points=[

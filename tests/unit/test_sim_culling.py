@@ -18,18 +18,7 @@ from mapcontainer.sim.scene import ActorBoxes
 from mapcontainer.sim.sensors import Camera, ObjectDetector, _draw_lines, _in_view
 from schemas import ObjectClass, encode
 
-BODY_ON = {
-    "sensors": {
-        "body": {
-            "heave_static_m": 0.03,
-            "heave_dynamic_m": 0.01,
-            "roll_static_rad": 0.003,
-            "roll_dynamic_rad": 0.004,
-            "pitch_static_rad": 0.005,
-            "pitch_dynamic_rad": 0.005,
-        }
-    }
-}
+from .test_sim import BODY_ON, sure_camera_config
 
 
 @pytest.mark.parametrize(
@@ -95,14 +84,7 @@ def test_camera_and_detector_in_a_crowd_see_what_they_see_without_culling():
         for cull in (True, False)
     ]
     dets = [ObjectDetector(sensors.detector, (1.5, 0.0, 1.5), np.random.default_rng(7)) for _ in range(2)]
-    sure = sensors.camera.model_copy(
-        update={
-            "p_detect_near": 1.0,
-            "p_detect_far": 1.0,
-            "clutter_points_per_frame": 0.0,
-            "clutter_poles_per_frame": 0.0,
-        }
-    )
+    sure = sure_camera_config()
     in_crowd, alone = (Camera(sure, hd, np.random.default_rng(0)) for _ in range(2))
     seen = hidden = 0
     for k in range(60):
@@ -124,14 +106,7 @@ def test_camera_and_detector_in_a_crowd_see_what_they_see_without_culling():
 
 
 def test_a_box_or_pole_centred_beyond_range_still_counts_in_range():
-    sure = load_sensor_config().camera.model_copy(
-        update={
-            "p_detect_near": 1.0,
-            "p_detect_far": 1.0,
-            "clutter_points_per_frame": 0.0,
-            "clutter_poles_per_frame": 0.0,
-        }
-    )
+    sure = sure_camera_config()
     x_cam, _, z_cam = sure.mount_xyz_m
     sign = PointFeature(1, "sign", np.array([x_cam + 59.0, 0.0, z_cam]))  # 59 m ahead of the camera
     cam = Camera(sure, HDMap(name="one sign", points=[sign]), np.random.default_rng(0))
