@@ -47,6 +47,7 @@ from ..channel import load_profile
 from ..evaluation import Totals, age_of_information, score_frame
 from ..pipeline import View, run_pipeline
 from ..sim import ScenarioConfig, load_scenario
+from ..sim.config import scale_scenario
 from .runner import run_all
 
 __all__ = [
@@ -95,17 +96,16 @@ SCALE_COLUMNS = (
 
 
 def scenario_with_connected(scenario: str | ScenarioConfig, n: int) -> ScenarioConfig:
-    """A SUMO scenario with its first ``n`` departing vehicles connected (ValueError for a scenario whose
-    actors are its own lists: their count is its design, not a parameter)."""
+    """A SUMO scenario with its first ``n`` departing vehicles connected (:func:`scale_scenario`); ValueError
+    for a scenario whose actors are its own lists: one that grows by adding vehicles around its ring is not
+    one scene seen by more connected vehicles."""
     sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
     if sc.sumo is None:
         raise ValueError(
             f"scenario {sc.name!r} lists its own actors: the scaling experiment needs a SUMO scenario "
             "(traffic: {source: sumo}) whose connected vehicles are the first N to depart"
         )
-    traffic = sc.sumo.model_dump()
-    traffic["connected"] = {"first": int(n), "type": sc.sumo.connected.type}
-    return ScenarioConfig.model_validate({**sc.model_dump(), "traffic": traffic})
+    return scale_scenario(sc, n)
 
 
 def _near_any(p: np.ndarray, centres: np.ndarray, radius_m: float) -> np.ndarray:
