@@ -223,6 +223,7 @@ class Tracker:
         self.exclusion_gate = float(chi2_quantile(params.birth_exclusion_probability, 3))
         self.merge_gate = float(chi2_quantile(params.merge_probability, 3))
         self._merge_streak: dict[tuple[int, int], int] = {}
+        self._shadow_streak: dict[tuple[int, str], int] = {}  # (track id, vehicle id) -> consecutive calls
         self.tracks: dict[int, Track] = {}  # by uid
         self._uid_of: dict[int, int] = {}  # global id -> uid
         self._next_uid = 1
@@ -439,15 +440,53 @@ class Tracker:
         self._merge_streak = {p: c for p, c in streak.items() if p[0] not in gone and p[1] not in gone}
         return gone
 
-    def remove(self, track_id: int) -> bool:
-        """Delete the confirmed track ``track_id`` (others' views deny it); False if there is none."""
+    def remove(self, track_id: int, reason: str = "denied") -> bool:
+        """Delete the confirmed track ``track_id`` (others' views deny it, or it is a connected vehicle),
+        counted under ``reason``; False if there is none."""
         uid = self._uid_of.pop(track_id, None)
         if uid is None:
             return False
         del self.tracks[uid]
         self._instant = None
-        self.counts["denied"] += 1
+        self.counts[reason] += 1
         return True
+
+    def vehicle_shadows(self, t: float, vehicles: list[VehicleCandidate]) -> list[int]:
+        """Delete confirmed tracks that are a connected vehicle; returns their global ids.
+
+        A track born from detections of a connected vehicle (while its reported pose was off, during its
+        cold start or while it was flagged) sits where the vehicle is and from then on takes the
+        detections of it that should tie it to its pose: a second copy of the vehicle in the picture. A
+        track of a vehicle-like class whose position at t is within the vehicle gate of a vehicle's
+        reported position (where a detection would be taken as the vehicle: Mahalanobis,
+        chi2_3(vehicle_gate_probability), both covariances) and nearer than ``vehicle_shadow_m`` (two road
+        users' centres are never that close; the gate alone would reach far around a vehicle that reports
+        itself uncertain) for ``merge_cycles`` consecutive calls, and that the vehicle itself never
+        detected (a vehicle does not see itself), is that vehicle. ``vehicles``: the connected vehicles
+        whose reported positions are trusted.
+        """
+        conf = [tr for tr in self.tracks.values() if tr.confirmed and classes_compatible(tr.cls, ObjectClass.VEHICLE)]
+        if not conf or not vehicles:
+            self._shadow_streak = {}
+            return []
+        x, P = self.predict_states(conf, t)
+        pv = np.array([v.p_map for v in vehicles])
+        d2 = mahalanobis_matrix(x[:, :3], P[:, :3, :3], pv, np.array([v.cov for v in vehicles]))
+        d2[np.linalg.norm(x[:, None, :2] - pv[None, :, :2], axis=2) > self.params.vehicle_shadow_m] = np.inf
+        streak: dict[tuple[int, str], int] = {}
+        gone: list[int] = []
+        for i, j in np.argwhere(d2 <= self.vehicle_gate):
+            tr, vid = conf[i], vehicles[j].vid
+            if any(sender == vid for sender, _ in tr.frames):
+                continue
+            key = (tr.id, vid)
+            streak[key] = self._shadow_streak.get(key, 0) + 1
+            if streak[key] >= self.params.merge_cycles and tr.id not in gone:
+                gone.append(tr.id)
+        for tid in gone:
+            self.remove(tid, "vehicle_shadow")
+        self._shadow_streak = {k: c for k, c in streak.items() if k[0] not in gone}
+        return gone
 
     def expire(self, t: float) -> list[int]:
         """Drop tracks not detected for too long; returns the global ids of deleted confirmed tracks.

@@ -217,6 +217,8 @@ class Container:
         self._last = self.graph.solve()
         self._sync_tracker()
         gone = self.tracker.merge_duplicates(t)
+        trusted = [v for v in self._vehicle_candidates(t) if v.vid not in self.monitor.flagged]
+        gone += self.tracker.vehicle_shadows(t, trusted)
         for tid in gone:
             self.graph.remove_track(tid)
         self._counts["fused_cycles"] += 1

@@ -60,6 +60,15 @@ class FusionParams(BaseModel):
         0.99, gt=0, lt=1, description="gate on position and velocity under which two confirmed tracks are one object"
     )
     merge_cycles: int = Field(3, ge=1, description="... for this many consecutive fuse() calls")
+    vehicle_shadow_m: float = Field(
+        1.5,
+        gt=0,
+        description=(
+            "a confirmed track this near a connected vehicle's reported position (and within its gate) for"
+            " merge_cycles calls is that vehicle, born while its pose was off, and is deleted (m): half a"
+            " car's length, nearer than any two road users' centres"
+        ),
+    )
     vehicle_gate_max_dt_s: float = Field(
         0.5, gt=0, description="a connected vehicle's reported pose is used for gating up to this far from t_meas"
     )

@@ -172,3 +172,23 @@ def test_tentative_timeout_counts_measurement_time_not_latency():
     _feed(tr, [(2.0, [[9, 0, 0]])])
     assert tr.expire(2.9) == [] and len(tr.tracks) == 1
     assert tr.expire(3.05) == [] and not tr.tracks  # nothing measured after it for 1 s of fuse time
+
+
+def test_a_track_that_is_a_connected_vehicle_is_deleted():
+    """Born from cv1's detections while its reported pose was off, a track sits on cv1 once its pose is
+    good: after merge_cycles calls within its gate and 1.5 m it goes; a track 3 m away, one cv1 detected
+    itself and one beside a vehicle that reports itself uncertain stay."""
+    tr = Tracker(FusionParams(birth_hits=1, merge_cycles=3))
+    tr.associate([_det([10.0, 0, 0], 0.0, sender="cv0", index=0), _det([13.0, 0, 0], 0.0, sender="cv0", index=1)], [])
+    tr.associate([_det([30.0, 0, 0], 0.0, sender="cv1")], [])  # cv1 sees track 3: not cv1 itself
+    tr.associate([_det([50.0, 0, 0], 0.0, sender="cv0", index=2)], [])
+    for t in tr.tracks.values():
+        t.P = np.eye(6) * 0.01
+    good = VehicleCandidate("cv1", np.array([10.1, 0.1, 0.0]), np.eye(3) * 0.01)
+    at_3 = VehicleCandidate("cv1", np.array([30.2, 0.0, 0.0]), np.eye(3) * 0.01)
+    vague = VehicleCandidate("cv2", np.array([52.5, 0.0, 0.0]), np.eye(3) * 9.0)  # GNSS: 2.5 m off is in its gate
+    for k in range(2):
+        assert tr.vehicle_shadows(0.1 * k, [good, at_3, vague]) == []
+    assert tr.vehicle_shadows(0.2, [good, at_3, vague]) == [1]
+    assert sorted(tr.confirmed()) == [2, 3, 4] and tr.counts["vehicle_shadow"] == 1
+    assert tr.vehicle_shadows(0.3, []) == [] and tr._shadow_streak == {}
