@@ -211,7 +211,9 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
 
     if not args.duration > WARMUP_S:
         raise ConfigError(f"--duration must be longer than the {WARMUP_S:g} s warm-up, got {args.duration:g}")
-    print(jsonout.dumps(bench_localization(args.scenario, args.seeds, args.duration, ideal=args.ideal)))
+    print(
+        jsonout.dumps(bench_localization(args.scenario, args.seeds, args.duration, ideal=args.ideal, seed0=args.seed0))
+    )
     return 0
 
 
@@ -396,6 +398,12 @@ def build_parser() -> argparse.ArgumentParser:
     bl = bench.add_parser("localization", help="map-matching accuracy, consistency and speed")
     bl.add_argument("--scenario", default="paper-urban")
     bl.add_argument("--seeds", type=positive_int, default=3, help="independent episodes")
+    bl.add_argument(
+        "--seed0",
+        type=non_negative_int,
+        default=0,
+        help=f"first seed (default 0: development; the evaluation seeds start at {EVAL_SEED0})",
+    )
     bl.add_argument("--duration", type=seconds, default=20.0, help="seconds per episode (the first 2 are not scored)")
     bl.add_argument(
         "--ideal", action="store_true", help="every simulator error source off (exact map, calibration, clocks)"

@@ -365,9 +365,10 @@ class SumoTraffic:
         if ls.vehicle.getRouteIndex(vid) < len(route) - 2:
             return
         edges = self._destinations(ls.vehicle.getVehicleClass(vid))
+        here = ls.vehicle.getRoadID(vid)
         for _ in range(REROUTE_TRIES if edges else 0):
             edge = edges[int(self._reroute_rng.integers(len(edges)))]
-            if edge == route[-1]:
+            if edge in (route[-1], here):  # the edge it is on: it would arrive at its end
                 continue
             try:
                 ls.vehicle.changeTarget(vid, edge)
