@@ -17,7 +17,6 @@ from .settings import (
     LOCALIZED_HOLD_S,
     LOCKED_M,
     PAPER,
-    SIM_SCENARIOS,
 )
 
 __all__ = ["plots", "report", "runs_csv"]
@@ -84,7 +83,7 @@ def _method(res: dict) -> list[str]:
 
 
 def _sim_table(sim: dict) -> list[str]:
-    keys = [k for k in SIM_SCENARIOS if k in sim]
+    keys = list(sim)
     L = ["| RMSE (m), steady state | " + " | ".join(keys) + " |", "|---" * (len(keys) + 1) + "|"]
     for m, label in ESTIMATE_LABELS.items():
         L.append(f"| ego: {label} | " + " | ".join(_fmt(sim[k]["ego_rmse_m"][m]) for k in keys) + " |")
@@ -129,7 +128,7 @@ def _seconds(x: float) -> str:
 
 
 def _startup(sim: dict) -> list[str]:
-    keys = [k for k in SIM_SCENARIOS if sim.get(k, {}).get("startup")]
+    keys = [k for k in sim if sim[k].get("startup")]
     if not keys:
         return []
     L = [
@@ -257,7 +256,7 @@ def _consistency(sim: dict) -> list[str]:
         "vehicles_onboard_6dof": "vehicle poses, on-board filtered",
         "vehicles_map_matching_6dof": "vehicle poses, per-frame map matching",
     }
-    for key in SIM_SCENARIOS:
+    for key in sim:
         for name, label in labels.items():
             c = sim.get(key, {}).get("consistency", {}).get(name)
             if not c or "anees" not in c:
@@ -295,7 +294,7 @@ def _sensitivity(res: dict) -> list[str]:
 
 def _efficiency(sim: dict) -> list[str]:
     """Distributed against the centralized joint estimator on the same runs."""
-    keys = [k for k in SIM_SCENARIOS if sim.get(k, {}).get("efficiency")]
+    keys = [k for k in sim if sim[k].get("efficiency")]
     if not keys:
         return []
     effs = [sim[k]["efficiency"] for k in keys]
@@ -450,7 +449,7 @@ def plots(res: dict, results: list[dict], out: Path) -> list[Path]:
 
     written: list[Path] = []
     sim = res["simulation"]
-    keys = [k for k in SIM_SCENARIOS if k in sim]
+    keys = list(sim)
 
     def save(fig, name: str) -> None:
         fig.tight_layout()
