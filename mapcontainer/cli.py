@@ -207,12 +207,16 @@ def _cmd_schemas_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_localization(args: argparse.Namespace) -> int:
-    from .bench import WARMUP_S, bench_localization
+    from .bench import bench_localization
 
-    if not args.duration > WARMUP_S:
-        raise ConfigError(f"--duration must be longer than the {WARMUP_S:g} s warm-up, got {args.duration:g}")
+    if not args.duration > args.warmup:
+        raise ConfigError(f"--duration must be longer than the {args.warmup:g} s warm-up, got {args.duration:g}")
     print(
-        jsonout.dumps(bench_localization(args.scenario, args.seeds, args.duration, ideal=args.ideal, seed0=args.seed0))
+        jsonout.dumps(
+            bench_localization(
+                args.scenario, args.seeds, args.duration, args.warmup, ideal=args.ideal, seed0=args.seed0
+            )
+        )
     )
     return 0
 
@@ -402,6 +406,12 @@ def build_parser() -> argparse.ArgumentParser:
     bl = bench.add_parser("localization", help="map-matching accuracy, consistency and speed")
     bl.add_argument("--scenario", default="paper-urban")
     bl.add_argument("--seeds", type=positive_int, default=3, help="independent episodes")
+    bl.add_argument(
+        "--warmup",
+        type=non_negative_seconds,
+        default=2.0,
+        help="seconds at the start not scored (default 2: the cold start)",
+    )
     bl.add_argument(
         "--seed0",
         type=non_negative_int,

@@ -100,7 +100,7 @@ def test_a_geojson_map_file_is_the_world_map_and_bounds_crop_it(tmp_path, geojso
     ("preset", "network", "traffic_lights"),
     [
         ("sumo-intersection", "tools/sumolib/scenario/scenarios/RiLSA1/rilsa1.net.xml", 4),
-        ("sumo-district", "tools/game/DRT/osm.net.xml", 27),
+        ("sumo-district", "tools/game/DRT/osm.net.xml", 34),
     ],
 )
 def test_the_shipped_presets_read_their_network_from_the_installed_sumo_package(preset, network, traffic_lights):
