@@ -77,7 +77,8 @@ def test_experiment_paper_metrics_on_a_sumo_preset(tmp_path):
     assert sim["startup"]["time_to_localize_s"]["vehicles"] == 4
     assert not res["overlap"] and "claims" not in res  # the paper's test sites and claims are the paper's
     assert all("urban" not in t["target"] for t in res["targets"])
-    assert "sumo-intersection" in (out / "report.md").read_text()
+    md = (out / "report.md").read_text()
+    assert "--scenario sumo-intersection" in md and "Test-site" not in md and "not evaluated" in md
 
 
 @pytest.mark.slow
