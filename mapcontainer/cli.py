@@ -32,15 +32,18 @@ def _cmd_scenario_list(args: argparse.Namespace) -> int:
 
     rows = []
     for name, path in list_presets("scenarios").items():
-        sc = load_scenario(path)
+        row = {"name": name, "file": str(path), "builtin": path.is_relative_to(BUILTIN_DIR)}
+        try:
+            sc = load_scenario(path)
+        except ConfigError as exc:  # e.g. a SUMO preset without the roads extra: listed, with the reason
+            rows.append({**row, "vehicles": None, "obstacles": None, "description": "", "unavailable": str(exc)})
+            continue
         rows.append(
             {
-                "name": name,
+                **row,
                 "vehicles": sc.n_connected,
                 "obstacles": len(sc.obstacle_vehicles) + len(sc.pedestrians) if sc.sumo is None else None,
                 "description": sc.description,
-                "file": str(path),
-                "builtin": path.is_relative_to(BUILTIN_DIR),
             }
         )
     if args.json:
@@ -49,6 +52,9 @@ def _cmd_scenario_list(args: argparse.Namespace) -> int:
         width = max(len(r["name"]) for r in rows)
         for r in rows:
             own = "" if r["builtin"] else f"  ({r['file']})"
+            if "unavailable" in r:
+                print(f"{r['name']:<{width}}  unavailable: {r['unavailable'].splitlines()[-1].strip()}{own}")
+                continue
             others = "SUMO traffic" if r["obstacles"] is None else f"{r['obstacles']:>2} obstacles"
             counts = f"{r['vehicles']} vehicles  {others}"
             print(f"{r['name']:<{width}}  {counts}  {r['description']}{own}")
