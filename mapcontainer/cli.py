@@ -228,17 +228,32 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_fusion(args: argparse.Namespace) -> int:
-    from .fusion.bench import bench_fusion
+    from .fusion.bench import bench_fusion_sizes, parse_sizes
 
     if args.ticks <= args.window:
         raise ConfigError(f"--ticks must exceed --window ({args.window}): timings skip the first window")
-    result = bench_fusion(
-        vehicles=args.vehicles,
-        objects=args.objects,
+    try:
+        sizes = parse_sizes(args.sizes) if args.sizes else [(args.vehicles, args.objects)]
+    except ValueError as e:
+        raise ConfigError(f"--sizes: {e}") from None
+    result = bench_fusion_sizes(
+        sizes,
+        compare_exact=args.compare_exact,
         window=args.window,
         seed=args.seed,
         ticks=args.ticks,
         batch_samples=args.batch_samples,
+        density=args.density,
+    )
+    print(jsonout.dumps(result["runs"][0] if not args.sizes else result))
+    return 0
+
+
+def _cmd_bench_world(args: argparse.Namespace) -> int:
+    from .sim.bench import bench_world
+
+    result = bench_world(
+        args.vehicles, args.scenario, seed=args.seed, ticks=args.ticks, cull=not args.no_cull, density=args.density
     )
     print(jsonout.dumps(result))
     return 0
@@ -309,6 +324,34 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_experiment_scale(args: argparse.Namespace) -> int:
+    from .experiments.scale import analyse, run_scale_experiment
+
+    if args.duration <= args.warmup:
+        raise ConfigError(f"--duration ({args.duration:g} s) must exceed --warmup ({args.warmup:g} s)")
+    try:
+        sizes = sorted({int(x) for x in args.sizes.split(",")})
+    except ValueError:
+        raise ConfigError(f"--sizes: comma-separated vehicle counts, got {args.sizes!r}") from None
+    if not sizes or sizes[0] < 1:
+        raise ConfigError(f"--sizes: vehicle counts of at least 1, got {args.sizes!r}")
+    try:
+        rows = run_scale_experiment(
+            args.out,
+            sizes=sizes,
+            seed=args.seed,
+            duration=args.duration,
+            warmup_s=args.warmup,
+            scenario=args.scenario,
+            workers=args.workers,
+            progress=not args.quiet,
+        )
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    print(jsonout.dumps({"out": str(args.out), "points": len(rows), "analysis": analyse(rows)}))
+    return 0
+
+
 def _cmd_experiment_faults(args: argparse.Namespace) -> int:
     from .experiments.faults import run_fault_experiment
 
@@ -354,6 +397,17 @@ positive_int = _bounded(int, 1, strict=False)
 non_negative_int = _bounded(int, 0, strict=False)
 positive_days = _bounded(float, 0, strict=True, unit=" days")
 positive_float = _bounded(float, 0, strict=True)
+
+
+def fleet_sizes(text: str) -> list[int]:
+    """``2,4,8``: two or more distinct fleet sizes, each at least 1."""
+    try:
+        sizes = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of integers: {text!r}") from None
+    if len(set(sizes)) < 2 or min(sizes) < 1:
+        raise argparse.ArgumentTypeError(f"need two or more different sizes, each >= 1, got {text!r}")
+    return sizes
 
 
 def vehicle_ids(text: str) -> list[str]:
@@ -436,6 +490,25 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--ticks", type=positive_int, default=100, help="frames to run (timings skip the first window)")
     bf.add_argument("--seed", type=non_negative_int, default=0)
     bf.add_argument(
+        "--density",
+        choices=("dense", "city"),
+        default="dense",
+        help="dense: every vehicle sees about half of the obstacles; city: about 25 within range, the square "
+        "growing with the fleet (constant density)",
+    )
+    bf.add_argument(
+        "--sizes",
+        metavar="V/O,...",
+        help="several sizes in one process (e.g. 4/14,16/100,50/500; replaces --vehicles/--objects): one JSON "
+        "line with every run and the cost's growth between them",
+    )
+    bf.add_argument(
+        "--compare-exact",
+        action="store_true",
+        help="run each size again with the exact smoother (FusionParams(solver='exact'), the oracle) and print "
+        "its RMSE and ANEES beside",
+    )
+    bf.add_argument(
         "--batch-samples",
         type=non_negative_int,
         default=5,
@@ -443,6 +516,24 @@ def build_parser() -> argparse.ArgumentParser:
         "machine's speed (batch_ms_p50, cycle_over_batch); 0 skips it",
     )
     bf.set_defaults(func=_cmd_bench_fusion)
+    bw = bench.add_parser(
+        "world",
+        help="the world's cost per tick (every vehicle's sensor frames, encoded) against the fleet size, "
+        "with the growth exponent and a paired yardstick of the machine's speed",
+    )
+    bw.add_argument("--vehicles", type=fleet_sizes, default=[2, 4, 8, 16, 32], help="fleet sizes (default 2,4,8,16,32)")
+    bw.add_argument("--scenario", default="paper-urban", help="scaled to each size as mapc fleet up --vehicles does")
+    bw.add_argument("--ticks", type=positive_int, default=40, help="ticks timed per size (after 5 untimed)")
+    bw.add_argument("--seed", type=non_negative_int, default=0)
+    bw.add_argument("--no-cull", action="store_true", help="every sensor looks at every actor (what culling saves)")
+    bw.add_argument(
+        "--density",
+        choices=("fixed", "constant"),
+        default="fixed",
+        help="fixed: the scenario's scene with the vehicles added (denser as the fleet grows, as mapc fleet up "
+        "--vehicles); constant: the ring grows with the fleet, obstacles and landmarks copied along it",
+    )
+    bw.set_defaults(func=_cmd_bench_world)
     bs = bench.add_parser(
         "security",
         help="signed V2X messages: microseconds per sign and verify, bytes added to a typical VehiclePrior "
@@ -521,6 +612,21 @@ def build_parser() -> argparse.ArgumentParser:
     en.add_argument("--scenario", default="paper-urban")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
+
+    es = exp.add_parser(
+        "scale",
+        help="N connected vehicles on one SUMO scene, distributed vs centralized over a shared 6 Mbit/s medium: "
+        "bytes, delivery, age, host CPU, accuracy",
+    )
+    es.add_argument("--out", required=True, type=output_dir, help="output directory")
+    es.add_argument("--sizes", default="2,4,8,16,32,50,100", help="connected-vehicle counts (comma-separated)")
+    es.add_argument("--scenario", default="sumo-town", help="a SUMO scenario (its first N vehicles connected)")
+    es.add_argument("--seed", type=non_negative_int, default=0)
+    es.add_argument("--duration", type=seconds, default=10.0, help="seconds per run (cold start)")
+    es.add_argument("--warmup", type=seconds, default=3.0, help="seconds before scoring")
+    es.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    es.add_argument("--quiet", action="store_true", help="no progress bar")
+    es.set_defaults(func=_cmd_experiment_scale)
 
     ef = exp.add_parser(
         "faults", help="each misbehaving-vehicle fault against a clean run: time to flag, false flags, others' RMSE"

@@ -27,6 +27,7 @@ starts), and that noise's covariance passed as ``initial_pose``.
 
 from __future__ import annotations
 
+import time
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -135,6 +136,10 @@ class PipelineResult:
     tx_message_bytes: dict[str, int] = field(default_factory=lambda: defaultdict(int))  # the messages, unsigned
     security_rejected: dict[str, int] = field(default_factory=lambda: defaultdict(int))  # by the hosts' verifiers
     gate_stats: dict[str, dict[str, int]] = field(default_factory=dict)  # view -> frames complete / timed out
+    # view -> CPU seconds (this thread's) of its host: verify, ingest (decode, buffer; centralized: localize
+    # every vehicle) and fuse, the host's whole work; and each fuse call's CPU milliseconds
+    host_cpu_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    fuse_cpu_ms: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
 
 
 def run_pipeline(
@@ -203,13 +208,16 @@ def run_pipeline(
 
     def ingest(name: str, src: str, payload: bytes, t_arrive: float) -> None:
         """Into view ``name``'s host; an accepted message tells the view's gate (as the live host's loop)."""
+        c0 = time.thread_time()
         if signing:
             out = verifiers[name].verify(payload, SIGNING_EPOCH_S + t_arrive, expected_sender=src)
             if isinstance(out, Rejection):
                 result.security_rejected[out.reason] += 1
+                result.host_cpu_s[name] += time.thread_time() - c0
                 return
             payload = out.payload
         r = hosts[name].ingest(payload, t_arrive)
+        result.host_cpu_s[name] += time.thread_time() - c0
         if bool(getattr(r, "accepted", r)):
             head = peek(payload)
             gates[name].arrived(head["sender"], float(head["t_meas"]), t_arrive)
@@ -219,7 +227,11 @@ def run_pipeline(
         if t_frame is None:
             return False
         rec = records[int(round(t_frame / world.dt))]  # the frame's time is the ego's clock: ms off t_k
+        c0 = time.thread_time()
         rec.fused[name] = hosts[name].fuse(t_frame, gates[name].tolerance_s)
+        cpu = time.thread_time() - c0
+        result.host_cpu_s[name] += cpu
+        result.fuse_cpu_ms[name].append(1e3 * cpu)
         rec.released[name] = now
         return True
 

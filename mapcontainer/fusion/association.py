@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from schemas import ObjectClass
 
@@ -186,12 +187,28 @@ class _Instant:
     x: np.ndarray
     P: np.ndarray
     ahead: np.ndarray
+    _tree: cKDTree | None = None  # over the rows' positions when it was built (lazily, by near())
+    _n_tree: int = 0  # rows in the tree (later rows: tracks born at this instant)
+    moved: float = 0.0  # how far any row's position moved since the tree was built (Kalman updates)
 
     def add(self, tr: Track) -> None:
         self.tracks.append(tr)
         self.x = np.concatenate([self.x, tr.x[None]])
         self.P = np.concatenate([self.P, tr.P[None]])
         self.ahead = np.append(self.ahead, False)
+
+    def near(self, m: np.ndarray, radius: float) -> np.ndarray:
+        """Rows whose position is within ``radius`` (Euclidean, 3-D) of any of the points m (N, 3), in
+        order: candidates from a k-d tree (its radius widened by how far rows moved since it was built),
+        then checked exactly."""
+        if self._tree is None:
+            self._tree, self._n_tree, self.moved = cKDTree(self.x[:, :3]), len(self.x), 0.0
+        hits = self._tree.query_ball_point(m, radius + self.moved)
+        cand = np.unique(np.concatenate([np.concatenate(hits), np.arange(self._n_tree, len(self.x))]).astype(int))
+        if not len(cand):
+            return cand
+        gap = np.linalg.norm(self.x[cand, None, :3] - m[None], axis=2).min(axis=1)
+        return cand[gap <= radius]
 
 
 class Tracker:
@@ -261,10 +278,7 @@ class Tracker:
         inst = self._at(t)
         m = np.array([d.p_map for d in dets])
         # only tracks that could be near a detection (a cheap Euclidean pre-gate)
-        near = np.zeros(0, dtype=int)
-        if len(inst.tracks):
-            gap = np.linalg.norm(inst.x[:, None, :3] - m[None], axis=2).min(axis=1)
-            near = np.flatnonzero(gap <= self.params.pregate_m)
+        near = inst.near(m, self.params.pregate_m) if len(inst.tracks) else np.zeros(0, dtype=int)
         live = [inst.tracks[k] for k in near]
         nv, nt = len(vehicles), len(live)
         # one Mahalanobis matrix against the vehicles' reported positions and the tracks' predictions
@@ -361,10 +375,12 @@ class Tracker:
         m = np.array([det.p_map for _, det in pairs])
         S = P[:, :3, :3] + np.array([det.cov_map for _, det in pairs])
         K = np.linalg.solve(S, P[:, :3, :]).transpose(0, 2, 1)  # P H^T S^-1 (S symmetric)
-        x = x + np.einsum("nij,nj->ni", K, m - x[:, :3])
+        step = np.einsum("nij,nj->ni", K, m - x[:, :3])
+        x = x + step
         P = P - K @ P[:, :3, :]
         P = 0.5 * (P + P.transpose(0, 2, 1))
         inst.x[rows], inst.P[rows] = x, P
+        inst.moved += float(np.max(np.linalg.norm(step[:, :3], axis=1)))
         for n, k in enumerate(rows):
             tr = inst.tracks[k]
             tr.x, tr.P, tr.t = x[n], P[n], inst.t
@@ -390,8 +406,7 @@ class Tracker:
             self._merge_streak = {}
             return []
         x, P = self.predict_states(conf, t)
-        dist = np.linalg.norm(x[:, None, :3] - x[None, :, :3], axis=2)
-        pairs = np.argwhere(np.triu(dist <= self.params.pregate_m, 1))
+        pairs = cKDTree(x[:, :3]).query_pairs(self.params.pregate_m, output_type="ndarray").reshape(-1, 2)
         d2p = d2v = np.zeros(0)
         if len(pairs):
             a_, b_ = pairs[:, 0], pairs[:, 1]

@@ -25,7 +25,9 @@ from .params import FusionParams
 from .poses import sym_from_upper, upper_from_sym
 from .simfeed import pose_covariance
 
-__all__ = ["batch_solve_ms", "bench_fusion"]
+__all__ = ["CITY_OBJECTS_IN_RANGE", "batch_solve_ms", "bench_fusion", "bench_fusion_sizes", "parse_sizes"]
+
+CITY_OBJECTS_IN_RANGE = 25  # obstacles a vehicle sees within range at "city" density
 
 
 def _detector_cov(p_body: np.ndarray) -> np.ndarray:
@@ -58,11 +60,14 @@ def bench_fusion(
     pose_persistent: float = 0.5,
     pose_tau_s: float = 1.0,
     batch_samples: int = 0,
+    density: str = "dense",
 ) -> dict:
     """Run the container on a synthetic scene; returns timing and accuracy figures.
 
-    ``window`` is the number of frames in the sliding window (window_s = window / rate_hz). The scene
-    is a square sized so that a vehicle sees about half of the obstacles (at most all of them).
+    ``window`` is the number of frames in the sliding window (window_s = window / rate_hz). ``density``
+    sizes the square: ``"dense"``, so that a vehicle sees about half of the obstacles (at most all of
+    them); ``"city"``, so that a vehicle sees about :data:`CITY_OBJECTS_IN_RANGE` obstacles within
+    ``range_m`` whatever the fleet's size (constant density: the square grows with the fleet).
     Timings (ms, wall clock) skip the first ``window`` ticks, while the window fills. ``blas_threads``
     limits OpenBLAS for the whole process first (see :mod:`.blas`; None leaves it alone).
 
@@ -87,7 +92,12 @@ def bench_fusion(
         limit_blas_threads(blas_threads)
     dt = 1.0 / rate_hz
     rng = np.random.default_rng(seed)
-    side = max(60.0, range_m * np.sqrt((vehicles + objects) / 9.0))
+    if density == "dense":
+        side = max(60.0, range_m * np.sqrt((vehicles + objects) / 9.0))
+    elif density == "city":
+        side = max(2.0 * range_m, float(np.sqrt(objects * np.pi * range_m**2 / CITY_OBJECTS_IN_RANGE)))
+    else:
+        raise ValueError(f"bad density {density!r}: 'dense' or 'city'")
     veh_p0 = np.column_stack([rng.uniform(-side / 2, side / 2, (vehicles, 2)), np.zeros(vehicles)])
     heading = rng.uniform(-np.pi, np.pi, vehicles)
     speed = rng.uniform(5.0, 12.0, vehicles)
@@ -112,7 +122,7 @@ def bench_fusion(
     vids = [f"cv{i}" for i in range(vehicles)]
     box = Container(p, "bench", "cv0", known_senders=set(vids))
 
-    cycle_ms, cpu_ms, iters, factors, variables = [], [], [], [], []
+    cycle_ms, cpu_ms, iters, factors, variables, n_dets = [], [], [], [], [], []
     errors, nees, veh_err = [], [], []
     last_match: dict[int, int] = {}
     switches = 0
@@ -123,6 +133,7 @@ def bench_fusion(
         vp = veh_p0 + veh_v * t
         op = obj_p0 + obj_v * t
         payloads = []
+        detections = 0
         if pose_persistent > 0 and k:
             pose_bias = rho * pose_bias + np.sqrt(1 - rho**2) * rng.normal(size=pose_bias.shape)
         for i, vid in enumerate(vids):
@@ -134,6 +145,7 @@ def bench_fusion(
             pb = geo.transform_points(T_body_map, targets)
             seen = (np.linalg.norm(pb[:, :2], axis=1) <= range_m) & (np.linalg.norm(pb[:, :2], axis=1) > 1.0)
             pb, cls = pb[seen], cls[seen]
+            detections += len(pb)
             cov = _detector_cov(pb)
             noisy = pb + np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=pb.shape))
             cov_up = upper_from_sym(cov)  # on the wire: float16 standard deviations, int8 correlations
@@ -165,6 +177,7 @@ def bench_fusion(
         st = box.stats()
         cycle_ms.append(elapsed)
         cpu_ms.append(cpu)
+        n_dets.append(detections)
         iters.append(st["last_iterations"])
         factors.append(st["factors"])
         variables.append(st["variables"])
@@ -193,9 +206,13 @@ def bench_fusion(
         "vehicles": vehicles,
         "objects": objects,
         "window": window,
+        "density": density,
+        "solver": p.solver,
         "seed": seed,
         "ticks": ticks,
         "pose_persistent": pose_persistent,
+        "detections_per_tick": float(np.mean(n_dets)),
+        "us_per_detection": float(np.percentile(cycle_ms, 50)) * 1e3 / max(float(np.mean(n_dets)), 1.0),
         "cycle_ms_p50": float(np.percentile(cycle_ms, 50)),
         "cycle_ms_p99": float(np.percentile(cycle_ms, 99)),
         "cycle_ms_max": float(np.max(cycle_ms)),
@@ -213,6 +230,59 @@ def bench_fusion(
         "tracks_confirmed": st["tracks_confirmed"],
         "association": st["association"],
     }
+
+
+_EXACT_KEYS = ("object_rmse_m", "object_anees", "vehicle_rmse_m", "object_matches", "cycle_ms_p50")
+
+
+def bench_fusion_sizes(sizes: list[tuple[int, int]], compare_exact: bool = False, **kwargs) -> dict:
+    """:func:`bench_fusion` at several (vehicles, objects) sizes in one process (``kwargs`` for every
+    size), and how the cost grows between them: ``growth`` holds the ratio of us_per_detection at each
+    size to the first's, and the exponents of log-log least-squares fits of cycle_ms_p50 against
+    detections_per_tick and against vehicles (1: linear). ``compare_exact``: every size is run again on
+    the same scene and seed with FusionParams(solver="exact"), the oracle (its figures under ``exact``,
+    and ``rmse_over_exact`` / ``anees_over_exact``). The exact solve's root grows cubically: at 50 / 500
+    one run takes minutes."""
+    if not sizes:
+        raise ValueError("no sizes")
+    params = kwargs.pop("params", None)
+    window = kwargs.get("window", 10)
+    rate = kwargs.get("rate_hz", 10.0)
+    runs = []
+    for vehicles, objects in sizes:
+        r = bench_fusion(vehicles, objects, params=params, **kwargs)
+        if compare_exact:
+            base = params or FusionParams(window_s=window / rate)
+            ex = bench_fusion(vehicles, objects, params=base.model_copy(update={"solver": "exact"}), **kwargs)
+            r["exact"] = {k: ex[k] for k in _EXACT_KEYS}
+            r["rmse_over_exact"] = r["object_rmse_m"] / ex["object_rmse_m"]
+            r["anees_over_exact"] = r["object_anees"] / ex["object_anees"]
+        runs.append(r)
+    first = runs[0]
+    growth: dict = {
+        "us_per_detection_over_first": [r["us_per_detection"] / first["us_per_detection"] for r in runs],
+    }
+    if len(runs) >= 2:
+        cyc = np.log([r["cycle_ms_p50"] for r in runs])
+        growth["exponent_vs_detections"] = float(
+            np.polyfit(np.log([r["detections_per_tick"] for r in runs]), cyc, 1)[0]
+        )
+        growth["exponent_vs_vehicles"] = float(np.polyfit(np.log([r["vehicles"] for r in runs]), cyc, 1)[0])
+    return {"sizes": [f"{v}/{o}" for v, o in sizes], "runs": runs, "growth": growth}
+
+
+def parse_sizes(text: str) -> list[tuple[int, int]]:
+    """``"4/14,16/100"`` -> [(4, 14), (16, 100)] (vehicles / objects); ValueError with the offending item."""
+    out = []
+    for item in text.split(","):
+        try:
+            v, o = (int(x) for x in item.strip().split("/"))
+        except ValueError:
+            raise ValueError(f"bad size {item.strip()!r}: VEHICLES/OBJECTS, e.g. 16/100") from None
+        if v < 1 or o < 0:
+            raise ValueError(f"bad size {item.strip()!r}: at least 1 vehicle and 0 objects")
+        out.append((v, o))
+    return out
 
 
 def batch_solve_ms(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[int]) -> float:

@@ -112,7 +112,10 @@ class Container:
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
         self._candidates: dict[float, list[VehicleCandidate]] = {}
-        self._sole_source: dict[int, str] = {}  # track -> the one vehicle that reported it in the window
+        self._reported_at: dict[float, tuple] = {}  # _reported, per instant of the cycle
+        # the confirmed tracks at the cycle's start, for the ghost check (_look): ids, states [p, v], their
+        # times, and the one vehicle that reported each in the window ("" if several did)
+        self._lookable = (np.zeros(0, dtype=int), np.zeros((0, 6)), np.zeros(0), np.zeros(0, dtype=str))
         self.monitor = MisbehaviourMonitor(params)
 
     # ------------------------------------------------------------------ input
@@ -179,12 +182,21 @@ class Container:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
         self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
+        self._reported_at: dict[float, tuple] = {}
         if self.params.misbehaviour:  # the tracks one vehicle alone reported in the window (ghost check)
-            self._sole_source = {}
+            ids, xs, ts, sole = [], [], [], []
             for tid, tr in self.tracker.confirmed().items():
-                sources = {s for (s, _), ts in tr.frames.items() if ts >= t - self.params.misbehaviour_window_s}
-                if len(sources) == 1:
-                    self._sole_source[tid] = sources.pop()
+                sources = {s for (s, _), ts_ in tr.frames.items() if ts_ >= t - self.params.misbehaviour_window_s}
+                ids.append(tid)
+                xs.append(tr.x)
+                ts.append(tr.t)
+                sole.append(sources.pop() if len(sources) == 1 else "")
+            self._lookable = (
+                np.array(ids, dtype=int),
+                np.array(xs).reshape(-1, 6),
+                np.array(ts),
+                np.array(sole, dtype=str),
+            )
         batch = []
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
@@ -236,8 +248,7 @@ class Container:
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
         if self.params.misbehaviour:
-            reported = {v.vid: (v.p_map, v.cov) for v in self._vehicle_candidates(t)}
-            self.monitor.observe(m.sender, t, p_map, S_map, np.asarray(objs.cls)[keep], reported)
+            self.monitor.observe(m.sender, t, p_map, S_map, np.asarray(objs.cls)[keep], self._reported(t))
             self._look(m, t, pose, p_map)
             if m.sender in self.monitor.flagged:  # its detections would carry its error into everyone's picture
                 self._counts["detections_of_flagged"] += len(p_map)
@@ -248,9 +259,13 @@ class Container:
             for j, i in enumerate(idx)
         ]
         mb = self.monitor
+        cands, (_, where, _) = self._vehicle_candidates(t), self._reported(t)
+        close = np.flatnonzero(
+            np.linalg.norm(where[:, None, :] - p_map[None], axis=2).min(axis=1, initial=np.inf) <= self.params.pregate_m
+        )  # the tracker's pre-gate, for the vehicles
         vehicles = [
             v
-            for v in self._vehicle_candidates(t)
+            for v in (cands[i] for i in close)
             if v.vid != m.sender and v.vid not in mb.flagged and not mb.disputes(m.sender, v.vid)
         ]
         assignments, _ = self.tracker.associate(dets, vehicles)
@@ -291,18 +306,32 @@ class Container:
         return batch
 
     def _look(self, m: VehiclePrior, t: float, pose: np.ndarray, p_map: np.ndarray) -> None:
-        """What ``m``'s sender should see of the tracks that one other vehicle alone reports (ghost check)."""
-        tracks, pos, occluders = [], [], [v.p_map[:2] for v in self._vehicle_candidates(t) if v.vid != m.sender]
-        for tid, tr in self.tracker.confirmed().items():
-            p = tr.x[:2] + tr.x[3:5] * (t - tr.t)
-            occluders.append(p)
-            source = self._sole_source.get(tid)
-            if source is not None and source != m.sender:
-                tracks.append((tid, source))
-                pos.append(p)
-        if tracks:
-            pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
-            self.monitor.look(m.sender, t, pose, pose_cov, p_map, tracks, np.array(pos), np.array(occluders))
+        """What ``m``'s sender should see of the tracks that one other vehicle alone reports (ghost check),
+        the tracks as they were at the cycle's start, moved to ``t``. Only those within the ghost range
+        (plus the occlusion corridor's width) can be looked at or hide one."""
+        ids, x, ts, sole = self._lookable
+        p = x[:, :2] + x[:, 3:5] * (t - ts)[:, None]
+        near = np.hypot(p[:, 0] - pose[0], p[:, 1] - pose[1]) <= self.params.ghost_range_m + 2.0
+        look = np.flatnonzero(near & (sole != "") & (sole != m.sender))
+        if not len(look):
+            return
+        vehicles = [v.p_map[:2] for v in self._vehicle_candidates(t) if v.vid != m.sender]
+        occluders = np.vstack([np.array(vehicles).reshape(-1, 2), p[near]])
+        tracks = [(int(ids[i]), str(sole[i])) for i in look]
+        pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
+        self.monitor.look(m.sender, t, pose, pose_cov, p_map, tracks, p[look], occluders)
+
+    def _reported(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_vehicle_candidates` at t as arrays (ids, positions, covariances), cached with them."""
+        out = self._reported_at.get(t)
+        if out is None:
+            cands = self._vehicle_candidates(t)
+            out = self._reported_at[t] = (
+                np.array([v.vid for v in cands], dtype=str),
+                np.array([v.p_map for v in cands]).reshape(-1, 3),
+                np.array([v.cov for v in cands]).reshape(-1, 3, 3),
+            )
+        return out
 
     def _vehicle_candidates(self, t: float) -> list[VehicleCandidate]:
         """Every connected vehicle's reported position at t (its nearest frame, moved with its v_map),

@@ -112,26 +112,30 @@ class MisbehaviourMonitor:
         p_map: np.ndarray,
         cov_map: np.ndarray,
         cls: np.ndarray,
-        reported: dict[str, tuple[np.ndarray, np.ndarray]],
+        reported: tuple[np.ndarray, np.ndarray, np.ndarray],
     ):
         """One message's detections (map positions ``p_map`` (N, 3) with covariances ``cov_map`` (N, 3, 3),
-        classes ``cls``) by ``observer`` at ``t``, against the other vehicles' reported positions and their
-        covariances at ``t`` (vid -> ((3,), (3, 3))). Only vehicle-like detections count."""
+        classes ``cls``) by ``observer`` at ``t``, against the connected vehicles' reported positions and
+        their covariances at ``t``: ``reported`` = (ids (V,), positions (V, 3), covariances (V, 3, 3)).
+        Only vehicle-like detections count; each other vehicle's nearest one within the radius is a
+        sighting of it."""
         r = self.params.misbehaviour_radius_m
-        vehicle_like = np.isin(np.asarray(cls), (0, 2))  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
+        cls = np.asarray(cls)
+        vehicle_like = (cls == 0) | (cls == 2)  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
         p = np.asarray(p_map, dtype=float).reshape(-1, 3)[vehicle_like, :2]
         S = np.asarray(cov_map, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2]
-        if not len(p):
+        vids, pos, cov = reported
+        others = np.asarray(vids) != observer
+        if not len(p) or not others.any():
             return
-        for vid, (pos, cov) in reported.items():
-            if vid == observer:
-                continue
-            d = p - np.asarray(pos, dtype=float)[:2]
-            dist = np.hypot(d[:, 0], d[:, 1])
-            k = int(np.argmin(dist))
-            if dist[k] <= r:
-                C = S[k] + np.asarray(cov, dtype=float)[:2, :2]
-                self._sightings.setdefault(vid, deque()).append(Sighting(float(t), observer, d[k], C))
+        vids, pos, cov = np.asarray(vids)[others], np.asarray(pos, float)[others], np.asarray(cov, float)[others]
+        d = p[None, :, :] - pos[:, None, :2]  # (V, N, 2)
+        dist = np.hypot(d[..., 0], d[..., 1])
+        k = np.argmin(dist, axis=1)
+        rows = np.arange(len(vids))
+        for i in np.flatnonzero(dist[rows, k] <= r):
+            C = S[k[i]] + cov[i, :2, :2]
+            self._sightings.setdefault(str(vids[i]), deque()).append(Sighting(float(t), observer, d[i, k[i]], C))
 
     def message(self, sender: str, t_meas: float, t_recv: float, refused: str | None) -> None:
         """One message of ``sender`` received at ``t_recv``, taken (``refused`` None) or refused with a reason."""

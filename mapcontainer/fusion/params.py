@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from ..metrics import chi2_quantile
@@ -40,7 +42,10 @@ class FusionParams(BaseModel):
         0.99, gt=0, lt=1, description="chi-square (3 DoF) probability of the Mahalanobis gate in the map frame"
     )
     pregate_m: float = Field(
-        15.0, gt=0, description="tracks farther than this (Euclidean) from every detection of a message are not gated"
+        15.0,
+        gt=0,
+        description="tracks and connected vehicles farther than this (Euclidean) from every detection of a message"
+        " are not gated",
     )
     vehicle_gate_probability: float = Field(
         0.9999, gt=0, lt=1, description="gate for matching a detection to a connected vehicle's reported position"
@@ -190,6 +195,16 @@ class FusionParams(BaseModel):
     )
 
     # ---- solver
+    solver: Literal["sparse", "exact"] = Field(
+        "sparse",
+        description=(
+            "elimination order of each solve. 'sparse': COLAMD over the whole window, so a track's states are"
+            " eliminated next to its observers' frames and the cost follows the scene's local structure;"
+            " 'exact': the latest state of every vehicle and track ordered last, one dense root clique over"
+            " all of them (cubic in their number): the test oracle. Both solve the same system exactly"
+            " (mapcontainer/fusion/solver.py)"
+        ),
+    )
     max_iterations: int = Field(3, ge=1, description="Levenberg-Marquardt iterations per fuse() at most")
     relative_error_tol: float = Field(1e-3, gt=0, description="stop when the cost decreases by less than this fraction")
     model_tol: float = Field(

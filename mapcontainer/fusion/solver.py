@@ -4,11 +4,18 @@ marginal covariances from its Bayes tree.
 Levenberg-Marquardt warm-started from the previous solution, starting with no damping (the Gauss-Newton
 step, which a warm start almost always accepts) and raising lambda when the cost does not decrease; it
 stops when the cost barely moves or the step did what the linear model predicted (one iteration per
-cycle in practice). Every iteration eliminates once (multifrontal, COLAMD with the latest state of every
-vehicle and track constrained last), so the latest states sit in the root cliques of the Bayes tree and
-their covariances come from that elimination: (R^T R)^-1 of the root, and for the few latest keys in
-cliques below it the standard top-down recursion (:func:`latest_covariances`) — no extra elimination;
-gtsam.Marginals' shortcuts cost ~100 ms per such key here.
+cycle in practice). Every iteration eliminates once (multifrontal), and the latest states' covariances
+come from the last undamped elimination by the top-down recursion over the Bayes tree's cliques
+(:func:`latest_covariances`): no extra elimination; gtsam.Marginals' shortcuts cost ~100 ms per key here.
+
+The elimination order (FusionParams.solver): ``"sparse"`` is COLAMD over the whole window. A track is
+conditionally independent of the other tracks given its observers' frames, and vehicles couple only
+through the objects they share, so its cliques stay as large as a neighbourhood of the scene, and
+elimination and recursion grow with the detections, not with the fleet. ``"exact"`` orders the latest
+state of every vehicle and track last, so their covariances come from one dense root clique of
+6 x (vehicles + tracks) dimensions, factored and inverted every cycle: cubic in the scene's size. Both
+solve the same linear systems exactly (the covariances agree to ~1e-12); "exact" is the simple,
+independent form kept as the test oracle.
 """
 
 from __future__ import annotations
@@ -53,9 +60,12 @@ class Solution:
 
 def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[int], params: FusionParams) -> Solution:
     """Levenberg-Marquardt on ``graph`` from ``values`` (module docstring), then the marginal covariances
-    of the ``latest`` keys (ordered last, so they sit in the root cliques). ``params``: lambda_initial,
-    max_iterations, model_tol, relative_error_tol. ``graph`` must have a factor."""
-    ordering = gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, latest)
+    of the ``latest`` keys. ``params``: solver (the elimination order), lambda_initial, max_iterations,
+    model_tol, relative_error_tol. ``graph`` must have a factor."""
+    if params.solver == "exact":
+        ordering = gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, latest)
+    else:
+        ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
     err = None
     lam = params.lambda_initial
     bt = None
@@ -108,72 +118,88 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[
 def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[dict[int, np.ndarray] | None, int, int]:
     """Marginal covariances of the keys ``latest`` (6-D variables), top-down on the Bayes tree from the roots.
 
-    Each clique on a path from a latest key to its root gets a factor L of its frontal variables,
-    as blocks over independent unit noise sources (one per clique), so that
-    Cov(x_i, x_j) = sum_s L_i[s] L_j[s]^T: a root R x = d + e has L = R^-1; a clique
-    R x_F + S x_S = d + e below has L_F = -R^-1 S L_S plus R^-1 for its own source. With the latest
-    states ordered last the roots hold nearly all of them and the paths are short.
+    A clique's conditional R x_F + S x_S = d + e (unit noise) gives the joint covariance of its frontal
+    and separator variables from the separator's, which its parent's joint holds: with G = -R^-1 S,
+    Cov(x_F, x_S) = G Cov(x_S) and Cov(x_F) = R^-1 R^-T + G Cov(x_S) G^T; a root has Cov(x_F) = R^-1 R^-T.
+    Only the cliques on the paths from the latest keys to their roots are visited; a clique's whole
+    joint is formed only when a visited clique hangs below it, otherwise just its latest keys' blocks.
+    The cost follows the cliques' sizes, (frontal + separator)^3 each, not the number of keys.
 
     Returns (covariances by key, the number of cliques below a root that were visited, the size of the
     largest root clique visited); a degenerate system (a singular conditional) is not an error: its
     covariances are None, the count -1 and the size that of the roots visited before it.
     """
-    wanted = set(latest)
-    L: dict[int, dict[int, np.ndarray]] = {}  # clique id -> {source clique id: rows of its frontals}
-    where: dict[int, tuple[int, int, int]] = {}  # key -> (clique id, row offset, dim)
-    root_dims = 0
-    below = 0
-
-    def visit(clique) -> None:
-        nonlocal below, root_dims
+    wanted = list(dict.fromkeys(latest))
+    # pass 1: the cliques on the paths, by their first frontal key, and which of them have a child there
+    cliques: dict[int, tuple] = {}  # id -> (keys, R, S or None, parent id or None)
+    mine: dict[int, list[tuple[int, int]]] = {}  # clique id -> its latest keys (position among its frontals, key)
+    inner: set[int] = set()
+    for key in wanted:
+        clique = bt[key]
         c = clique.conditional()
-        keys = [int(k) for k in c.keys()]
+        keys = c.keys()
         cid = keys[0]
-        if cid in L:
-            return
-        R = c.R()
-        nf, rows = 0, 0
-        while rows < R.shape[0]:
-            where[keys[nf]] = (cid, rows, 6)
-            rows += 6
-            nf += 1
+        mine.setdefault(cid, []).append((keys.index(key), key))
+        while cid not in cliques:
+            R = c.R()
+            below = len(keys) > R.shape[0] // 6
+            parent = clique.parent() if below else None
+            pc = parent.conditional() if below else None
+            pkeys = pc.keys() if below else None
+            cliques[cid] = (keys, R, c.S() if below else None, pkeys[0] if below else None)
+            if not below:
+                break
+            inner.add(pkeys[0])
+            clique, c, keys, cid = parent, pc, pkeys, pkeys[0]
+    # pass 2: top down
+    joint: dict[int, tuple[dict[int, int], np.ndarray]] = {}  # inner clique id -> (offset by key, joint)
+    blocks: dict[int, np.ndarray] = {}
+    below, root_dims = 0, 0
+    six = np.arange(6)
+
+    def visit(cid: int) -> None:
+        nonlocal below, root_dims
+        keys, R, S, parent = cliques[cid]
+        n = R.shape[0]
         Rinv, info = lapack.dtrtri(R, lower=0)  # unblocked for small n: no BLAS thread wake-ups
         if info != 0:
             raise np.linalg.LinAlgError(f"singular conditional at {gtsam.DefaultKeyFormatter(cid)}")
-        blocks = {cid: Rinv}
-        parents = keys[nf:]
-        if parents:
-            below += 1
-            visit(clique.parent())  # visits every ancestor: the separator's keys are frontal there
-            G = -Rinv @ c.S()
-            sep = [where[k] for k in parents]
-            sources = set().union(*(L[w[0]].keys() for w in sep))
-            for src in sources:
-                cols = next(L[w[0]][src].shape[1] for w in sep if src in L[w[0]])
-                LS = np.zeros((G.shape[1], cols))
-                off = 0
-                for owner, r0, d in sep:
-                    if src in L[owner]:
-                        LS[off : off + d] = L[owner][src][r0 : r0 + d]
-                    off += d
-                blocks[src] = G @ LS if src not in blocks else blocks[src] + G @ LS
+        latest_here = mine.get(cid, ())
+        if parent is None:
+            root_dims = max(root_dims, n)
+            J = Rinv @ Rinv.T
         else:
-            root_dims = max(root_dims, int(R.shape[0]))
-        L[cid] = blocks
-
-    def cross(a: int, b: int) -> np.ndarray:
-        (ca, ra, da), (cb, rb, db) = where[a], where[b]
-        La, Lb = L[ca], L[cb]
-        out = np.zeros((da, db))
-        for s in La.keys() & Lb.keys():
-            out += La[s][ra : ra + da] @ Lb[s][rb : rb + db].T
-        return out
+            below += 1
+            if parent not in joint:
+                visit(parent)
+            at, Jp = joint[parent]
+            idx = (np.array([at[k] for k in keys[n // 6 :]])[:, None] + six).ravel()
+            Sss = Jp.take(idx, axis=0).take(idx, axis=1)
+            if cid in inner:
+                G = -Rinv @ S
+                Sfs = G @ Sss
+                J = np.empty((n + len(idx), n + len(idx)))
+                J[:n, :n] = Rinv @ Rinv.T + Sfs @ G.T
+                J[:n, n:] = Sfs
+                J[n:, :n] = Sfs.T
+                J[n:, n:] = Sss
+            else:  # a leaf of the visited tree: only its latest keys' blocks
+                rows = (6 * np.array([i for i, _ in latest_here])[:, None] + six).ravel()
+                Ri = Rinv[rows]
+                Gr = -Ri @ S
+                C = Ri @ Ri.T + Gr @ Sss @ Gr.T
+                for j, (_, k) in enumerate(latest_here):
+                    blocks[k] = C[6 * j : 6 * j + 6, 6 * j : 6 * j + 6]
+                return
+        for i, k in latest_here:
+            blocks[k] = J[6 * i : 6 * i + 6, 6 * i : 6 * i + 6]
+        if cid in inner:
+            joint[cid] = ({k: 6 * i for i, k in enumerate(keys)}, J)
 
     try:
-        for key in wanted:
-            if key not in where:
-                visit(bt[key])
-        covariances = {k: 0.5 * (C + C.T) for k in wanted for C in (cross(k, k),)}
+        for cid, here in mine.items():
+            if here[0][1] not in blocks:  # not visited on the way to another
+                visit(cid)
     except (RuntimeError, np.linalg.LinAlgError):
         return None, -1, root_dims
-    return covariances, below, root_dims
+    return {k: 0.5 * (blocks[k] + blocks[k].T) for k in wanted}, below, root_dims

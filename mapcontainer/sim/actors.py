@@ -18,6 +18,7 @@ from ..hdmap.model import Polyline
 __all__ = ["ActorState", "BodyMotion", "LaneFollower", "PathWalker", "box_corners"]
 
 _YAW_BASE_M = 1.0  # yaw from the chord over +-1 m: smooth across the polyline's 1 m vertices
+_ARC_MEMO = 8  # instants a LaneFollower remembers its arc for (a state asks for three)
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,7 @@ class LaneFollower(_PathActor):
         self.leader_offset_m = 0.0
         self.leader_free = False
         self.min_gap_m = 0.0
+        self._arcs: dict[float, tuple[float, float]] = {}  # arc(t) of the last few t asked for
 
     def free_arc(self, t: float) -> tuple[float, float]:
         """Arc length and speed without a leader."""
@@ -123,12 +125,19 @@ class LaneFollower(_PathActor):
         return float(s), float(self.v + self.amp * np.cos(w * t + self.phase))
 
     def arc(self, t: float) -> tuple[float, float]:
+        """Arc length and speed at t. Remembered for the last few t: a vehicle's arc needs its leader's,
+        which needs its own leader's, so a lane of n vehicles would cost n^2 / 2 evaluations per instant."""
+        if (hit := self._arcs.get(t)) is not None:
+            return hit
         s, v = self.free_arc(t)
         if self.leader is not None:
             s_lead, v_lead = self.leader.free_arc(t) if self.leader_free else self.leader.arc(t)
             s_lead += self.leader_offset_m
             if s > s_lead - self.min_gap_m:
-                return s_lead - self.min_gap_m, v_lead
+                s, v = s_lead - self.min_gap_m, v_lead
+        if len(self._arcs) >= _ARC_MEMO:
+            self._arcs.pop(next(iter(self._arcs)))
+        self._arcs[t] = (s, v)
         return s, v
 
 

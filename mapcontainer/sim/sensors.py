@@ -8,6 +8,7 @@ Parameters and their units: configs/sensors/default.yaml.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -17,8 +18,9 @@ from schemas import LandmarkClass, ObjectClass
 
 from .. import geometry as geo
 from ..hdmap.model import HDMap
-from .actors import ActorState, box_corners
+from .actors import ActorState
 from .config import CalibrationErrorConfig, CameraConfig, DetectorConfig, GnssConfig, OdometryConfig
+from .scene import ActorBoxes, RangeIndex, as_boxes
 
 __all__ = ["Camera", "CameraObservation", "Gnss", "ObjectDetector", "Odometry", "occluded", "true_calibration"]
 
@@ -29,24 +31,32 @@ _LANE_SPACING_M = 0.5
 _SOLID_RUN_M = 5.0
 
 
-def occluded(origin, targets, boxes: list[ActorState], exclude: np.ndarray | None = None) -> np.ndarray:
+def occluded(
+    origin,
+    targets,
+    boxes: ActorBoxes | Sequence[ActorState],
+    exclude: np.ndarray | None = None,
+    idx: np.ndarray | None = None,
+) -> np.ndarray:
     """Which of the segments origin -> target (N, 3) pass through any actor box (slab test, all boxes at
     once: in each box's frame, the segment's entry and exit parameters over the three slabs).
 
-    ``exclude`` (N, len(boxes)) marks boxes that cannot occlude a target (its own box, the observer's).
+    ``idx``: the boxes that may occlude (indices into ``boxes``; None: all of them). ``exclude``
+    (N, number of those boxes) marks boxes that cannot occlude a target (its own box, the observer's).
     """
     targets = np.asarray(targets, dtype=float).reshape(-1, 3)
-    if not boxes or not len(targets):
+    boxes = as_boxes(boxes)
+    idx = np.arange(len(boxes)) if idx is None else np.asarray(idx, dtype=int)
+    if not len(idx) or not len(targets):
         return np.zeros(len(targets), dtype=bool)
     origin = np.asarray(origin, dtype=float)
-    yaw = np.array([box.yaw for box in boxes])
-    size = np.array([box.size for box in boxes])
+    yaw, size = boxes.yaw[idx], boxes.size[idx]
     c, s = np.cos(yaw), np.sin(yaw)
-    R_T = np.zeros((len(boxes), 3, 3))  # map -> box frame
+    R_T = np.zeros((len(idx), 3, 3))  # map -> box frame
     R_T[:, 0, 0], R_T[:, 0, 1], R_T[:, 1, 0], R_T[:, 1, 1], R_T[:, 2, 2] = c, s, -s, c, 1.0
-    o = np.einsum("mij,mj->mi", R_T, origin - np.array([box.p_map for box in boxes]))[:, None, :]  # (M, 1, 3)
+    o = np.einsum("mij,mj->mi", R_T, origin - boxes.p_map[idx])[:, None, :]  # (M, 1, 3)
     d = np.einsum("mij,nj->mni", R_T, targets - origin)  # (M, N, 3)
-    zero = np.zeros(len(boxes))
+    zero = np.zeros(len(idx))
     lo = np.column_stack([-size[:, 0] / 2, -size[:, 1] / 2, zero])[:, None, :]
     hi = np.column_stack([size[:, 0] / 2, size[:, 1] / 2, size[:, 2]])[:, None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -107,6 +117,8 @@ class Camera:
     ``reported_intr`` and ``T_body_cam_reported`` are the calibration the vehicle believes (its
     CameraInfo); ``intr`` and ``T_body_cam`` the true ones it renders with (equal without calibration
     error: ``calib_rng`` None or ``cfg.calibration_error`` off). ``clutter`` False: no false landmarks.
+    ``cull`` False: every frame projects every landmark and lane segment of the map (the brute force);
+    otherwise those within range are found by :class:`~.scene.RangeIndex`, with the same frames.
     """
 
     def __init__(
@@ -116,6 +128,7 @@ class Camera:
         rng: np.random.Generator,
         calib_rng: np.random.Generator | None = None,
         clutter: bool = True,
+        cull: bool = True,
     ):
         self.cfg = cfg
         self.rng = rng
@@ -156,48 +169,68 @@ class Camera:
         self._lane_b = np.vstack(b) if b else np.zeros((0, 3))
         self._lane_run = np.concatenate(run) if run else np.zeros(0, int)
         self._n_runs = n_runs
+        self._pt_index = RangeIndex(self._pt_xyz[:, :2], cull)
+        # A pole's samples lie over the segment from its base to its top: within its half length (in the
+        # plane; 0 when upright) of its middle.
+        lean = np.linalg.norm(self._pole_top[:, :2] - self._pole_base[:, :2], axis=1) / 2
+        self._pole_reach_m = float(lean.max(initial=0.0))
+        self._pole_index = RangeIndex((self._pole_base[:, :2] + self._pole_top[:, :2]) / 2, cull)
+        self._lane_index = RangeIndex(self._lane_a[:, :2], cull)
 
     def _p_detect(self, r: np.ndarray) -> np.ndarray:
         c = self.cfg
         return c.p_detect_near + (c.p_detect_far - c.p_detect_near) * np.clip(r / c.range_m, 0, 1)
 
-    def observe(self, pose, others: list[ActorState]) -> CameraObservation:
-        """One frame from a body at ``pose``; ``others`` are every actor except the observer."""
+    def observe(self, pose, actors: ActorBoxes | Sequence[ActorState], skip: int | None = None) -> CameraObservation:
+        """One frame from a body at ``pose``. ``actors``: every actor but the observer (a list), or every
+        actor with the observer's own index ``skip`` (the World's :class:`~.scene.ActorBoxes` of the tick).
+
+        Only the boxes within reach of the camera's range are tested for occlusion, and only the lane
+        segments that land in the image are drawn: the frame is the same as with every box and segment.
+        """
         c, rng = self.cfg, self.rng
+        boxes = as_boxes(actors)
         T_map_cam = geo.pose_to_matrix(pose) @ self.T_body_cam
         T_cam_map = geo.inverse(T_map_cam)
         cam_c = T_map_cam[:3, 3]
+        # A box hides a point within range_m only if the box comes within range_m of the camera.
+        hiders = boxes.near(cam_c, c.range_m + boxes.reach_m, skip)
 
-        # Point landmarks.
-        uv, z = geo.project_points(self.intr, T_cam_map, self._pt_xyz)
-        r = np.linalg.norm(self._pt_xyz - cam_c, axis=1)
+        # Point landmarks: those within range (horizontally first) are projected.
+        near = self._pt_index.near(cam_c, c.range_m)
+        xyz = self._pt_xyz[near]
+        uv, z = geo.project_points(self.intr, T_cam_map, xyz)
+        r = np.linalg.norm(xyz - cam_c, axis=1)
         vis = (z > c.min_depth_m) & (r <= c.range_m)
         vis[vis] &= self.intr.in_image(uv[vis])
-        vis[vis] &= ~occluded(cam_c, self._pt_xyz[vis], others)
-        det = vis & (rng.random(len(vis)) < self._p_detect(r))
+        vis[vis] &= ~occluded(cam_c, xyz[vis], boxes, idx=hiders)
+        u = rng.random(len(self._pt_xyz))  # one draw per landmark of the map: the stream stays aligned
+        det = vis & (u[near] < self._p_detect(r))
         pts = uv[det] + rng.normal(0.0, c.pixel_sigma_px, (int(det.sum()), 2))
-        pts_cls, pts_id = self._pt_cls[det], self._pt_id[det]
+        pts_cls, pts_id = self._pt_cls[near[det]], self._pt_id[near[det]]
 
         # Poles: the visible run of samples between base and top.
         poles, pole_ids = [], []
-        if len(self._pole_id):
+        near = self._pole_index.near(cam_c, c.range_m + self._pole_reach_m)
+        if len(near):
+            base, top = self._pole_base[near], self._pole_top[near]
             f = np.linspace(0.0, 1.0, _POLE_SAMPLES)
-            samples = self._pole_base[:, None] + f[None, :, None] * (self._pole_top - self._pole_base)[:, None]
+            samples = base[:, None] + f[None, :, None] * (top - base)[:, None]
             flat = samples.reshape(-1, 3)
             suv, sz = geo.project_points(self.intr, T_cam_map, flat)
             ok = (sz > c.min_depth_m) & (np.linalg.norm(flat - cam_c, axis=1) <= c.range_m)
             ok[ok] &= self.intr.in_image(suv[ok])
-            ok[ok] &= ~occluded(cam_c, flat[ok], others)
-            ok = ok.reshape(len(self._pole_id), _POLE_SAMPLES)
-            suv = suv.reshape(len(self._pole_id), _POLE_SAMPLES, 2)
-            r_pole = np.linalg.norm(self._pole_base - cam_c, axis=1)
+            ok[ok] &= ~occluded(cam_c, flat[ok], boxes, idx=hiders)
+            ok = ok.reshape(len(near), _POLE_SAMPLES)
+            suv = suv.reshape(len(near), _POLE_SAMPLES, 2)
+            r_pole = np.linalg.norm(base - cam_c, axis=1)
             for i in np.flatnonzero(ok.sum(axis=1) >= 2):
                 idx = np.flatnonzero(ok[i])
                 seg = np.concatenate([suv[i, idx[0]], suv[i, idx[-1]]])
                 if np.hypot(*(seg[2:] - seg[:2])) < 15.0 or rng.random() >= self._p_detect(r_pole[i]):
                     continue
                 poles.append(seg + rng.normal(0.0, c.pixel_sigma_px, 4))
-                pole_ids.append(self._pole_id[i])
+                pole_ids.append(self._pole_id[near[i]])
 
         # Clutter.
         n_cp = rng.poisson(c.clutter_points_per_frame if self.clutter else 0.0)
@@ -216,16 +249,23 @@ class Camera:
             point_ids=np.asarray(pts_id, dtype=int),
             poles_uv=np.asarray(poles, dtype=float).reshape(-1, 4),
             pole_ids=np.asarray(pole_ids, dtype=int),
-            lane_mask=self._lane_mask(T_cam_map, cam_c, others),
+            lane_mask=self._lane_mask(T_cam_map, cam_c, boxes, skip),
         )
 
-    def _lane_mask(self, T_cam_map, cam_c, others: list[ActorState]) -> np.ndarray:
-        """Render the lane segmentation: projected painted markings, dropout, jitter, occlusion."""
+    def _lane_mask(self, T_cam_map, cam_c, boxes: ActorBoxes, skip: int | None) -> np.ndarray:
+        """Render the lane segmentation: projected painted markings, dropout, jitter, occlusion.
+
+        Every segment in front of the camera draws its jitter (the noise stream stays as it is); a
+        segment whose thick line lies wholly beside the image is not drawn (it would paint nothing).
+        Segments of one thickness are drawn by one call (cv2.polylines draws each two-point polyline as
+        cv2.line does).
+        """
         c, rng = self.cfg, self.rng
         mask = np.zeros((c.height, c.width), np.uint8)
-        near = np.linalg.norm(self._lane_a[:, :2] - cam_c[:2], axis=1) <= c.lane_range_m
-        kept_runs = rng.random(self._n_runs) >= c.lane_dropout
-        sel = near & kept_runs[self._lane_run]
+        near = self._lane_index.near(cam_c, c.lane_range_m)
+        near = near[np.linalg.norm(self._lane_a[near, :2] - cam_c[:2], axis=1) <= c.lane_range_m]
+        kept_runs = rng.random(self._n_runs) >= c.lane_dropout  # one draw per run of the map
+        sel = near[kept_runs[self._lane_run[near]]]
         a, b = self._lane_a[sel], self._lane_b[sel]
         uv_a, z_a = geo.project_points(self.intr, T_cam_map, a)
         uv_b, z_b = geo.project_points(self.intr, T_cam_map, b)
@@ -238,16 +278,39 @@ class Camera:
         pb = np.rint((uv_b + jitter) * 4).astype(np.int32)
         lim = 4 * 10 * max(c.width, c.height)
         keep = (np.abs(pa) < lim).all(axis=1) & (np.abs(pb) < lim).all(axis=1)
-        for p, q, t in zip(pa[keep], pb[keep], thick[keep], strict=True):
-            cv2.line(mask, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 255, int(t), cv2.LINE_8, 2)
+        keep &= _in_view(pa, pb, thick, c.width, c.height)
+        _draw_lines(mask, pa[keep], pb[keep], thick[keep])
         # Actors hide the road behind them (one projection of every near actor's 8 box corners).
-        near = [o for o in others if np.linalg.norm(o.p_map[:2] - cam_c[:2]) <= c.lane_range_m + 5]
-        if near:
-            uv, zc = geo.project_points(self.intr, T_cam_map, np.vstack([box_corners(o) for o in near]))
+        near_idx = boxes.near(cam_c, c.lane_range_m + 5, skip)
+        near_idx = near_idx[np.linalg.norm(boxes.p_map[near_idx, :2] - cam_c[:2], axis=1) <= c.lane_range_m + 5]
+        if len(near_idx):
+            uv, zc = geo.project_points(self.intr, T_cam_map, boxes.corners(near_idx).reshape(-1, 3))
             for uv_o, z_o in zip(uv.reshape(-1, 8, 2), zc.reshape(-1, 8), strict=True):
                 if not np.any(z_o < 0.2):
                     cv2.fillConvexPoly(mask, cv2.convexHull(np.rint(uv_o).astype(np.int32)), 0)
         return mask
+
+
+def _in_view(pa: np.ndarray, pb: np.ndarray, thick: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Which lines (end points ``pa``, ``pb`` in pixels x 4, widths ``thick`` px) may paint a pixel of a
+    width x height image: not those with both ends beyond one edge by more than their width + 2 px (a
+    thick line paints within half its width, plus rounding, of its segment)."""
+    m = 4 * (thick[:, None] + 2)
+    lo = np.minimum(pa, pb)
+    hi = np.maximum(pa, pb)
+    size = 4 * np.array([width - 1, height - 1])
+    return ((hi >= -m) & (lo <= size + m)).all(axis=1)
+
+
+def _draw_lines(mask: np.ndarray, pa: np.ndarray, pb: np.ndarray, thick: np.ndarray) -> None:
+    """cv2.line(mask, pa[i], pb[i], 255, thick[i], LINE_8, shift=2) for every i, one call per width."""
+    if not len(thick):
+        return
+    seg = np.stack([pa, pb], axis=1)
+    order = np.argsort(thick, kind="stable")
+    widths, starts = np.unique(thick[order], return_index=True)
+    for t, group in zip(widths, np.split(order, starts[1:]), strict=True):
+        cv2.polylines(mask, list(seg[group]), False, 255, int(t), cv2.LINE_8, 2)
 
 
 class Gnss:
@@ -436,36 +499,66 @@ class ObjectDetector:
         L = np.linalg.cholesky(self.covariance(p_body))
         return p_body, p_body + np.einsum("nij,nj->ni", L, rng.normal(size=p_body.shape)), cls[inview]
 
-    def observe(self, observer: ActorState, targets: list[ActorState], occluders: list[ActorState], t=None):
-        """Detections of ``targets`` by ``observer`` at time ``t`` (true scenario time; None: no persistent
-        error and no ghosts, each call stands alone): (p_body (K,3), cov (K,3,3), cls (K,), truth ids)."""
+    def candidate_radius(self, T_map_body: np.ndarray, sensor_map: np.ndarray, boxes: ActorBoxes) -> float:
+        """How far from the sensor (horizontally, map frame) a target in range can be.
+
+        The range is measured in the body's x-y plane, which tilts with the body's roll and pitch. For a
+        target at horizontal distance h and height difference dz from the sensor, with the body z axis at
+        an angle theta from the vertical (sin theta = s), its body-frame height is at most |dz| + h s, so
+        its distance in the body's x-y plane is at least sqrt(h^2 (1 - s^2) - 2 |dz| h s): in range only if
+        h <= (|dz| s + sqrt(dz^2 s^2 + (1 - s^2) R^2)) / (1 - s^2), dz bounded by the actors' heights
+        (their footprint centres'). Inf (every actor) for a body tilted by 30 degrees or more.
+        """
+        R = self.cfg.range_m
+        s = float(np.hypot(T_map_body[0, 2], T_map_body[1, 2]))
+        if s >= 0.5:  # tipped over by more than 30 degrees: look at every actor
+            return np.inf
+        dz = max(abs(z - float(sensor_map[2])) for z in boxes.z_range_m)
+        return (dz * s + np.sqrt(dz**2 * s**2 + (1 - s**2) * R**2)) / (1 - s**2) * (1 + 1e-9) + 1e-6
+
+    def observe(self, observer: ActorState, actors: ActorBoxes | Sequence[ActorState], t=None, skip: int | None = None):
+        """Detections by ``observer`` at time ``t`` (true scenario time; None: no persistent error and no
+        ghosts, each call stands alone): (p_body (K,3), cov (K,3,3), cls (K,), truth ids).
+
+        ``actors``: every actor but the observer (a list), or every actor with the observer's own index
+        ``skip`` (the World's :class:`~.scene.ActorBoxes` of the tick). The targets are those actors, the
+        occluders of a target every one of them but itself. Only the actors within reach of the range
+        are looked at (:meth:`candidate_radius`); a miss is drawn for every target all the same, so the
+        noise streams are those of a detector that looks at every actor.
+        """
         c, rng = self.cfg, self.rng
-        T_body_map = geo.inverse(geo.pose_to_matrix(observer.pose))
-        sensor_map = geo.transform_points(geo.pose_to_matrix(observer.pose), self.sensor_body)
-        p_tgt = np.array([s.p_map for s in targets]).reshape(-1, 3)
-        p_body = geo.transform_points(T_body_map, p_tgt)
+        boxes = as_boxes(actors)
+        T_map_body = geo.pose_to_matrix(observer.pose)
+        T_body_map = geo.inverse(T_map_body)
+        sensor_map = geo.transform_points(T_map_body, self.sensor_body)
+        n_targets = len(boxes) - (skip is not None)
+        radius = self.candidate_radius(T_map_body, sensor_map, boxes)
+        cand = boxes.near(sensor_map, radius, skip)
+        p_tgt = boxes.p_map[cand]
+        p_body = geo.transform_points(T_body_map, p_tgt).reshape(-1, 3)
         rel = p_body[:, :2] - self.sensor_body[:2]
         r = np.linalg.norm(rel, axis=1)
         bearing = np.arctan2(rel[:, 1], rel[:, 0])
         vis = (r <= c.range_m) & (np.abs(bearing) <= np.radians(c.fov_deg) / 2)
         if vis.any():
-            centres = p_tgt + np.array([[0.0, 0.0, 1.0]]) * np.array([s.size[2] / 2 for s in targets])[:, None]
-            exclude = np.array([[o.id in (tg.id, observer.id) for o in occluders] for tg in targets]).reshape(
-                len(targets), len(occluders)
-            )
-            blocked = occluded(sensor_map, centres[vis], occluders, exclude[vis])
+            seen_idx = cand[vis]
+            centres = p_tgt[vis] + np.array([[0.0, 0.0, 1.0]]) * (boxes.size[seen_idx, 2] / 2)[:, None]
+            hiders = boxes.near(sensor_map, radius + boxes.reach_m, skip)
+            blocked = occluded(sensor_map, centres, boxes, seen_idx[:, None] == hiders[None, :], idx=hiders)
             vis[np.flatnonzero(vis)[blocked]] = False
         p_det = c.p_detect_near + (c.p_detect_far - c.p_detect_near) * np.clip(r / c.range_m, 0, 1)
-        det = vis & (rng.random(len(targets)) < p_det)
+        u = rng.random(n_targets)  # one draw per target, in the actors' order
+        pos = cand if skip is None else cand - (cand > skip)
+        det = vis & (u[pos] < p_det)
         truth = p_body[det]
-        ids: list[str | None] = [targets[i].id for i in np.flatnonzero(det)]
+        ids: list[str | None] = [str(i) for i in boxes.ids[cand[det]]]
+        cls = boxes.cls[cand[det]]
         L = np.linalg.cholesky(self.covariance(truth))
         f = self.persistent_fraction
         e = np.sqrt(1.0 - f) * rng.normal(size=truth.shape) + np.sqrt(f) * self._persistent_part(ids, t)
         seen = geo.transform_points(self.T_rep_true, truth).reshape(-1, 3)
         noisy = seen + np.einsum("nij,nj->ni", L, e)
         cov = self._reported_cov(truth, noisy)
-        cls = np.array([targets[i].cls for i in np.flatnonzero(det)], dtype=np.uint8)
         fa, fa_noisy, fa_cls = self._false_alarms(observer, t)
         if len(fa):
             noisy = np.vstack([noisy, fa_noisy])

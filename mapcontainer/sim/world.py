@@ -32,6 +32,7 @@ from .actors import ActorState, BodyMotion, LaneFollower, PathWalker
 from .config import ScenarioConfig
 from .errors import published_map, vehicle_error_streams
 from .maps import world_map
+from .scene import ActorBoxes
 from .sensors import Camera, CameraObservation, Gnss, ObjectDetector
 from .sensors import Odometry as OdometrySensor
 from .traffic import Traffic, draw_traffic
@@ -68,7 +69,9 @@ class _VehicleSensors:
         cam_ss, gnss_ss, odo_ss, det_ss = seed.spawn(4)
         calib_rng, bias_rng, confusion_rng, clock_rng = (np.random.default_rng(ss) for ss in errors.spawn(4))
         clutter = cfg.clutter.enabled
-        self.camera = Camera(cfg.camera, world.true_map, np.random.default_rng(cam_ss), calib_rng, clutter)
+        self.camera = Camera(
+            cfg.camera, world.true_map, np.random.default_rng(cam_ss), calib_rng, clutter, cull=world.cull
+        )
         self.gnss = Gnss(cfg.gnss, np.random.default_rng(gnss_ss))
         self.odometry = OdometrySensor(cfg.odometry, np.random.default_rng(odo_ss))
         # The object detector looks through the same camera: its body-frame positions carry the extrinsic error.
@@ -115,11 +118,14 @@ class World:
 
     ``true_map``: the world the cameras see and the actors drive in. ``hdmap``: the map the vehicles and
     the host carry (the published map: ``true_map`` with the scenario's map error). ``traffic``: the
-    actors of this run.
+    actors of this run. ``cull`` False: every sensor looks at every actor and map feature instead of
+    those within its reach (the same frames, at a cost growing with the square of the actors and with
+    the map: a check of the culling).
     """
 
-    def __init__(self, scenario: ScenarioConfig, seed: int, fleet: str = "sim"):
+    def __init__(self, scenario: ScenarioConfig, seed: int, fleet: str = "sim", cull: bool = True):
         self.scenario = scenario
+        self.cull = cull
         self.seed = seed
         self.fleet = fleet
         self.true_map: HDMap = world_map(scenario)
@@ -246,20 +252,29 @@ class World:
             obstacle_yaw=np.array([s.yaw for s in ob]),
         )
 
-    def sense(self, k: int, t: float, vid: str, states: dict[str, ActorState]) -> tuple[SensorFrame, FrameDebug]:
+    def boxes(self, states: dict[str, ActorState]) -> ActorBoxes:
+        """Every actor's box of ``states`` (in their order), indexed by range unless the World is built
+        with ``cull=False``: what every vehicle's sensors of one tick look at."""
+        return ActorBoxes(list(states.values()), index=self.cull)
+
+    def sense(
+        self, k: int, t: float, vid: str, states: dict[str, ActorState], boxes: ActorBoxes | None = None
+    ) -> tuple[SensorFrame, FrameDebug]:
         """One sensor frame of vehicle ``vid`` at frame k, after its last one (the sensors' error
-        processes only run forward; ValueError otherwise)."""
+        processes only run forward; ValueError otherwise). ``boxes``: :meth:`boxes` of ``states``
+        (made here if None; :meth:`tick` makes it once for every vehicle)."""
         last = self._forward(vid, k)
         sensors = self._sensors[vid]
         me = states[vid]
-        others = [s for i, s in states.items() if i != vid]
-        cam = sensors.camera.observe(me.pose, others)
+        boxes = self.boxes(states) if boxes is None else boxes
+        me_idx = boxes.index(vid)
+        cam = sensors.camera.observe(me.pose, boxes, skip=me_idx)
         png = lanemask.encode(cam.lane_mask)  # 1-bit PNG: about 2.3 kB
         skipped = 1 if last is None else k - last  # frames since the last one sensed (1 when in order)
         self._last_k[vid] = k
         p_gnss, sh, sv = sensors.gnss.measure(t, me.p_map, self.dt * skipped)
         speed, yaw_rate = sensors.odometry.measure(me.speed, me.yaw_rate)
-        p_obj, cov_obj, cls_obj, ids = sensors.detector.observe(me, others, others + [me], t)
+        p_obj, cov_obj, cls_obj, ids = sensors.detector.observe(me, boxes, t, skip=me_idx)
         t_vehicle = t + sensors.clock_offset_s  # the frame is stamped by the vehicle's clock
         frame = SensorFrame(
             fleet=self.fleet,
@@ -296,9 +311,10 @@ class World:
             self._forward(vid, k)
         t = k * self.dt
         states = self.states(t)
+        boxes = self.boxes(states)
         frames, debug = {}, {}
         for vid in self.vehicle_ids:
-            frames[vid], debug[vid] = self.sense(k, t, vid, states)
+            frames[vid], debug[vid] = self.sense(k, t, vid, states, boxes)
         return Tick(k, t, self.truth(k, t, states), states, frames, debug)
 
     def run(self, duration_s: float) -> Iterator[Tick]:

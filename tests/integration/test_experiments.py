@@ -152,3 +152,20 @@ def test_bench_fusion_prints_json_last(tmp_path):
         assert _finite(result[key]), key
     assert result["vehicles"] == 2 and result["objects"] == 4 and result["window"] == 3
     assert result["object_rmse_m"] < 1.0
+
+
+def test_bench_fusion_sizes_prints_every_run_the_growth_and_the_oracle(tmp_path):
+    proc = _mapc(
+        "bench", "fusion", "--sizes", "2/4,3/8", "--density", "city", "--window", "3", "--ticks", "10",
+        "--batch-samples", "0", "--compare-exact",
+    )  # fmt: skip
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["sizes"] == ["2/4", "3/8"] and [r["vehicles"] for r in result["runs"]] == [2, 3]
+    for r in result["runs"]:
+        assert r["density"] == "city" and r["solver"] == "sparse" and r["detections_per_tick"] > 0
+        assert _finite(r["us_per_detection"]) and r["exact"]["object_matches"] == r["object_matches"]
+        assert r["rmse_over_exact"] == pytest.approx(1.0, rel=1e-6)
+    g = result["growth"]
+    assert g["us_per_detection_over_first"][0] == 1.0 and _finite(g["exponent_vs_detections"])
+    bad = _mapc("bench", "fusion", "--sizes", "4x14", check=False)
+    assert bad.returncode == 2 and "--sizes" in bad.stderr

@@ -19,7 +19,12 @@ def see(mon: MisbehaviourMonitor, observer: str, t: float, where: dict[str, tupl
     """``observer`` detects every other vehicle at its true position; ``where``: what each vehicle reports."""
     others = [v for v in truth if v != observer]
     p = np.array([[*truth[v], 0.0] for v in others])
-    reported = {v: (np.array([*where[v], 0.0]), SIGMA_M**2 * np.eye(3)) for v in where}
+    vids = list(where)
+    reported = (
+        np.array(vids),
+        np.array([[*where[v], 0.0] for v in vids]),
+        np.tile(SIGMA_M**2 * np.eye(3), (len(vids), 1, 1)),
+    )
     mon.observe(observer, t, p, np.tile(SIGMA_M**2 * np.eye(3), (len(p), 1, 1)), np.full(len(p), VEHICLE), reported)
 
 

@@ -127,8 +127,9 @@ def test_the_camera_sees_from_the_pitched_body():
     assert np.sqrt(np.mean(np.square(res_rigid))) > 2.0 * rms_body
 
 
-def _camera(**overrides) -> tuple[Camera, HDMap]:
-    cfg = load_sensor_config().camera.model_copy(
+def sure_camera_config(**overrides):
+    """The default camera, detecting every landmark it sees and no clutter."""
+    return load_sensor_config().camera.model_copy(
         update={
             "p_detect_near": 1.0,
             "p_detect_far": 1.0,
@@ -137,6 +138,10 @@ def _camera(**overrides) -> tuple[Camera, HDMap]:
             **overrides,
         }
     )
+
+
+def _camera(**overrides) -> tuple[Camera, HDMap]:
+    cfg = sure_camera_config(**overrides)
     hd = HDMap(
         name="probe",
         points=[
@@ -207,7 +212,7 @@ def test_detector_noise_matches_its_reported_covariance():
     )
     nees = []
     for _ in range(400):
-        p, cov, cls, ids = det.observe(me, [tgt], [me, tgt])
+        p, cov, cls, ids = det.observe(me, [tgt])
         assert ids == ["1"] and cls[0] == ObjectClass.PEDESTRIAN
         e = p[0] - tgt.p_map
         nees.append(e @ np.linalg.solve(cov[0], e))

@@ -193,7 +193,7 @@ def _whitened_errors(det: ObjectDetector, n: int, dt: float = 0.1) -> np.ndarray
     L = np.linalg.cholesky(det.covariance(PED.p_map[None])[0])
     out = []
     for k in range(n):
-        p, _, _, ids = det.observe(ME, [PED], [ME, PED], k * dt)
+        p, _, _, ids = det.observe(ME, [PED], k * dt)
         out.append(np.linalg.solve(L, p[ids.index("7")] - PED.p_map))
     return np.array(out)
 
@@ -218,10 +218,10 @@ def test_reported_covariance_is_only_approximately_right():
     scales = [_detector(s, True).sigma_scale for s in range(400)]
     assert 0.85 < np.std(np.log(scales)) / CFG.detector.errors.reported_scale_sigma < 1.15
     det = _detector(1, True)
-    p, cov, _, _ = det.observe(ME, [PED], [ME, PED], 0.0)
+    p, cov, _, _ = det.observe(ME, [PED], 0.0)
     np.testing.assert_allclose(cov[0], det.sigma_scale**2 * det.covariance(p)[0])  # at the measured position
     det = _detector(1, False)
-    p, cov, _, _ = det.observe(ME, [PED], [ME, PED], 0.0)
+    p, cov, _, _ = det.observe(ME, [PED], 0.0)
     assert det.sigma_scale == 1.0
     np.testing.assert_allclose(cov[0], det.covariance(PED.p_map[None])[0])
 
@@ -229,12 +229,12 @@ def test_reported_covariance_is_only_approximately_right():
 def test_class_confusion_rate():
     p = CFG.detector.class_confusion.p
     det = _detector(2, False, confusion=True)
-    cls = np.concatenate([det.observe(ME, [PED], [ME, PED], 0.1 * k)[2] for k in range(5000)])
+    cls = np.concatenate([det.observe(ME, [PED], 0.1 * k)[2] for k in range(5000)])
     wrong = np.mean(cls != ObjectClass.PEDESTRIAN)
     assert abs(wrong - p) < 4 * np.sqrt(p * (1 - p) / len(cls)), wrong
     assert set(np.unique(cls)) <= {ObjectClass.PEDESTRIAN, ObjectClass.VEHICLE, ObjectClass.CYCLIST}
     det = _detector(2, False, confusion=False)
-    assert all(det.observe(ME, [PED], [ME, PED], 0.1 * k)[2][0] == ObjectClass.PEDESTRIAN for k in range(2000))
+    assert all(det.observe(ME, [PED], 0.1 * k)[2][0] == ObjectClass.PEDESTRIAN for k in range(2000))
 
 
 def test_false_objects_are_ghosts_that_stay_and_clutter_off_has_none():
@@ -242,7 +242,7 @@ def test_false_objects_are_ghosts_that_stay_and_clutter_off_has_none():
     det = _detector(3, False, clutter=True)
     counts, runs, last = [], [], None
     for k in range(6000):
-        p, _, _, ids = det.observe(ME, [], [ME], 0.1 * k)
+        p, _, _, ids = det.observe(ME, [], 0.1 * k)
         counts.append(len(ids))
         key = tuple(np.round(p[:, 0], -1))  # a ghost stands still: its range rounded to 10 m repeats
         runs.append(bool(last) and bool(set(key) & set(last)))
@@ -251,7 +251,7 @@ def test_false_objects_are_ghosts_that_stay_and_clutter_off_has_none():
     present = np.array(counts[1:]) > 0
     assert np.mean(np.array(runs[1:])[present]) > 0.5, "a ghost is seen again in the next frame"
     det = _detector(3, False, clutter=False)
-    assert all(len(det.observe(ME, [], [ME], 0.1 * k)[3]) == 0 for k in range(500))
+    assert all(len(det.observe(ME, [], 0.1 * k)[3]) == 0 for k in range(500))
     w = World(_ideal("paper-urban"), 0)  # clutter off in a world: no false landmarks or objects
     for tick in w.run(3.0):
         for d in tick.debug.values():

@@ -1,0 +1,36 @@
+"""mapc experiment scale end to end on the SUMO grid at two small fleet sizes (the roads extra)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("libsumo")  # the roads extra; CI installs it
+pytestmark = pytest.mark.slow
+
+
+def test_experiment_scale_runs_both_modes_and_measures_cost_traffic_and_accuracy(tmp_path):
+    out = tmp_path / "scale"
+    proc = subprocess.run(
+        [sys.executable, "-m", "mapcontainer.cli", "experiment", "scale", "--out", str(out), "--sizes", "2,4",
+         "--duration", "4", "--warmup", "2", "--quiet"],
+        capture_output=True, text=True, timeout=900, check=True,
+    )  # fmt: skip
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["points"] == 4
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    by = {(r["mode"], r["vehicles"]): r for r in rows}
+    for mode in ("distributed", "centralized"):
+        small, large = by[(mode, 2)], by[(mode, 4)]
+        assert large["bytes_per_s_total"] > 2 * small["bytes_per_s_total"]  # 3 senders against 1
+        assert large["host_cpu_ms_per_cycle"] > small["host_cpu_ms_per_cycle"] > 0
+        for r in (small, large):
+            assert r["delivered_fraction"] > 0.9 and r["dropped_queue_fraction"] == 0.0  # far below 6 Mbit/s
+            assert r["vehicle_rmse_m"] < 1.0 and r["object_rmse_m"] < 1.5 and r["obstacles_in_scope"] > 0
+    # the raw data costs several times the priors' bytes on the same traffic
+    assert by[("centralized", 4)]["bytes_per_s_per_vehicle"] > 2.5 * by[("distributed", 4)]["bytes_per_s_per_vehicle"]
+    for name in ("scale.csv", "scale.md", "scale_cost.png", "scale_channel.png"):
+        assert (out / name).stat().st_size > 0
