@@ -10,6 +10,7 @@ from schemas import body_pose_cov, encode
 
 from . import geometry as geo
 from .metrics import percentile, rmse
+from .seeds import seed_kind
 from .sim import World, load_scenario
 from .sim.errors import enabled_error_sources, with_error_sources
 from .vehicle import VehicleAgent
@@ -21,9 +22,15 @@ WARMUP_S = 2.0  # seconds of an episode not scored (initialisation from GNSS)
 
 
 def bench_localization(
-    scenario: str, seeds: int = 3, duration_s: float = 20.0, warmup_s: float = WARMUP_S, ideal: bool = False
+    scenario: str,
+    seeds: int = 3,
+    duration_s: float = 20.0,
+    warmup_s: float = WARMUP_S,
+    ideal: bool = False,
+    seed0: int = 0,
 ) -> dict:
-    """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes.
+    """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes (seeds
+    ``seed0`` ... ``seed0 + seeds - 1``; development seeds are below :data:`~mapcontainer.seeds.EVAL_SEED0`).
 
     ``ideal``: every error source of the simulator off (exact map, calibration and clocks:
     :func:`mapcontainer.sim.errors.with_error_sources`); otherwise the scenario's own (realistic) ones.
@@ -39,54 +46,38 @@ def bench_localization(
     VehiclePrior carries instead: this frame's
     camera evidence with a weak prior (independent from frame to frame, for the host's graph) --
     noisier, with its own covariance. Frames in the first ``warmup_s`` seconds (initialisation
-    from GNSS) are not scored. Time is the whole vehicle step (PNG decode, distance transform,
-    matching, message build).
+    from GNSS) are not scored, nor frames without a pose (``no_pose_frames``: the localizer re-initialising).
+    Time is the whole vehicle step (PNG decode, distance transform,
+    matching, message build). ``after_localized_rmse_m``: every vehicle's horizontal RMSE from the frame it
+    localizes on (steady state, whatever its start). ``startup``: the cold start from GNSS of every vehicle, from
+    t = 0, as the paper experiment scores it (:func:`mapcontainer.experiments.paper.figures.startup_summary`:
+    time to localize, gross errors after it, those the vehicle did not announce).
     """
+    from .experiments.paper.figures import startup_summary
+
     if seeds < 1 or not duration_s > warmup_s:
         raise ValueError(f"need seeds >= 1 and duration_s > warmup_s, got {seeds}, {duration_s}, {warmup_s}")
-    e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched = [], [], [], [], [], [], [], [], []
-    e_prior, nees_prior, e_all, e_all_yaw, nees_axes = [], [], [], [], []
-    frames = 0
+    acc: dict[str, list] = {k: [] for k in _ACC}
     sc = load_scenario(scenario)
     if ideal:
         sc = with_error_sources(sc, ())
-    for seed in range(seeds):
-        world = World(sc, seed=seed)
-        agents = {v: VehicleAgent(world.hdmap, v, world.fleet) for v in world.vehicle_ids}
-        for tick in world.run(duration_s):
-            for vid, frame in tick.frames.items():
-                t0 = time.perf_counter()
-                prior = agents[vid].handle(tick.t, frame)
-                ms.append((time.perf_counter() - t0) * 1e3)
-                sizes.append(len(encode(prior)))
-                if tick.t < warmup_s:
-                    continue
-                frames += 1
-                truth = tick.states[vid].pose
-                res = agents[vid].last_result
-                err = _pose_error(res.pose_filtered, truth)
-                e_all.append(err[:2])
-                e_all_yaw.append(np.degrees(err[5:]))
-                e_gnss.append(np.asarray(frame.gnss.p_map[:2], float) - truth[:2])
-                nees.append(float(err @ np.linalg.solve(res.cov_filtered, err)))
-                nees_axes.append(err**2 / np.diag(res.cov_filtered))
-                matched.append(prior.quality.mode == "map_matching")
-                if matched[-1]:
-                    e_body = geo.rot_z(truth[5]).T[:2, :2] @ err[:2]
-                    e_pos.append(err[:2])
-                    e_lon.append(e_body[:1])
-                    e_lat.append(e_body[1:])
-                    e_yaw.append(np.degrees(err[5:]))
-                err_p = _pose_error(prior.pose, truth)
-                e_prior.append(err_p[:2])
-                nees_prior.append(float(err_p @ np.linalg.solve(body_pose_cov(prior), err_p)))
+    runs = []
+    for seed in range(seed0, seed0 + seeds):
+        with World(sc, seed=seed) as world:
+            runs.append({"locks": _episode(world, duration_s, warmup_s, acc)})
+    (e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes) = (
+        acc[k] for k in _ACC[:-1]
+    )
     return {
         "scenario": scenario,
         "error_sources": enabled_error_sources(sc),
         "seeds": seeds,
+        "seed0": seed0,
+        "seed_kind": seed_kind(seed0),
         "duration_s": duration_s,
         "warmup_s": warmup_s,
-        "frames": frames,
+        "frames": len(matched),
+        "no_pose_frames": len(acc["no_pose"]),
         "gnss_rmse_m": round(rmse(e_gnss), 3),
         "mapmatch_rmse_m": round(rmse(e_pos), 3),
         "lateral_rmse_m": round(rmse(e_lat), 3),
@@ -102,10 +93,77 @@ def bench_localization(
         "prior_bytes_mean": round(float(np.mean(sizes)), 1),
         "prior_rmse_m": round(rmse(e_prior), 3),
         "prior_nees_mean": round(float(np.mean(nees_prior)), 2),
+        "after_localized_rmse_m": round(_after_localized_rmse(runs), 3),
+        "startup": startup_summary(runs, duration_s),
     }
 
 
 _AXES = ("x", "y", "z", "roll", "pitch", "yaw")
+_ACC = (
+    "e_pos", "e_lat", "e_lon", "e_yaw", "e_gnss", "nees", "ms", "sizes", "matched", "e_prior", "nees_prior", "e_all",
+    "e_all_yaw", "nees_axes", "no_pose",
+)  # fmt: skip
+
+
+def _episode(world: World, duration_s: float, warmup_s: float, acc: dict[str, list]) -> list[list[float]]:
+    """Every vehicle of one episode localized frame by frame; the scored frames' figures appended to ``acc`` (lists
+    named in :data:`_ACC`); returns the cold-start rows [t, vehicle index, says map_matching, horizontal error]."""
+    e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes = (
+        acc[k] for k in _ACC[:-1]
+    )
+    agents = {v: VehicleAgent(world.hdmap, v, world.fleet) for v in world.vehicle_ids}
+    index = {v: i for i, v in enumerate(world.vehicle_ids)}
+    locks: list[list[float]] = []
+    for tick in world.run(duration_s):
+        for vid, frame in tick.frames.items():
+            t0 = time.perf_counter()
+            prior = agents[vid].handle(tick.t, frame)
+            ms.append((time.perf_counter() - t0) * 1e3)
+            sizes.append(len(encode(prior)))
+            res = agents[vid].last_result
+            truth = tick.states[vid].pose
+            has_pose = res is not None and res.cov_filtered is not None  # none: (re-)initialising from GNSS
+            err_h = float(np.hypot(*_pose_error(res.pose_filtered, truth)[:2])) if has_pose else float("nan")
+            locks.append([tick.t, index[vid], float(prior.quality.mode == "map_matching"), err_h])
+            if tick.t < warmup_s:
+                continue
+            if not has_pose:
+                acc["no_pose"].append(1)
+                continue
+            err = _pose_error(res.pose_filtered, truth)
+            e_all.append(err[:2])
+            e_all_yaw.append(np.degrees(err[5:]))
+            e_gnss.append(np.asarray(frame.gnss.p_map[:2], float) - truth[:2])
+            nees.append(float(err @ np.linalg.solve(res.cov_filtered, err)))
+            nees_axes.append(err**2 / np.diag(res.cov_filtered))
+            matched.append(prior.quality.mode == "map_matching")
+            if matched[-1]:
+                e_body = geo.rot_z(truth[5]).T[:2, :2] @ err[:2]
+                e_pos.append(err[:2])
+                e_lon.append(e_body[:1])
+                e_lat.append(e_body[1:])
+                e_yaw.append(np.degrees(err[5:]))
+            err_p = _pose_error(prior.pose, truth)
+            e_prior.append(err_p[:2])
+            nees_prior.append(float(err_p @ np.linalg.solve(body_pose_cov(prior), err_p)))
+    return locks
+
+
+def _after_localized_rmse(runs: list[dict]) -> float:
+    """Horizontal RMSE of every vehicle's filtered pose from the frame it localizes on (the cold start's
+    :func:`~mapcontainer.experiments.paper.figures.localized_index`) to the episode's end: the steady state,
+    whatever the start took (NaN if no vehicle localized)."""
+    from .experiments.paper.figures import localized_index
+
+    errs = []
+    for r in runs:
+        a = np.asarray(r["locks"], dtype=float).reshape(-1, 4)
+        for i in np.unique(a[:, 1]):
+            v = a[a[:, 1] == i]
+            k = localized_index(v[:, 0], v[:, 3])
+            if k is not None:
+                errs.append(v[k:, 3])
+    return float(np.sqrt(np.mean(np.concatenate(errs) ** 2))) if errs else float("nan")
 
 
 def _pose_error(pose, truth) -> np.ndarray:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, PositiveInt, Tag, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, PositiveInt, Tag, field_validator, model_validator
 
 from ..config import ConfigError, deep_merge, find_preset, list_presets, load_yaml_model, read_yaml, validate_model
 from ..faults import Fault
+from ..hdmap.errors import EXTRA
 from ..hdmap.generator import MapSpec
 from ..hdmap.sumo import PlacementRule
 
@@ -21,8 +23,10 @@ __all__ = [
     "ClutterConfig",
     "DetectorConfig",
     "DetectorErrorConfig",
+    "MAP_FORMATS",
     "GnssConfig",
     "MapErrorConfig",
+    "MapFile",
     "OdometryConfig",
     "PedestrianSpec",
     "ScenarioConfig",
@@ -313,21 +317,21 @@ class SumoConnected(_Strict):
 class SumoTrafficConfig(_Strict):
     """Traffic driven by SUMO in process (libsumo; the ``roads`` extra): :mod:`mapcontainer.sim.sumo`.
 
-    ``net``: the SUMO network (.net.xml[.gz]); the world's HD map is imported from it (``landmarks``: the
-    importer's placement rule, ``pois``: an additional file with lamps, signs, traffic lights). Routes from
-    ``routes`` (route files: vehicles, persons, flows, vehicle types) or ``random`` trips, plus ``additional``
-    files for SUMO (signal programs, vehicle types); the signals run the network's programs unless those
-    replace them. SUMO steps at the sensor rate. Before t = 0 SUMO runs at least ``warmup_s`` and until
+    The network SUMO drives is the scenario's map when that is ``map: {format: sumo, path: NET}`` (``net`` is then
+    filled in from it); ``net`` names it only when the map is a Lanelet2 or GeoJSON file of the same network.
+    Routes from ``routes`` (route files: vehicles, persons, flows, vehicle types) or ``random`` trips, plus
+    ``additional`` files for SUMO (signal programs, vehicle types); the signals run the network's programs unless
+    those replace them. SUMO steps at the sensor rate. Before t = 0 SUMO runs at least ``warmup_s`` and until
     every connected vehicle has departed (at most ``max_warmup_s``; a connected vehicle not departed by
-    then is an error). A connected vehicle on the second last edge of its route gets a new destination (seeded),
-    so it keeps driving; one that leaves the simulation all the same (teleported after ``time_to_teleport_s``
-    of standing, removed) stops the episode with an error. Relative paths are relative to the scenario file.
-    ``enabled`` (per-run variation): on, SUMO's seed and the random trips' (unless ``random.seed``) are the
-    run's seed; off, both are ``seed``.
+    then is an error). A connected vehicle on the second last edge of its route gets a new destination (seeded,
+    among the edges inside the map's extent), so it keeps driving; one that leaves the simulation all the same
+    (teleported after ``time_to_teleport_s`` of standing, removed) stops the episode with an error. Relative
+    paths are relative to the scenario file. ``enabled`` (per-run variation): on, SUMO's seed and the random
+    trips' (unless ``random.seed``) are the run's seed; off, both are ``seed``.
     """
 
     source: Literal["sumo"]
-    net: Path
+    net: Path | None = None
     routes: list[Path] = Field(default_factory=list)
     random: SumoRandomTrips | None = None
     additional: list[Path] = Field(default_factory=list)
@@ -340,19 +344,28 @@ class SumoTrafficConfig(_Strict):
     )
     enabled: bool = True
     seed: int = Field(0, ge=0)
-    landmarks: PlacementRule = PlacementRule()
-    pois: Path | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            moved = [k for k in ("landmarks", "pois") if k in data]
+            if moved:
+                raise ValueError(
+                    f"{', '.join(moved)} describe the map: give them in map: {{format: sumo, path: NET, "
+                    f"{', '.join(f'{k}: ...' for k in moved)}}}"
+                )
+        return data
 
     @model_validator(mode="after")
     def _files(self):
         if not self.routes and self.random is None:
             raise ValueError("SUMO traffic needs routes: [FILE, ...] or random: {vehicles: N, ...}")
-        for what, paths in (("net", [self.net]), ("routes", self.routes), ("additional", self.additional)):
+        nets = [self.net] if self.net is not None else []
+        for what, paths in (("net", nets), ("routes", self.routes), ("additional", self.additional)):
             for p in paths:
                 if not p.is_file():
                     raise ValueError(f"{what} file {p} does not exist")
-        if self.pois is not None and not self.pois.is_file():
-            raise ValueError(f"pois file {self.pois} does not exist")
         if self.random is not None and not self.routes and self.connected.first is not None:
             if self.connected.first > self.random.vehicles:
                 raise ValueError(
@@ -362,6 +375,106 @@ class SumoTrafficConfig(_Strict):
         if self.max_warmup_s < self.warmup_s:
             raise ValueError(f"max_warmup_s ({self.max_warmup_s:g}) is below warmup_s ({self.warmup_s:g})")
         return self
+
+
+MAP_FORMATS = ("sumo", "lanelet2", "geojson")
+"""The ``format`` of a map read from a file (``map: {format: ..., path: ...}``)."""
+
+_FORMAT_PACKAGES = {"sumo": ("sumolib",), "lanelet2": ("lanelet2",), "geojson": ()}  # their readers' packages
+
+
+def _installed(package: str) -> bool:
+    try:
+        return importlib.util.find_spec(package) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def package_dir(package: str) -> Path:
+    """The directory of the installed Python package ``package`` (without importing it); ValueError if it is not
+    installed."""
+    spec = importlib.util.find_spec(package) if _installed(package) else None
+    locations = list(spec.submodule_search_locations or []) if spec is not None else []
+    if not locations:
+        raise ValueError(
+            f"package {package!r} is not installed (the networks shipped with SUMO come with the optional extra"
+            f" {EXTRA}: pip install 'map-container[{EXTRA}]', from a checkout pip install -e '.[{EXTRA}]')"
+        )
+    return Path(locations[0])
+
+
+class MapFile(_Strict):
+    """The scenario's map read from a file: a SUMO network (``.net.xml[.gz]``), a Lanelet2 OSM map or our GeoJSON
+    (:func:`mapcontainer.hdmap.formats.read_any_map`; SUMO and Lanelet2 need the ``roads`` extra).
+
+    ``path`` is relative to the scenario file's directory, or, with ``package``, to the directory of that installed
+    Python package (``package: sumo``: the sample networks eclipse-sumo ships, without copying them). SUMO only:
+    ``landmarks`` (the importer's placement rule for lamps and signs) or ``pois`` (an additional file of lamp, sign
+    and traffic-light POIs). Lanelet2 only: ``origin`` (lat, lon in degrees of the map frame's origin; default the
+    file's first node). ``bounds`` [xmin, ymin, xmax, ymax] (m, map frame): the part of the map the scenario uses;
+    the map keeps the elements with a vertex inside, and with SUMO traffic the connected vehicles' new destinations
+    are drawn inside it.
+    """
+
+    format: str
+    path: Path
+    package: str | None = None
+    landmarks: PlacementRule = PlacementRule()
+    pois: Path | None = None
+    origin: tuple[float, float] | None = None
+    bounds: tuple[float, float, float, float] | None = None
+
+    @field_validator("format")
+    @classmethod
+    def _format(cls, v: str) -> str:
+        if v not in MAP_FORMATS:
+            raise ValueError(
+                f"unknown map format {v!r}: map: {{format: {' | '.join(MAP_FORMATS)}, path: FILE}}, or map: without"
+                " format for the generated ring road"
+            )
+        return v
+
+    @property
+    def file(self) -> Path:
+        """The map file's path (resolved against ``package`` when given)."""
+        return package_dir(self.package) / self.path if self.package is not None else self.path
+
+    @model_validator(mode="after")
+    def _check(self):
+        missing = [p for p in _FORMAT_PACKAGES[self.format] if not _installed(p)]
+        if missing:
+            raise ValueError(
+                f"a {self.format} map needs the Python package {missing[0]!r} of the optional extra {EXTRA}:"
+                f" pip install 'map-container[{EXTRA}]' (from a checkout: pip install -e '.[{EXTRA}]')"
+            )
+        f = self.file
+        if not f.is_file():
+            where = f" (in package {self.package!r})" if self.package is not None else ""
+            raise ValueError(f"map file {f}{where} does not exist")
+        if self.format != "sumo" and (self.pois is not None or self.landmarks != PlacementRule()):
+            raise ValueError(f"landmarks: and pois: place landmarks on a SUMO network; this map is {self.format}")
+        if self.pois is not None and not self.pois.is_file():
+            raise ValueError(f"pois file {self.pois} does not exist")
+        if self.format != "lanelet2" and self.origin is not None:
+            raise ValueError(f"origin: is the origin of a Lanelet2 map's frame; this map is {self.format}")
+        if self.bounds is not None:
+            x0, y0, x1, y1 = self.bounds
+            if not (x0 < x1 and y0 < y1):
+                raise ValueError(
+                    f"bounds must be [xmin, ymin, xmax, ymax] with xmin < xmax, ymin < ymax: {self.bounds}"
+                )
+        return self
+
+
+def _map_kind(v: Any) -> str:
+    fmt = v.get("format") if isinstance(v, dict) else getattr(v, "format", None)
+    return "procedural" if fmt is None else "file"
+
+
+MapSection = Annotated[
+    Annotated[MapSpec, Tag("procedural")] | Annotated[MapFile, Tag("file")],
+    Discriminator(_map_kind),
+]
 
 
 def _traffic_kind(v: Any) -> str:
@@ -376,13 +489,14 @@ Traffic = Annotated[
 
 
 class ScenarioConfig(_Strict):
-    """A scenario. Actors come from the lists ``connected``, ``obstacle_vehicles`` and ``pedestrians`` on the
-    procedural ``map`` (varied per run by ``traffic``), or, with ``traffic.source: sumo``, from SUMO on the
-    network ``traffic.net``, whose import is then the map (the lists and ``map`` are left out)."""
+    """A scenario. The map is ``map:``: the generated ring road (:class:`MapSpec`, the default) or a file
+    (:class:`MapFile`: ``{format: sumo | lanelet2 | geojson, path: ...}``). Actors come from the lists
+    ``connected``, ``obstacle_vehicles`` and ``pedestrians`` on the ring road (varied per run by ``traffic``), or,
+    with ``traffic.source: sumo``, from SUMO on the map's network (the lists are then left out)."""
 
     name: str
     description: str = ""
-    map: MapSpec = MapSpec()
+    map: MapSection = MapSpec()
     sensors: SensorConfig
     connected: list[VehicleSpec] = Field(default_factory=list)
     obstacle_vehicles: list[VehicleSpec] = Field(default_factory=list)
@@ -397,20 +511,54 @@ class ScenarioConfig(_Strict):
         return self.traffic if isinstance(self.traffic, SumoTrafficConfig) else None
 
     @property
+    def map_file(self) -> MapFile | None:
+        """The map's file section, or None for the generated ring road."""
+        return self.map if isinstance(self.map, MapFile) else None
+
+    @property
     def n_connected(self) -> int:
         return self.sumo.connected.count if self.sumo is not None else len(self.connected)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _sumo_net_from_map(cls, data: Any) -> Any:
+        """With SUMO traffic on a SUMO map and no ``traffic.net``: the network is the map's file."""
+        if not isinstance(data, dict):
+            return data
+        m, tr = data.get("map"), data.get("traffic")
+        if isinstance(m, dict) and m.get("format") == "sumo" and isinstance(tr, dict) and tr.get("source") == "sumo":
+            if tr.get("net") is None and m.get("path") is not None:
+                try:
+                    f = MapFile.model_validate(m).file
+                except ValueError:
+                    return data  # the map section's own error says what is wrong
+                data = {**data, "traffic": {**tr, "net": str(f)}}
+        return data
+
     @model_validator(mode="after")
     def _indices(self):
+        mf = self.map_file
         if self.sumo is not None:
             listed = [k for k in ("connected", "obstacle_vehicles", "pedestrians") if getattr(self, k)]
-            listed += ["map"] if self.map != MapSpec() else []
             if listed:
+                raise ValueError(f"with traffic.source: sumo the actors come from SUMO: leave out {', '.join(listed)}")
+            if mf is None:
                 raise ValueError(
-                    f"with traffic.source: sumo the actors come from SUMO and the map from traffic.net: leave out"
-                    f" {', '.join(listed)}"
+                    "with traffic.source: sumo the map is the SUMO network: map: {format: sumo, path: NET.net.xml}"
+                    " (traffic.net names the network only when map: is a Lanelet2 or GeoJSON file of it)"
                 )
+            if mf.format == "sumo" and self.sumo.net is not None and self.sumo.net.resolve() != mf.file.resolve():
+                raise ValueError(
+                    f"traffic.net ({self.sumo.net}) is not the map's network ({mf.file}): with a SUMO map leave it out"
+                )
+            if mf.format != "sumo" and self.sumo.net is None:
+                raise ValueError(f"a {mf.format} map with SUMO traffic needs traffic.net: the SUMO network it drives")
             return self
+        if mf is not None:
+            raise ValueError(
+                f"a {mf.format} map needs traffic: {{source: sumo, ...}}: the scenario's own actors (connected,"
+                " obstacle_vehicles, pedestrians) drive the generated ring road"
+            )
         if not self.connected:
             raise ValueError("connected: a scenario needs at least one connected vehicle")
         lanes = 2 * self.map.lanes_per_direction
@@ -461,7 +609,7 @@ def _scenario_data(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
     if path in chain:
         raise ConfigError(f"{path}: scenarios extend each other in a cycle: {' -> '.join(str(p) for p in chain)}")
     data = read_yaml(path)
-    _resolve_sumo_paths(data, path.parent)
+    _resolve_paths(data, path.parent)
     base = data.pop("extends", None)
     if base is None:
         return data
@@ -470,20 +618,26 @@ def _scenario_data(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
     return deep_merge(_scenario_data(_scenario_path(base), (*chain, path)), data)
 
 
-_SUMO_PATHS = ("net", "pois")
+_SUMO_PATHS = ("net",)
 _SUMO_PATH_LISTS = ("routes", "additional")
 
 
-def _resolve_sumo_paths(data: dict[str, Any], base: Path) -> None:
-    """A SUMO traffic section's file names made absolute, relative to the scenario file's directory ``base``
-    (in place; other sections and absolute paths are left as they are)."""
-    tr = data.get("traffic")
-    if not isinstance(tr, dict) or tr.get("source") != "sumo":
-        return
+def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+    """The file names of a SUMO traffic section and of a file map made absolute, relative to the scenario file's
+    directory ``base`` (in place; a map ``path`` with ``package:`` is the package's, absolute paths stay)."""
 
     def resolve(p: Any) -> Any:
         return str(base / p) if isinstance(p, str) and not Path(p).is_absolute() else p
 
+    m = data.get("map")
+    if isinstance(m, dict) and "format" in m:
+        if "path" in m and m.get("package") is None:
+            m["path"] = resolve(m["path"])
+        if "pois" in m:
+            m["pois"] = resolve(m["pois"])
+    tr = data.get("traffic")
+    if not isinstance(tr, dict) or tr.get("source") != "sumo":
+        return
     for key in _SUMO_PATHS:
         if key in tr:
             tr[key] = resolve(tr[key])

@@ -61,6 +61,7 @@ from ..hdmap.model import HDMap
 from ..hdmap.query import MapIndex
 from .actors import ActorState
 from .config import SumoTrafficConfig
+from .maps import map_bounds
 
 __all__ = ["KEEP_STEPS", "SumoTraffic", "SumoTrafficError", "sumo_pose", "sumo_yaw"]
 
@@ -192,6 +193,7 @@ class SumoTraffic:
         self.dt = float(dt)
         self.seed = int(seed)
         self._index = MapIndex(hdmap)
+        self._bounds = map_bounds(hdmap)  # new destinations of connected vehicles: edges inside the map
         self._tmp = tempfile.TemporaryDirectory(prefix="mapc-sumo-")
         run_seed = self.seed if cfg.enabled else cfg.seed
         self.sumo_seed = run_seed
@@ -363,9 +365,10 @@ class SumoTraffic:
         if ls.vehicle.getRouteIndex(vid) < len(route) - 2:
             return
         edges = self._destinations(ls.vehicle.getVehicleClass(vid))
+        here = ls.vehicle.getRoadID(vid)
         for _ in range(REROUTE_TRIES if edges else 0):
             edge = edges[int(self._reroute_rng.integers(len(edges)))]
-            if edge == route[-1]:
+            if edge in (route[-1], here):  # the edge it is on: it would arrive at its end
                 continue
             try:
                 ls.vehicle.changeTarget(vid, edge)
@@ -380,14 +383,19 @@ class SumoTraffic:
 
     def _destinations(self, vclass: str) -> list[str]:
         """Normal edges a vehicle of ``vclass`` may drive on that lead on to another edge (not into a dead
-        end: a vehicle there could go nowhere else), sorted by id: the same list every run."""
+        end: a vehicle there could go nowhere else) and lie wholly inside the extent of the map (of a cropped map:
+        about its bounds), sorted by id: the same list every run."""
         if vclass not in self._dest_edges:
             ls = self._ls
+            x0, y0, x1, y1 = self._bounds
             out = []
             for e in sorted(ls.edge.getIDList()):
                 if e.startswith(":"):
                     continue
                 lanes = [f"{e}_{i}" for i in range(ls.edge.getLaneNumber(e))]
+                shape = np.array(ls.lane.getShape(lanes[0]))
+                if not (np.all((shape[:, 0] >= x0) & (shape[:, 0] <= x1) & (shape[:, 1] >= y0) & (shape[:, 1] <= y1))):
+                    continue
                 if any(self._allows(ls.lane.getAllowed(ln), vclass) and ls.lane.getLinks(ln) for ln in lanes):
                     out.append(e)
             self._dest_edges[vclass] = out  # empty: nowhere to go on; the vehicle drives to its end

@@ -92,6 +92,11 @@ def main(s: EvaluatorSettings) -> int:
     log = setup_logging("evaluator", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
     scenario = load_scenario(s.scenario) if s.scenario else None  # an unknown name: ConfigError at start
+    hdmap = None
+    if scenario is not None and s.out:  # the pictures' map, read now: at the stop there is only a grace period
+        from mapcontainer.sim.maps import world_map
+
+        hdmap = world_map(scenario)
     onboard = {k: set(v) for k, v in s.receivers.items()}
     ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard=onboard, burnin_s=s.burnin_s)
     clock = SimClock()
@@ -177,11 +182,6 @@ def main(s: EvaluatorSettings) -> int:
         try:
             from .plot import render_birdseye, render_errors
 
-            hdmap = None
-            if scenario is not None:
-                from mapcontainer.sim.maps import world_map
-
-                hdmap = world_map(scenario)
             render_birdseye(out / "birdseye.png", ev, hdmap, f"fleet {s.fleet}: {s.scenario}")
             render_errors(out / "errors.png", ev, f"fleet {s.fleet}: {s.scenario}")
         except Exception:  # the pictures are a convenience; the summary is already written

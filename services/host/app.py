@@ -300,7 +300,7 @@ def main(s: HostSettings) -> int:
                     item = outbox.get(timeout=0.2)
                 except queue.Empty:
                     if not worker.is_alive():
-                        log.error("the fusion worker exited")
+                        log.error("the fusion worker exited (exit code %s)", getattr(worker, "exitcode", None))
                         fig["worker_alive"] = 0.0
                         rc = 1
                         svc.stop()

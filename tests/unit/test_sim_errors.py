@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from mapcontainer import geometry as geo
+from mapcontainer.config import ConfigError
 from mapcontainer.sim import (
     ERROR_SOURCES,
     World,
@@ -33,7 +34,11 @@ def _ideal(name: str = "paper-urban", *on: str, traffic: bool = False):
 
 def test_every_preset_has_every_source_and_traffic_on():
     for name in list_scenarios():
-        sc = load_scenario(name)
+        try:
+            sc = load_scenario(name)
+        except ConfigError as exc:  # a SUMO preset without the roads extra: checked where it is installed (CI)
+            assert "[roads]" in str(exc), exc
+            continue
         assert enabled_error_sources(sc) == ERROR_SOURCES, name
         assert sc.traffic.enabled, name
 

@@ -56,17 +56,15 @@ def road(tmp_path_factory) -> Path:
     return d
 
 
-def _scenario(d: Path, traffic: str, name: str = "road", extra: str = ""):
-    """A scenario file in ``d`` with this traffic section (YAML flow mapping), loaded."""
+def _scenario(d: Path, traffic: str, name: str = "road", extra: str = "", net: str = "road.net.xml"):
+    """A scenario file in ``d`` on the SUMO network ``net`` with this traffic section (YAML flow mapping), loaded."""
     path = d / f"{name}.yaml"
-    path.write_text(f"name: {name}\nduration_s: 5\n{extra}traffic: {traffic}\n")
+    path.write_text(f"name: {name}\nduration_s: 5\nmap: {{format: sumo, path: {net}}}\n{extra}traffic: {traffic}\n")
     return load_scenario(path)
 
 
 def _road(road: Path, connected: str = "{ids: [b]}", more: str = ""):
-    return _scenario(
-        road, f"{{source: sumo, net: road.net.xml, routes: [r.rou.xml], connected: {connected}, warmup_s: 0{more}}}"
-    )
+    return _scenario(road, f"{{source: sumo, routes: [r.rou.xml], connected: {connected}, warmup_s: 0{more}}}")
 
 
 # ------------------------------------------------------------------------------------------ conversion
@@ -179,6 +177,7 @@ def test_a_connected_id_that_never_departs_is_an_error(road):
     ("traffic", "message"),
     [
         ("{source: sumo, net: nowhere.net.xml, routes: [r.rou.xml], connected: {first: 1}}", "net file .*nowhere"),
+        ("{source: sumo, net: r.rou.xml, routes: [r.rou.xml], connected: {first: 1}}", "not the map's network"),
         ("{source: sumo, net: road.net.xml, routes: [none.rou.xml], connected: {first: 1}}", "routes file"),
         ("{source: sumo, net: road.net.xml, connected: {first: 1}}", "needs routes"),
         (
@@ -202,11 +201,13 @@ def test_bad_traffic_sections_are_refused_naming_the_problem(road, traffic, mess
 
 
 def test_a_sumo_scenario_takes_its_actors_and_map_from_sumo_only(road):
-    traffic = "{source: sumo, net: road.net.xml, routes: [r.rou.xml], connected: {first: 1}}"
+    traffic = "{source: sumo, routes: [r.rou.xml], connected: {first: 1}}"
     with pytest.raises(ConfigError, match="leave out connected"):
         _scenario(road, traffic, name="both", extra="connected: [{lane: 0}]\n")
-    with pytest.raises(ConfigError, match="leave out map"):
-        _scenario(road, traffic, name="both", extra="map: {name: ring, length_m: 100}\n")
+    path = road / "ring.yaml"
+    path.write_text(f"name: ring\nmap: {{name: ring, length_m: 100}}\ntraffic: {traffic}\n")
+    with pytest.raises(ConfigError, match=r"the map is the SUMO network: map: \{format: sumo"):
+        load_scenario(path)
 
 
 def test_without_libsumo_the_error_names_the_extra(road, monkeypatch):

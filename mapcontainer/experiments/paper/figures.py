@@ -430,7 +430,7 @@ def evaluate_targets(res: dict) -> list[dict]:
                     _row(f"blind spot ({key}, {density}): connected car <= 0.18 m", b["connected_car_m"], 0.18, "<=")
                 )
                 rows.append(_row(f"blind spot ({key}, {density}): obstacle <= 0.35 m", b["obstacle_m"], 0.35, "<="))
-    for key in SIM_SCENARIOS:
+    for key in res["simulation"]:
         c = res["simulation"][key]["consistency"]["objects_cooperative_3d"]
         if "anees" in c:
             rows.append(
@@ -449,11 +449,11 @@ def evaluate_targets(res: dict) -> list[dict]:
                     ">=",
                 )
             )
-    for key in SIM_SCENARIOS:
+    for key in res["simulation"]:
         st = res["simulation"].get(key, {}).get("startup")
-        if st and st["time_to_localize_s"]["vehicles"]:
+        if st and st["time_to_localize_s"]["vehicles"] and key in TIME_TO_LOCALIZE_P95_MAX_S:
             rows += _cold_start_targets(key, st)
-    for key in SIM_SCENARIOS:
+    for key in res["simulation"]:
         eff = res["simulation"].get(key, {}).get("efficiency")
         if eff:
             rows += [

@@ -145,8 +145,9 @@ class _Scorer:
 
 
 def _sim_run(scenario, seed: int, s: PaperSettings, centralized: bool = False) -> dict:
-    """paper-urban / paper-suburban: every vehicle's estimates, and the targets of the cooperative
-    and the ego-only views (the same host estimator fed every vehicle's messages or the ego's);
+    """paper-urban / paper-suburban (or the presets given in their place): every vehicle's estimates, and the
+    targets of the cooperative and the ego-only views (the same host estimator fed every vehicle's messages or the
+    ego's);
     ``centralized``: the same run in centralized mode too (:func:`_centralized`)."""
     views = (View("cooperative"), View("ego_only", (EGO,)))
     res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start)
@@ -235,7 +236,7 @@ def tasks(s: PaperSettings) -> list[tuple]:
     """Every run of the experiment, longest first so that the workers finish together: the main
     Monte Carlo runs (all error sources on), the test-site scenarios at both landmark densities,
     and the sensitivity runs (each error setting)."""
-    from .settings import BLINDSPOT_SCENARIOS, DENSITIES, SIM_SCENARIOS, rv_scenario
+    from .settings import BLINDSPOT_SCENARIOS, DENSITIES, rv_scenario
 
     cfg = asdict(s)
     out: list[tuple] = []
@@ -247,13 +248,15 @@ def tasks(s: PaperSettings) -> list[tuple]:
                 for key in BLINDSPOT_SCENARIOS:
                     out.append(("blindspot", f"{key}/{density}", rv_scenario(key, density), variant, s.seed + i, cfg))
 
-    for i in range(s.runs):  # suburban first in each pair: the longer run
-        for key in ("suburban", "urban"):
-            out.append(("sim", key, SIM_SCENARIOS[key], "all", s.seed + i, cfg))
+    sims = list(s.sim_scenarios.items())[::-1]  # the paper's suburban first in each pair: the longer run
+    for i in range(s.runs):
+        for key, preset in sims:
+            out.append(("sim", key, preset, "all", s.seed + i, cfg))
     rv("all", s.real_vehicle_runs)
     for variant in VARIANTS[1:]:
         for i in range(s.sensitivity_run_count):
-            for key in ("suburban", "urban"):
-                out.append(("sim", key, SIM_SCENARIOS[key], variant, s.seed + i, cfg))
-        rv(variant, s.sensitivity_run_count, ("dense",))
+            for key, preset in sims:
+                out.append(("sim", key, preset, variant, s.seed + i, cfg))
+        if s.paper:
+            rv(variant, s.sensitivity_run_count, ("dense",))
     return out

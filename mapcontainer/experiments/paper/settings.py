@@ -78,6 +78,7 @@ class PaperSettings:
     sensitivity_runs: int | None = None  # runs per scenario and error setting (None: min(runs, 5))
     radius_m: float = 50.0  # the ego's perception range for rms2 and the multi-object metric
     start: str = "cold"
+    scenarios: tuple[str, ...] = ()  # presets of the simulation part instead of the paper's (SIM_SCENARIOS)
 
     def __post_init__(self):
         if self.runs < 1 or self.workers < 1:
@@ -93,9 +94,24 @@ class PaperSettings:
             raise ValueError(f"sensitivity_runs must be >= 0, got {self.sensitivity_runs}")
         if self.start not in ("warm", "cold"):
             raise ValueError(f"start must be 'warm' or 'cold', got {self.start!r}")
+        if len(set(self.scenarios)) != len(self.scenarios):
+            raise ValueError(f"scenarios repeat: {self.scenarios}")
+
+    @property
+    def paper(self) -> bool:
+        """The paper's own experiment (its scenarios, test sites, targets), not other presets'."""
+        return not self.scenarios
+
+    @property
+    def sim_scenarios(self) -> dict[str, str]:
+        """Key -> preset of the simulation part: the paper's urban and suburban, or the given presets by name."""
+        return dict(SIM_SCENARIOS) if self.paper else {name: name for name in self.scenarios}
 
     @property
     def real_vehicle_runs(self) -> int:
+        """Runs per test-site scenario and density (none when other presets replace the paper's)."""
+        if not self.paper:
+            return 0
         return self.rv_runs if self.rv_runs is not None else min(self.runs, 20)
 
     @property
