@@ -59,7 +59,7 @@ import numpy as np
 from .. import jsonout
 from ..channel import NetworkProfile
 from ..evaluation import age_of_information, horizontal_sq_error, obstacle_errors, rmse_sq, vehicle_pose
-from ..pipeline import View, run_pipeline
+from ..pipeline import PipelineResult, View, run_pipeline
 from .runner import run_all
 
 __all__ = [
@@ -148,6 +148,28 @@ def _nan_round(x: float, nd: int = 4) -> float:
     return float(round(x, nd)) if math.isfinite(x) else float("nan")
 
 
+def link_figures(res: PipelineResult, times: Sequence[float]) -> dict[str, float]:
+    """A run's link figures (module docstring): delivered_fraction, dropped_loss_fraction,
+    dropped_queue_fraction, latency_s_p50/p99 and age_s_mean/p95 at the scored fuse ``times``."""
+    senders = sorted(res.tx_msgs)
+    ch = res.channel_stats
+    dropped_loss, dropped_queue = ch["dropped_msgs"]["loss"], ch["dropped_msgs"]["queue_full"]
+    delivered = ch["delivered_msgs"] - ch["duplicated_msgs"]
+    decided = delivered + dropped_loss + dropped_queue
+    lat = np.array([ta - ts for _, ts, ta in res.deliveries], dtype=float)
+    age = age_of_information(res.deliveries, senders, times) if senders else np.zeros((0, 0))
+    nan = float("nan")
+    return {
+        "delivered_fraction": _nan_round(delivered / decided) if decided else nan,
+        "dropped_loss_fraction": _nan_round(dropped_loss / decided) if decided else nan,
+        "dropped_queue_fraction": _nan_round(dropped_queue / decided) if decided else nan,
+        "latency_s_p50": _nan_round(float(np.percentile(lat, 50))) if lat.size else nan,
+        "latency_s_p99": _nan_round(float(np.percentile(lat, 99))) if lat.size else nan,
+        "age_s_mean": _nan_round(float(age.mean())) if age.size else nan,
+        "age_s_p95": _nan_round(float(np.percentile(age, 95))) if age.size else nan,
+    }
+
+
 def run_network_point(
     profile: NetworkProfile,
     mode: str,
@@ -184,13 +206,7 @@ def run_network_point(
                 veh_seen += 1
                 veh_sq.append(horizontal_sq_error(p, vehicle_pose(truth, vid)))
     senders = sorted(res.tx_msgs)
-    ch = res.channel_stats
-    dropped_loss = ch["dropped_msgs"]["loss"]
-    dropped_queue = ch["dropped_msgs"]["queue_full"]
-    delivered = ch["delivered_msgs"] - ch["duplicated_msgs"]
-    decided = delivered + dropped_loss + dropped_queue
-    lat = np.array([ta - ts for _, ts, ta in res.deliveries], dtype=float)
-    age = age_of_information(res.deliveries, senders, [r.t for r in scored]) if senders else np.zeros((0, 0))
+    link = link_figures(res, [r.t for r in scored])
     n_send = max(1, len(senders))
     tx_bytes, tx_msgs = sum(res.tx_bytes.values()), sum(res.tx_msgs.values())
     rejected = sum(sum(st.get("rejected", {}).values()) for st in res.host_stats.values())
@@ -219,13 +235,7 @@ def run_network_point(
         else float("nan"),
         "signed": signing,
         "msgs_per_s_per_vehicle": _nan_round(tx_msgs / duration / n_send, 2),
-        "delivered_fraction": _nan_round(delivered / decided) if decided else float("nan"),
-        "dropped_loss_fraction": _nan_round(dropped_loss / decided) if decided else float("nan"),
-        "dropped_queue_fraction": _nan_round(dropped_queue / decided) if decided else float("nan"),
-        "latency_s_p50": _nan_round(float(np.percentile(lat, 50))) if lat.size else float("nan"),
-        "latency_s_p99": _nan_round(float(np.percentile(lat, 99))) if lat.size else float("nan"),
-        "age_s_mean": _nan_round(float(age.mean())) if age.size else float("nan"),
-        "age_s_p95": _nan_round(float(np.percentile(age, 95))) if age.size else float("nan"),
+        **link,
         "host_rejected": int(rejected),
         "wall_s": _nan_round(time.perf_counter() - t0, 2),
     }

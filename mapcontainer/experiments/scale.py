@@ -44,10 +44,11 @@ import numpy as np
 
 from .. import jsonout
 from ..channel import load_profile
-from ..evaluation import Totals, age_of_information, score_frame
+from ..evaluation import Totals, score_frame
 from ..pipeline import View, run_pipeline
 from ..sim import ScenarioConfig, load_scenario
 from ..sim.config import scale_scenario
+from .network import link_figures
 from .runner import run_all
 
 __all__ = [
@@ -153,12 +154,6 @@ def run_scale_point(
         totals.add(score_frame(fused, truth, truth_in_scope=t_in, est_in_scope=_near_any(p_est, cv, radius_m)))
     s = totals.summary()
     senders = sorted(res.tx_msgs)
-    ch = res.channel_stats
-    dropped_loss, dropped_queue = ch["dropped_msgs"]["loss"], ch["dropped_msgs"]["queue_full"]
-    delivered = ch["delivered_msgs"] - ch["duplicated_msgs"]
-    decided = delivered + dropped_loss + dropped_queue
-    lat = np.array([ta - ts for _, ts, ta in res.deliveries], dtype=float)
-    age = age_of_information(res.deliveries, senders, [r.t for r in scored]) if senders else np.zeros((0, 0))
     total_bps = sum(res.tx_bytes.values()) / duration
     cycles = len(res.fuse_cpu_ms["fused"])
     return {
@@ -172,13 +167,7 @@ def run_scale_point(
         "bytes_per_s_per_vehicle": _round(total_bps / max(1, len(senders)), 1),
         "bytes_per_s_total": _round(total_bps, 1),
         "load_fraction": _round(8.0 * total_bps / profile.bandwidth_bps),
-        "delivered_fraction": _round(delivered / decided if decided else None),
-        "dropped_queue_fraction": _round(dropped_queue / decided if decided else None),
-        "dropped_loss_fraction": _round(dropped_loss / decided if decided else None),
-        "latency_s_p50": _round(float(np.percentile(lat, 50)) if lat.size else None),
-        "latency_s_p99": _round(float(np.percentile(lat, 99)) if lat.size else None),
-        "age_s_mean": _round(float(age.mean()) if age.size else None),
-        "age_s_p95": _round(float(np.percentile(age, 95)) if age.size else None),
+        **link_figures(res, [r.t for r in scored]),
         "host_cpu_ms_per_cycle": _round(1e3 * res.host_cpu_s["fused"] / cycles if cycles else None, 2),
         "fuse_cpu_ms_p50": _round(float(np.percentile(res.fuse_cpu_ms["fused"], 50)) if cycles else None, 2),
         "vehicle_rmse_m": _round(s["vehicle_rmse_m"]),
