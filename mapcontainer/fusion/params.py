@@ -208,7 +208,8 @@ class FusionParams(BaseModel):
         "sparse",
         description=(
             "elimination order of each solve. 'sparse': COLAMD over the whole window, so a track's states are"
-            " eliminated next to its observers' frames and the cost follows the scene's local structure;"
+            " eliminated next to its observers' frames and the cost follows the scene's local structure (a"
+            " window with at most 24 latest states is ordered as 'exact', which is cheaper there);"
             " 'exact': the latest state of every vehicle and track ordered last, one dense root clique over"
             " all of them (cubic in their number): the test oracle. Both solve the same system exactly"
             " (mapcontainer/fusion/solver.py)"
