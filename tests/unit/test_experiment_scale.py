@@ -62,5 +62,6 @@ def test_only_a_sumo_scenario_scales():
 
 
 def test_a_sumo_scenario_gets_its_first_n_vehicles_connected():
+    pytest.importorskip("sumolib")  # a SUMO preset's map needs the roads extra
     sc = scenario_with_connected("sumo-grid", 7)
     assert sc.n_connected == 7 and sc.sumo.connected.first == 7 and sc.name == "sumo-grid"
