@@ -317,8 +317,8 @@ class Container:
         look = np.flatnonzero(near & (sole != "") & (sole != m.sender))
         if not len(look):
             return
-        vehicles = [v.p_map[:2] for v in self._vehicle_candidates(t) if v.vid != m.sender]
-        occluders = np.vstack([np.array(vehicles).reshape(-1, 2), p[near]])
+        vids, where, _ = self._reported(t)
+        occluders = np.vstack([where[vids != m.sender, :2], p[near]])
         tracks = [(int(ids[i]), str(sole[i])) for i in look]
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
         self.monitor.look(m.sender, t, pose, pose_cov, p_map, tracks, p[look], occluders)

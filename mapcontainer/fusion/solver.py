@@ -15,8 +15,8 @@ elimination and recursion grow with the detections, not with the fleet. ``"exact
 state of every vehicle and track last, so their covariances come from one dense root clique of
 6 x (vehicles + tracks) dimensions, factored and inverted every cycle: cubic in the scene's size, and the
 cheaper order for a small window ("sparse" uses it up to ``DENSE_ROOT_KEYS`` latest states). Both
-solve the same linear systems exactly (the covariances agree to ~1e-12); "exact" is the simple,
-independent form kept as the test oracle.
+solve the same linear systems exactly (the covariances agree to ~1e-12); "exact" is the simpler order,
+kept as the test oracle.
 """
 
 from __future__ import annotations
@@ -147,13 +147,13 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
         mine.setdefault(cid, []).append((keys.index(key), key))
         while cid not in cliques:
             R = c.R()
-            below = len(keys) > R.shape[0] // 6
-            parent = clique.parent() if below else None
-            pc = parent.conditional() if below else None
-            pkeys = pc.keys() if below else None
-            cliques[cid] = (keys, R, c.S() if below else None, pkeys[0] if below else None)
-            if not below:
+            if len(keys) == R.shape[0] // 6:  # no separator: a root
+                cliques[cid] = (keys, R, None, None)
                 break
+            parent = clique.parent()
+            pc = parent.conditional()
+            pkeys = pc.keys()
+            cliques[cid] = (keys, R, c.S(), pkeys[0])
             inner.add(pkeys[0])
             clique, c, keys, cid = parent, pc, pkeys, pkeys[0]
     # pass 2: top down
