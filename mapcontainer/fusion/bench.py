@@ -68,7 +68,9 @@ def bench_fusion(
     sizes the square: ``"dense"``, so that a vehicle sees about half of the obstacles (at most all of
     them); ``"city"``, so that a vehicle sees about :data:`CITY_OBJECTS_IN_RANGE` obstacles within
     ``range_m`` whatever the fleet's size (constant density: the square grows with the fleet).
-    Timings (ms, wall clock) skip the first ``window`` ticks, while the window fills. ``blas_threads``
+    Timings (ms, wall clock) skip the first ``window`` ticks, while the window fills; ``phases_ms_p50``
+    splits the cycle by phase (decoding the messages, the container's phases in
+    ``Container.stats()["last_phases_ms"]``; medians, so they need not add up to the cycle's). ``blas_threads``
     limits OpenBLAS for the whole process first (see :mod:`.blas`; None leaves it alone).
 
     Reported poses err like map matching's: the whitened error is sqrt(a) b_k + sqrt(1 - a) n_k with
@@ -123,6 +125,7 @@ def bench_fusion(
     box = Container(p, "bench", "cv0", known_senders=set(vids))
 
     cycle_ms, cpu_ms, iters, factors, variables, n_dets = [], [], [], [], [], []
+    phases: dict[str, list[float]] = {}
     errors, nees, veh_err = [], [], []
     last_match: dict[int, int] = {}
     switches = 0
@@ -167,6 +170,7 @@ def bench_fusion(
         t0, c0 = time.perf_counter(), time.process_time()
         for b in payloads:
             box.ingest(b, t)
+        ingest_ms = (time.perf_counter() - t0) * 1e3
         fused = box.fuse(t)
         elapsed = (time.perf_counter() - t0) * 1e3
         cpu = (time.process_time() - c0) * 1e3
@@ -177,6 +181,8 @@ def bench_fusion(
         st = box.stats()
         cycle_ms.append(elapsed)
         cpu_ms.append(cpu)
+        for phase, ms in {"ingest": ingest_ms, **st["last_phases_ms"]}.items():
+            phases.setdefault(phase, []).append(ms)
         n_dets.append(detections)
         iters.append(st["last_iterations"])
         factors.append(st["factors"])
@@ -217,6 +223,7 @@ def bench_fusion(
         "cycle_ms_p99": float(np.percentile(cycle_ms, 99)),
         "cycle_ms_max": float(np.max(cycle_ms)),
         "cycle_cpu_ms_p50": float(np.percentile(cpu_ms, 50)),
+        "phases_ms_p50": {phase: float(np.median(ms)) for phase, ms in phases.items()},
         "batch_ms_p50": float(np.median(batch_ms)) if len(batch_ms) else None,
         "cycle_over_batch": float(np.median(paired)) if len(paired) else None,
         "iterations_mean": float(np.mean(iters)),

@@ -10,7 +10,6 @@ fused driving environment with :meth:`Container.fuse`.
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from dataclasses import dataclass
 
@@ -22,6 +21,7 @@ from schemas.models import MAX_OBJECTS
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer
 from .graph import FusionGraph
+from .laps import Laps
 from .misbehaviour import MisbehaviourMonitor
 from .motion import accel_psd, cv_predict
 from .params import FusionParams
@@ -111,6 +111,7 @@ class Container:
         self._seq = 0
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
+        self._last_phases_ms: dict[str, float] = {}
         self._candidates: dict[float, list[VehicleCandidate]] = {}
         self._reported_at: dict[float, tuple] = {}  # _reported, per instant of the cycle
         # the confirmed tracks at the cycle's start, for the ghost check (_look): ids, states [p, v], their
@@ -163,7 +164,7 @@ class Container:
         ``tolerance_s``: the frame's messages lie within this of t (``FrameGate.tolerance_s``: the vehicles'
         clocks are a few ms apart); a vehicle whose frame is stamped after t is predicted back to t.
         """
-        t0 = time.perf_counter()
+        laps = Laps()
         t = float(t)
         t_min = t - self.params.window_s
         msgs = [m for m in self.buffer.pop_until(t + tolerance_s)]
@@ -197,24 +198,30 @@ class Container:
                 np.array(ts),
                 np.array(sole, dtype=str),
             )
+        laps.mark("priors")
         batch = []
         for m, key in zip(fresh, keys, strict=True):
             if key is not None:
                 self.tracker.observe(m.t_meas)
                 batch += self._associate(m)
+        laps.mark("associate")
         self.graph.add_detections(batch)
         self._counts["detections"] += len(batch)
         self._cross_detections(t_min)
+        laps.mark("detections")
         if self.params.misbehaviour:
             self.monitor.update(t)
             for tid in self.monitor.denied:  # nobody else sees it where it should be seen
                 if self.tracker.remove(tid):
                     self.graph.remove_track(tid)
                     self._counts["tracks_denied"] += 1
+        laps.mark("misbehaviour")
         for tid in self.tracker.expire(t):
             self.graph.remove_track(tid)
         self.graph.prune(t_min)
+        laps.mark("prune")
         self._last = self.graph.solve()
+        laps.mark("solve")
         self._sync_tracker()
         gone = self.tracker.merge_duplicates(t)
         trusted = [v for v in self._vehicle_candidates(t) if v.vid not in self.monitor.flagged]
@@ -222,8 +229,14 @@ class Container:
         for tid in gone:
             self.graph.remove_track(tid)
         self._counts["fused_cycles"] += 1
+        laps.mark("tracks")
         out = self._output(t)
-        self._last_cycle_ms = (time.perf_counter() - t0) * 1e3
+        laps.mark("output")
+        self._last_cycle_ms = sum(laps.ms.values())
+        solve = self._last.phases_ms or {}
+        laps.ms["solve_other"] = laps.ms.pop("solve") - sum(solve.values())  # around the solve's own phases
+        laps.add(solve)
+        self._last_phases_ms = laps.ms
         return out
 
     def _sync_tracker(self) -> None:
@@ -453,6 +466,7 @@ class Container:
             "last_error_before": last.error_before if last else float("nan"),
             "last_error_after": last.error_after if last else float("nan"),
             "last_cycle_ms": self._last_cycle_ms,
+            "last_phases_ms": dict(self._last_phases_ms),
             "cliques_below_root": last.cliques_below_root if last else 0,
             "reweighted": last.reweighted if last else 0,
             "factors": self.graph.num_factors,

@@ -68,6 +68,7 @@ from schemas import ObjectClass
 from . import detections, marginalize, solver
 from .buffer import time_key
 from .detections import DetectionRecord
+from .laps import Laps
 from .marginalize import TrackPrior
 from .motion import accel_psd, cv_model, speed_prior
 from .params import FusionParams
@@ -618,14 +619,17 @@ class FusionGraph:
     def solve(self) -> SolveReport:
         """IRLS reweighting, then Levenberg-Marquardt from the current values and the latest states'
         covariances (:func:`.solver.solve`)."""
+        laps = Laps()
         reweighted = self._reweight() + self._relinearize_pose_priors()
         graph = self._factor_graph()
         latest = self.latest_keys()
         n_vars = self.num_variables
+        laps.mark("reweight")
         if not self._factors:
             self.covariances = {}
-            return SolveReport(0, 0.0, 0.0, 0, n_vars, 0, reweighted)
+            return SolveReport(0, 0.0, 0.0, 0, n_vars, 0, reweighted, laps.ms)
         sol = solver.solve(graph, self.values, latest, self.params)
+        laps.add(sol.phases_ms)
         self.values, self.covariances = sol.values, sol.covariances
         if sol.root_dims is not None:
             self.root_dims = sol.root_dims
@@ -637,6 +641,7 @@ class FusionGraph:
             n_vars,
             sol.cliques_below_root,
             reweighted,
+            laps.ms,
         )
 
     # ------------------------------------------------------------------ results

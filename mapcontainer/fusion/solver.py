@@ -27,6 +27,7 @@ import gtsam
 import numpy as np
 from scipy.linalg import lapack
 
+from .laps import Laps
 from .params import FusionParams
 
 __all__ = ["Solution", "SolveReport", "latest_covariances", "solve"]
@@ -47,6 +48,7 @@ class SolveReport:
     variables: int
     cliques_below_root: int  # Bayes-tree cliques below a root visited for the latest covariances
     reweighted: int = 0
+    phases_ms: dict[str, float] | None = None  # wall time by phase (Solution.phases_ms and the reweighting)
 
 
 @dataclass(frozen=True)
@@ -61,16 +63,21 @@ class Solution:
     error_after: float
     cliques_below_root: int  # -1: the system was degenerate
     root_dims: int | None  # size of the largest root clique visited; None: no Bayes tree to visit
+    phases_ms: dict[
+        str, float
+    ]  # wall time: ordering, linearize, eliminate, step (back-substitution, errors), covariances
 
 
 def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[int], params: FusionParams) -> Solution:
     """Levenberg-Marquardt on ``graph`` from ``values`` (module docstring), then the marginal covariances
     of the ``latest`` keys. ``params``: solver (the elimination order), lambda_initial, max_iterations,
     model_tol, relative_error_tol. ``graph`` must have a factor."""
+    laps = Laps()
     if params.solver == "exact" or len(latest) <= DENSE_ROOT_KEYS:
         ordering = gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, latest)
     else:
         ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+    laps.mark("ordering")
     err = None
     lam = params.lambda_initial
     bt = None
@@ -78,17 +85,21 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[
     while it < params.max_iterations:
         it += 1
         gfg = graph.linearize(values)
+        laps.mark("linearize")
         lin0 = gfg.error(values.zeroVectors())  # the linear model's cost at the current values
         if err is None:  # without GTSAM-robust factors that is the cost itself
             err = err0 = lin0
         if lam > 0:
             for key in values.keys():
                 gfg.push_back(gtsam.JacobianFactor(key, np.sqrt(lam) * np.eye(6), np.zeros(6), _UNIT6))
+        laps.mark("step")
         try:
             tree = gfg.eliminateMultifrontal(ordering)
         except RuntimeError:  # indeterminate: damp and retry
             lam = max(10 * lam, 1.0)
+            laps.mark("eliminate")
             continue
+        laps.mark("eliminate")
         delta = tree.optimize()
         new = values.retract(delta)
         new_err = graph.error(new)
@@ -108,16 +119,19 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[
                 break
         else:
             lam = max(10 * lam, 1.0)
+        laps.mark("step")
     try:
         if bt is None:  # no undamped elimination was accepted: one more at the solution
             bt = graph.linearize(values).eliminateMultifrontal(ordering)
+            laps.mark("eliminate")
     except (RuntimeError, np.linalg.LinAlgError):  # a degenerate system: say so with huge covariances
         covariances, below, root_dims = None, -1, None
     else:
         covariances, below, root_dims = latest_covariances(bt, latest)
     if covariances is None:
         covariances = {k: 1e6 * np.eye(6) for k in latest}
-    return Solution(values, covariances, it, float(err0), float(err), below, root_dims)
+    laps.mark("covariances")
+    return Solution(values, covariances, it, float(err0), float(err), below, root_dims, laps.ms)
 
 
 def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[dict[int, np.ndarray] | None, int, int]:

@@ -152,6 +152,9 @@ def test_bench_fusion_prints_json_last(tmp_path):
         assert _finite(result[key]), key
     assert result["vehicles"] == 2 and result["objects"] == 4 and result["window"] == 3
     assert result["object_rmse_m"] < 1.0
+    phases = result["phases_ms_p50"]  # where the cycle goes: decoding, the container's phases, the solve's
+    assert {"ingest", "associate", "prune", "linearize", "eliminate", "covariances", "output"} <= phases.keys()
+    assert all(_finite(ms) and ms >= 0 for ms in phases.values())
 
 
 def test_bench_fusion_sizes_prints_every_run_the_growth_and_the_oracle(tmp_path):

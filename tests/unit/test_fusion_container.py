@@ -154,6 +154,19 @@ def test_late_and_reordered_arrivals_give_the_same_picture():
     assert b.stats()["cross_detections"] >= 57
 
 
+def test_the_cycle_is_split_into_its_phases():
+    box = Container(FusionParams(), "f", "host")
+    for m in _two_vehicle_stream(15):
+        box.ingest(encode(m), m.t_meas)
+        box.fuse(m.t_meas)
+    st = box.stats()
+    phases = st["last_phases_ms"]
+    solve = {"reweight", "ordering", "linearize", "eliminate", "step", "covariances", "solve_other"}
+    assert {"priors", "associate", "detections", "misbehaviour", "prune", "tracks", "output"} | solve == phases.keys()
+    assert all(ms >= 0 for ms in phases.values())
+    assert sum(phases.values()) == pytest.approx(st["last_cycle_ms"], rel=1e-9)
+
+
 def test_fused_state_is_valid_and_round_trips():
     box = Container(FusionParams(), "f", "host")
     for m in _two_vehicle_stream(15):
