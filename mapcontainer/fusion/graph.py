@@ -57,7 +57,6 @@ its last elimination (:mod:`.solver`).
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -74,6 +73,7 @@ from .motion import accel_psd, cv_model, speed_prior
 from .params import FusionParams
 from .poses import pose3_from_vector, pose_cov_to_tangent
 from .solver import SolveReport
+from .window import Chain, PoseState, TrackState
 
 __all__ = ["FusionGraph"]
 
@@ -97,73 +97,20 @@ def _batches(sizes: np.ndarray) -> list[tuple[int, np.ndarray]]:
     return marginalize.batches(sizes, _BATCH_UNITS)
 
 
-@dataclass
-class _PoseState:
-    t: float
-    key: int
-    pose: np.ndarray  # reported [x, y, z, roll, pitch, yaw]
-    cov: np.ndarray  # reported 6x6 over pose
-    v_map: np.ndarray
-    cov_xi: np.ndarray  # reported covariance in Pose3's tangent [rotation, translation]
-    L_xi: np.ndarray  # its Cholesky factor, L L^T = cov_xi
-    T: gtsam.Pose3  # the reported pose
-    M: np.ndarray  # and its 4x4 matrix
-    dets: list = field(default_factory=list)  # DetectionRecords made from this frame
-    prior_lin: np.ndarray | None = None  # linearization point (4x4) of a self-localization factor with a bias
-    vid: str = ""
-
-
-@dataclass
-class _TrackState:
-    t: float
-    key: int  # Vector6 [p, v]
-    dets: list = field(default_factory=list)  # DetectionRecords of this state
-
-
-@dataclass
-class _Chain:
-    """States of one vehicle or track, sorted by time key, and the motion factors between neighbours."""
-
-    tkeys: list[int] = field(default_factory=list)
-    states: dict[int, object] = field(default_factory=dict)
-    motion: dict[int, int] = field(default_factory=dict)  # tkey of the earlier state -> factor id
-    prior: TrackPrior | None = None  # tracks: on the first state
-    prior_fid: int = -1
-    pose_prior_fids: dict[int, int] = field(default_factory=dict)  # vehicles: tkey -> self-localization factor
-    bias_key: int | None = None  # vehicles: the persistent part of the self-localization error (whitened)
-    cls: int = int(ObjectClass.UNKNOWN)
-
-    def latest(self):
-        return self.states[self.tkeys[-1]]
-
-    def nearest(self, t: float, tol: float):
-        """The state closest to t if it is within tol, else None."""
-        if not self.tkeys:
-            return None
-        i = bisect.bisect_left(self.tkeys, time_key(t))
-        best = None
-        for j in (i - 1, i):
-            if 0 <= j < len(self.tkeys):
-                s = self.states[self.tkeys[j]]
-                if abs(s.t - t) <= tol + 1e-9 and (best is None or abs(s.t - t) < abs(best.t - t)):
-                    best = s
-        return best
-
-
 class FusionGraph:
     """Sliding-window factor graph over connected-vehicle poses and obstacle tracks (module docstring)."""
 
     def __init__(self, params: FusionParams):
         self.params = params
         self.values = gtsam.Values()
-        self.vehicles: dict[str, _Chain] = {}
-        self.tracks: dict[int, _Chain] = {}
+        self.vehicles: dict[str, Chain] = {}
+        self.tracks: dict[int, Chain] = {}
         self._factors: dict[int, gtsam.NonlinearFactor] = {}
         self._factor_keys: dict[int, tuple[int, ...]] = {}
         self._key_factors: dict[int, set[int]] = {}
         self._fid_det: dict[int, DetectionRecord] = {}
         self._next_fid = 0
-        self._pose_states: dict[int, _PoseState] = {}
+        self._pose_states: dict[int, PoseState] = {}
         self._n = {"x": 0, "s": 0, "b": 0}
         self._graph = gtsam.NonlinearFactorGraph()  # every factor, in slots (see _factor_graph)
         self._slot: dict[int, int] = {}  # factor id -> index in _graph
@@ -233,7 +180,7 @@ class FusionGraph:
         earlier frames stay, tied by the motion factors, for the detections made from them. Otherwise
         every frame's prior is independent evidence apart from the persistent part (``_pose_prior``).
         """
-        chain = self.vehicles.setdefault(vid, _Chain(cls=int(ObjectClass.VEHICLE)))
+        chain = self.vehicles.setdefault(vid, Chain(cls=int(ObjectClass.VEHICLE)))
         tk = time_key(t)
         if tk in chain.states:
             return None
@@ -246,7 +193,7 @@ class FusionGraph:
         self.values.insert(key, T)
         cov_xi = pose_cov_to_tangent(pose, cov)
         L_xi = np.linalg.cholesky(cov_xi)
-        state = _PoseState(float(t), key, pose, cov, np.asarray(v_map, dtype=float), cov_xi, L_xi, T, M, vid=vid)
+        state = PoseState(float(t), key, pose, cov, np.asarray(v_map, dtype=float), cov_xi, L_xi, T, M, vid=vid)
         self._pose_states[key] = state
         i = bisect.bisect_left(chain.tkeys, tk)
         chain.tkeys.insert(i, tk)
@@ -266,7 +213,7 @@ class FusionGraph:
             self._pose_prior(chain, i, persistent=False)
         return key
 
-    def _pose_prior(self, chain: _Chain, i: int, persistent: bool = True) -> None:
+    def _pose_prior(self, chain: Chain, i: int, persistent: bool = True) -> None:
         """(Re)make the self-localization factor of the chain's i-th frame (module docstring).
 
         With pose_error_persistent_fraction a = 0 or not ``persistent`` (a filtered prior, the only one
@@ -322,7 +269,7 @@ class FusionGraph:
                     n += 1
         return n
 
-    def _vehicle_motion(self, chain: _Chain, ka: int, kb: int) -> None:
+    def _vehicle_motion(self, chain: Chain, ka: int, kb: int) -> None:
         a, b = chain.states[ka], chain.states[kb]
         dt = b.t - a.t
         if dt <= 0 or dt > self.params.motion_factor_max_dt_s:
@@ -335,18 +282,18 @@ class FusionGraph:
         f = gtsam.BetweenFactorPose3(a.key, b.key, gtsam.Pose3(gtsam.Rot3(), t_rel), noise)
         chain.motion[ka] = self._add_factor(f)
 
-    def vehicle_state(self, vid: str, t: float, tol: float) -> _PoseState | None:
+    def vehicle_state(self, vid: str, t: float, tol: float) -> PoseState | None:
         chain = self.vehicles.get(vid)
         return None if chain is None else chain.nearest(t, tol)
 
     # ------------------------------------------------------------------ tracks
-    def track_state(self, track_id: int, t: float, init_p, init_v, cls: int) -> _TrackState | None:
+    def track_state(self, track_id: int, t: float, init_p, init_v, cls: int) -> TrackState | None:
         """The track's state for time t (an existing one within time_merge_s, else a new one); None if
         t is before the track's first state, whose prior already holds that past (see
         :meth:`fold_detection`)."""
         chain = self.tracks.get(track_id)
         if chain is None:
-            chain = self.tracks[track_id] = _Chain(cls=int(cls))
+            chain = self.tracks[track_id] = Chain(cls=int(cls))
         s = chain.nearest(t, self.params.time_merge_s)
         if s is not None:
             return s
@@ -363,7 +310,7 @@ class FusionGraph:
         else:
             x0 = np.concatenate([np.asarray(init_p, dtype=float), np.asarray(init_v, dtype=float)])
         self.values.insert(key, x0)
-        s = _TrackState(float(t), key)
+        s = TrackState(float(t), key)
         chain.tkeys.insert(i, tk)
         chain.states[tk] = s
         if 0 < i < len(chain.tkeys) - 1:
@@ -376,7 +323,7 @@ class FusionGraph:
             self._set_prior(chain, marginalize.birth_prior(tk, x0[:3], speed_prior(self.params, chain.cls)))
         return s
 
-    def _track_motion(self, chain: _Chain, ka: int, kb: int) -> None:
+    def _track_motion(self, chain: Chain, ka: int, kb: int) -> None:
         """Constant velocity from state a to b: e = s_b - F s_a ~ N(0, Q) (linear, so exact as a
         linear factor about 0: its error at any values is |W (s_b - F s_a)|^2 / 2)."""
         a, b = chain.states[ka], chain.states[kb]
@@ -390,7 +337,7 @@ class FusionGraph:
         jf = gtsam.JacobianFactor(a.key, A_a, b.key, A_b, -r, _UNIT6)  # about the current values
         chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values))
 
-    def _set_prior(self, chain: _Chain, prior: TrackPrior, sqrt: tuple | None = None) -> None:
+    def _set_prior(self, chain: Chain, prior: TrackPrior, sqrt: tuple | None = None) -> None:
         """Put the prior in the graph (replacing the track's prior), about the current values
         (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them)."""
         self._remove_factor(chain.prior_fid)
@@ -422,7 +369,7 @@ class FusionGraph:
         )
         return [v if b else None for v, b in zip(vids, has_b, strict=True)], S, G, m
 
-    def _summarize_first(self, chains: list[_Chain]) -> None:
+    def _summarize_first(self, chains: list[Chain]) -> None:
         """Fold each chain's first state (its prior and its detections) into a prior on its second state
         (:func:`.marginalize.summarize_first`)."""
         owner, dets = [], []
@@ -476,7 +423,7 @@ class FusionGraph:
             self._set_prior(chain, marginalize.forget_bias(prior, vid, a))
 
     # ------------------------------------------------------------------ detections
-    def add_detection(self, pose_key: int, state: _TrackState, z_body, cov_body, weight: float = 1.0) -> None:
+    def add_detection(self, pose_key: int, state: TrackState, z_body, cov_body, weight: float = 1.0) -> None:
         """A body-frame detection z_body (cov_body) of the track state by the vehicle at pose_key.
 
         ``weight`` is the first Huber weight (from the association innovation); later ones follow the
@@ -558,7 +505,7 @@ class FusionGraph:
         for s in chain.states.values():
             self._drop_track_state(s)
 
-    def _drop_track_state(self, s: _TrackState) -> None:
+    def _drop_track_state(self, s: TrackState) -> None:
         for det in s.dets:
             ps = self._pose_states.get(det.pose_key)
             if ps is not None and det in ps.dets:
