@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["dumps", "finite_or_null"]
+__all__ = ["dumps", "finite_or_null", "rounded"]
 
 
 def finite_or_null(o: Any) -> Any:
@@ -27,3 +27,8 @@ def finite_or_null(o: Any) -> Any:
 def dumps(o: Any, **kw: Any) -> str:
     """``json.dumps`` of :func:`finite_or_null` (``NaN`` is not JSON: jq and most parsers reject it)."""
     return json.dumps(finite_or_null(o), allow_nan=False, **kw)
+
+
+def rounded(x: float | None, nd: int = 4) -> float:
+    """A figure for a table: ``x`` rounded to ``nd`` decimals; NaN when there is none (None, NaN, infinite)."""
+    return float(round(x, nd)) if x is not None and math.isfinite(x) else float("nan")

@@ -59,6 +59,7 @@ import numpy as np
 from .. import jsonout
 from ..channel import NetworkProfile
 from ..evaluation import age_of_information, horizontal_sq_error, obstacle_errors, rmse_sq, vehicle_pose
+from ..jsonout import rounded
 from ..pipeline import PipelineResult, View, run_pipeline
 from .runner import run_all
 
@@ -144,10 +145,6 @@ SMOKE_TEST_NOTE = (
 )
 
 
-def _nan_round(x: float, nd: int = 4) -> float:
-    return float(round(x, nd)) if math.isfinite(x) else float("nan")
-
-
 def link_figures(res: PipelineResult, times: Sequence[float]) -> dict[str, float]:
     """A run's link figures (module docstring): delivered_fraction, dropped_loss_fraction,
     dropped_queue_fraction, latency_s_p50/p99 and age_s_mean/p95 at the scored fuse ``times``."""
@@ -160,13 +157,13 @@ def link_figures(res: PipelineResult, times: Sequence[float]) -> dict[str, float
     age = age_of_information(res.deliveries, senders, times) if senders else np.zeros((0, 0))
     nan = float("nan")
     return {
-        "delivered_fraction": _nan_round(delivered / decided) if decided else nan,
-        "dropped_loss_fraction": _nan_round(dropped_loss / decided) if decided else nan,
-        "dropped_queue_fraction": _nan_round(dropped_queue / decided) if decided else nan,
-        "latency_s_p50": _nan_round(float(np.percentile(lat, 50))) if lat.size else nan,
-        "latency_s_p99": _nan_round(float(np.percentile(lat, 99))) if lat.size else nan,
-        "age_s_mean": _nan_round(float(age.mean())) if age.size else nan,
-        "age_s_p95": _nan_round(float(np.percentile(age, 95))) if age.size else nan,
+        "delivered_fraction": rounded(delivered / decided) if decided else nan,
+        "dropped_loss_fraction": rounded(dropped_loss / decided) if decided else nan,
+        "dropped_queue_fraction": rounded(dropped_queue / decided) if decided else nan,
+        "latency_s_p50": rounded(float(np.percentile(lat, 50))) if lat.size else nan,
+        "latency_s_p99": rounded(float(np.percentile(lat, 99))) if lat.size else nan,
+        "age_s_mean": rounded(float(age.mean())) if age.size else nan,
+        "age_s_p95": rounded(float(np.percentile(age, 95))) if age.size else nan,
     }
 
 
@@ -224,20 +221,20 @@ def run_network_point(
         "seed": int(seed),
         "duration_s": float(duration),
         "warmup_s": float(warmup_s),
-        "object_rmse_m": _nan_round(rmse_sq(obj_sq)),
-        "object_coverage": _nan_round(len(obj_sq) / obj_near) if obj_near else float("nan"),
-        "vehicle_rmse_m": _nan_round(rmse_sq(veh_sq)),
-        "vehicle_coverage": _nan_round(veh_seen / veh_total) if veh_total else float("nan"),
-        "bytes_per_s_per_vehicle": _nan_round(tx_bytes / duration / n_send, 1),
-        "bytes_per_message": _nan_round(tx_bytes / tx_msgs, 1) if tx_msgs else float("nan"),
-        "bytes_per_message_unsigned": _nan_round(sum(res.tx_message_bytes.values()) / tx_msgs, 1)
+        "object_rmse_m": rounded(rmse_sq(obj_sq)),
+        "object_coverage": rounded(len(obj_sq) / obj_near) if obj_near else float("nan"),
+        "vehicle_rmse_m": rounded(rmse_sq(veh_sq)),
+        "vehicle_coverage": rounded(veh_seen / veh_total) if veh_total else float("nan"),
+        "bytes_per_s_per_vehicle": rounded(tx_bytes / duration / n_send, 1),
+        "bytes_per_message": rounded(tx_bytes / tx_msgs, 1) if tx_msgs else float("nan"),
+        "bytes_per_message_unsigned": rounded(sum(res.tx_message_bytes.values()) / tx_msgs, 1)
         if tx_msgs
         else float("nan"),
         "signed": signing,
-        "msgs_per_s_per_vehicle": _nan_round(tx_msgs / duration / n_send, 2),
+        "msgs_per_s_per_vehicle": rounded(tx_msgs / duration / n_send, 2),
         **link,
         "host_rejected": int(rejected),
-        "wall_s": _nan_round(time.perf_counter() - t0, 2),
+        "wall_s": rounded(time.perf_counter() - t0, 2),
     }
 
 

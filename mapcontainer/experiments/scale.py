@@ -45,6 +45,7 @@ import numpy as np
 from .. import jsonout
 from ..channel import load_profile
 from ..evaluation import Totals, score_frame
+from ..jsonout import rounded
 from ..pipeline import View, run_pipeline
 from ..sim import ScenarioConfig, load_scenario
 from ..sim.config import scale_scenario
@@ -116,10 +117,6 @@ def _near_any(p: np.ndarray, centres: np.ndarray, radius_m: float) -> np.ndarray
     return np.min(np.linalg.norm(p[:, None, :] - centres[None], axis=2), axis=1) <= radius_m
 
 
-def _round(x: float | None, nd: int = 4) -> float:
-    return float(round(x, nd)) if x is not None and math.isfinite(x) else float("nan")
-
-
 def run_scale_point(
     n: int,
     mode: str,
@@ -163,20 +160,20 @@ def run_scale_point(
         "seed": int(seed),
         "duration_s": float(duration),
         "warmup_s": float(warmup_s),
-        "obstacles_in_scope": _round(float(np.mean(in_scope)) if in_scope else None, 1),
-        "bytes_per_s_per_vehicle": _round(total_bps / max(1, len(senders)), 1),
-        "bytes_per_s_total": _round(total_bps, 1),
-        "load_fraction": _round(8.0 * total_bps / profile.bandwidth_bps),
+        "obstacles_in_scope": rounded(float(np.mean(in_scope)) if in_scope else None, 1),
+        "bytes_per_s_per_vehicle": rounded(total_bps / max(1, len(senders)), 1),
+        "bytes_per_s_total": rounded(total_bps, 1),
+        "load_fraction": rounded(8.0 * total_bps / profile.bandwidth_bps),
         **link_figures(res, [r.t for r in scored]),
-        "host_cpu_ms_per_cycle": _round(1e3 * res.host_cpu_s["fused"] / cycles if cycles else None, 2),
-        "fuse_cpu_ms_p50": _round(float(np.percentile(res.fuse_cpu_ms["fused"], 50)) if cycles else None, 2),
-        "vehicle_rmse_m": _round(s["vehicle_rmse_m"]),
-        "object_rmse_m": _round(s["object_rmse_m"]),
-        "coverage": _round(s["coverage"]),
-        "gospa_m": _round(s["gospa_m"]),
-        "false_tracks_per_frame": _round(s["false_tracks_per_frame"], 2),
-        "anees_objects": _round(s["object_nees"]["anees"], 3),
-        "wall_s": _round(time.perf_counter() - t0, 1),
+        "host_cpu_ms_per_cycle": rounded(1e3 * res.host_cpu_s["fused"] / cycles if cycles else None, 2),
+        "fuse_cpu_ms_p50": rounded(float(np.percentile(res.fuse_cpu_ms["fused"], 50)) if cycles else None, 2),
+        "vehicle_rmse_m": rounded(s["vehicle_rmse_m"]),
+        "object_rmse_m": rounded(s["object_rmse_m"]),
+        "coverage": rounded(s["coverage"]),
+        "gospa_m": rounded(s["gospa_m"]),
+        "false_tracks_per_frame": rounded(s["false_tracks_per_frame"], 2),
+        "anees_objects": rounded(s["object_nees"]["anees"], 3),
+        "wall_s": rounded(time.perf_counter() - t0, 1),
     }
 
 

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ... import evaluation as ev
+from ...jsonout import rounded
 from .settings import (
     BLINDSPOT_SCENARIOS,
     CONNECTED,
@@ -46,10 +47,6 @@ TARGET_VIEWS = ("ego_only", "cooperative", "centralized")  # who estimates the t
 MIN_RUNS_PER_CELL = 5  # per-cell NEES: cells estimated in at least this many runs
 
 
-def _r(x: float, nd: int = 4) -> float:
-    return float(round(x, nd)) if x is not None and math.isfinite(x) else float("nan")
-
-
 def group(results: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
     """Runs by (kind, key, variant), each list ordered by seed."""
     out: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
@@ -69,7 +66,7 @@ def rmse(rs: list[dict], name: str, burnin_s: float) -> float:
     """sqrt(mean squared error) of series ``name`` over every run's frames from ``burnin_s`` on."""
     sq = [_scored(r["series"].get(name, []), burnin_s)[:, 1] for r in rs]
     a = np.concatenate(sq) if sq else np.zeros(0)
-    return _r(float(np.sqrt(a.mean()))) if a.size else float("nan")
+    return rounded(float(np.sqrt(a.mean()))) if a.size else float("nan")
 
 
 def run_rmse(r: dict, name: str, burnin_s: float) -> float:
@@ -90,7 +87,7 @@ def time_series(rs: list[dict], name: str, bucket_s: float = 1.0) -> list[list[f
         return []
     v = ev.rmse_vs_time(np.concatenate(t), np.concatenate(sq), np.concatenate(run), bucket_s)
     rows = zip(v.t_start, v.mean, v.lo, v.hi, v.runs, strict=True)
-    return [[_r(t0, 2), _r(m), _r(lo), _r(hi), int(n)] for t0, m, lo, hi, n in rows]
+    return [[rounded(t0, 2), rounded(m), rounded(lo), rounded(hi), int(n)] for t0, m, lo, hi, n in rows]
 
 
 def objects_summary(rs: list[dict], name: str, burnin_s: float) -> dict[str, float]:
@@ -108,13 +105,13 @@ def objects_summary(rs: list[dict], name: str, burnin_s: float) -> dict[str, flo
     n_true, matched, fused = a[:, 1].sum(), a[:, 2].sum(), a[:, 3].sum()
     false = fused - matched
     return {
-        "coverage": _r(matched / n_true) if n_true else float("nan"),
-        "false_per_frame": _r(false / len(a)),
-        "false_fraction": _r(false / fused) if fused else float("nan"),
-        "gospa_m": _r(float(np.sqrt(a[:, 4].mean()))),
-        "gospa_localization_m2": _r(float(a[:, 5].mean())),
-        "gospa_missed_m2": _r(float(a[:, 6].mean())),
-        "gospa_false_m2": _r(float(a[:, 7].mean())),
+        "coverage": rounded(matched / n_true) if n_true else float("nan"),
+        "false_per_frame": rounded(false / len(a)),
+        "false_fraction": rounded(false / fused) if fused else float("nan"),
+        "gospa_m": rounded(float(np.sqrt(a[:, 4].mean()))),
+        "gospa_localization_m2": rounded(float(a[:, 5].mean())),
+        "gospa_missed_m2": rounded(float(a[:, 6].mean())),
+        "gospa_false_m2": rounded(float(a[:, 7].mean())),
         "frames": int(len(a)),
     }
 
@@ -144,12 +141,12 @@ def consistency(rs: list[dict], name: str, dof: int, burnin_s: float) -> dict[st
     per_cell = [ev.anees(vals, dof).inside for vals in cells.values() if len(vals) >= MIN_RUNS_PER_CELL]
     used, inside = len(per_cell), sum(per_cell)
     out.update(
-        anees=_r(run.value),
-        band=[_r(run.lo), _r(run.hi)],
+        anees=rounded(run.value),
+        band=[rounded(run.lo), rounded(run.hi)],
         inside=run.inside,
-        per_run_p5_p50_p95=[_r(float(np.percentile(per_run, q))) for q in (5, 50, 95)],
+        per_run_p5_p50_p95=[rounded(float(np.percentile(per_run, q))) for q in (5, 50, 95)],
         cells=used,
-        cells_inside_fraction=_r(inside / used) if used else float("nan"),
+        cells_inside_fraction=rounded(inside / used) if used else float("nan"),
     )
     return out
 
@@ -207,7 +204,7 @@ def efficiency(fig: dict, rs: list[dict]) -> dict[str, Any]:
         return {}
 
     def ratio(c: float, d: float) -> float:
-        return _r((c / d) ** 2) if d > 0 and math.isfinite(c) and math.isfinite(d) else float("nan")
+        return rounded((c / d) ** 2) if d > 0 and math.isfinite(c) and math.isfinite(d) else float("nan")
 
     per, objs = fig["per_vehicle_rmse_m"], fig["object_rmse_m"]
     bpm_d = sum(r["tx_bytes"] for r in runs_c) / max(1, sum(r["tx_msgs"] for r in runs_c))
@@ -217,8 +214,8 @@ def efficiency(fig: dict, rs: list[dict]) -> dict[str, Any]:
         "all_vehicles": ratio(fig["vehicles_rmse_m"]["centralized"], fig["vehicles_rmse_m"]["cooperative"]),
         "targets": ratio(fig["target_rmse_m"]["centralized"], fig["target_rmse_m"]["cooperative"]),
         "objects": ratio(objs["centralized"], objs["cooperative"]),
-        "bytes_per_message": {"distributed": _r(bpm_d, 1), "centralized": _r(bpm_c, 1)},
-        "bytes_ratio": _r(bpm_c / bpm_d, 2) if bpm_d > 0 else float("nan"),
+        "bytes_per_message": {"distributed": rounded(bpm_d, 1), "centralized": rounded(bpm_c, 1)},
+        "bytes_ratio": rounded(bpm_c / bpm_d, 2) if bpm_d > 0 else float("nan"),
         "runs": len(runs_c),
     }
 
@@ -246,7 +243,7 @@ def rv_figures(kind: str, rs: list[dict], burnin_s: float) -> dict[str, Any]:
         out: dict[str, Any] = {f"{n}_m": rmse(rs, f"obstacle:{n}", burnin_s) for n in names}
         out["objects"] = {n: objects_summary(rs, f"obstacle:{n}", burnin_s) for n in names}
         a, b = out["ego_car_m"], out["connected_car_m"]
-        out["independent_fusion_m"] = _r((a**-2 + b**-2) ** -0.5) if a > 0 and b > 0 else float("nan")
+        out["independent_fusion_m"] = rounded((a**-2 + b**-2) ** -0.5) if a > 0 and b > 0 else float("nan")
     else:
         out = {
             "connected_car_m": rmse(rs, f"{CONNECTED}:cooperative", burnin_s),
@@ -278,7 +275,7 @@ def localized_index(t: np.ndarray, err: np.ndarray, hold_s: float = LOCALIZED_HO
 
 def _time_s(x: float) -> float:
     """A time rounded to 10 ms; +inf (never) stays."""
-    return x if x == math.inf else _r(x, 2)
+    return x if x == math.inf else rounded(x, 2)
 
 
 def startup_summary(rs: list[dict], duration_s: float) -> dict[str, Any]:
@@ -333,16 +330,16 @@ def startup_summary(rs: list[dict], duration_s: float) -> dict[str, Any]:
     n = len(ttl)
     q = np.percentile(ttl, [50, 90, 95], method="inverted_cdf") if n else [math.nan] * 3
     never = sum(x == math.inf for x in ttl)
-    after["gross_fraction"] = _r(after["gross_frames"] / after["frames"], 6) if after["frames"] else math.nan
+    after["gross_fraction"] = rounded(after["gross_frames"] / after["frames"], 6) if after["frames"] else math.nan
     at = {}
     for m, rows in at_rows.items():
         if rows:
             f = np.asarray(rows, dtype=float).mean(axis=0)
             at[str(m)] = {
-                "map_matching": _r(f[0]),
-                "accurate": _r(f[1]),
-                "localized": _r(f[2]),
-                "gross": _r(f[3]),
+                "map_matching": rounded(f[0]),
+                "accurate": rounded(f[1]),
+                "localized": rounded(f[2]),
+                "gross": rounded(f[3]),
                 "vehicles": len(rows),
             }
     return {
@@ -355,7 +352,7 @@ def startup_summary(rs: list[dict], duration_s: float) -> dict[str, Any]:
             "p95": _time_s(float(q[2])),
             "max": _time_s(max(ttl)) if n else math.nan,
             "never": never,
-            "never_fraction": _r(never / n) if n else math.nan,
+            "never_fraction": rounded(never / n) if n else math.nan,
             "vehicles": n,
         },
         "after_localized": after,
@@ -422,7 +419,9 @@ def evaluate_targets(res: dict) -> list[dict]:
         ov = res["overlap"].get(density)
         if ov:
             bound = 1.1 * ov["independent_fusion_m"]
-            rows.append(_row(f"overlap ({density}): fused <= 1.1 (1/a^2 + 1/b^2)^-1/2", ov["fused_m"], _r(bound), "<="))
+            rows.append(
+                _row(f"overlap ({density}): fused <= 1.1 (1/a^2 + 1/b^2)^-1/2", ov["fused_m"], rounded(bound), "<=")
+            )
         for key in BLINDSPOT_SCENARIOS:
             b = res["blindspot"].get(key, {}).get(density)
             if b:
@@ -484,7 +483,7 @@ def _cold_start_targets(key: str, st: dict) -> list[dict]:
         _row(
             f"{key}: cold start, gross errors (> {GROSS_ERROR_M:g} m) after localizing <= "
             f"{100 * GROSS_AFTER_LOCALIZED_MAX:g} % of vehicle-frames",
-            _r(100 * after["gross_fraction"]),
+            rounded(100 * after["gross_fraction"]),
             100 * GROSS_AFTER_LOCALIZED_MAX,
             "<=",
         ),
