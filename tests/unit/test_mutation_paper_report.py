@@ -1,0 +1,130 @@
+"""mapcontainer.experiments.paper.report: the whole report.md of a synthetic experiment against a reviewed copy
+(tests/unit/data/paper_report.md), runs.csv to the character, and the plots written.
+
+The reviewed copy was read line by line against the figures below when it was made; when the report's wording
+changes on purpose, regenerate it with ``MAPC_REGENERATE=1 pytest tests/unit/test_mutation_paper_report.py`` and
+read the diff before committing it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import pytest
+
+from mapcontainer.experiments.paper import figures as fg
+from mapcontainer.experiments.paper.report import _fmt, plots, report, runs_csv
+from tests.unit.test_mutation_paper_figures import _run, _sim_runs
+from tests.unit.test_paper_figures import _dip_then_at_2_0, _locks_at_1_2, _never, _silent, _startup_runs
+
+GOLDEN = Path(__file__).parent / "data" / "paper_report.md"
+
+
+def _sim(scale: float) -> dict:
+    rs = _sim_runs()
+    for r in rs:
+        r["series"] = {k: [[t, scale * e] for t, e in v] for k, v in r["series"].items()}
+        r["nees"] = {"objects:cooperative": [[1.0, c, 3.0 * scale] for c in range(3)]}
+    rs += [_run(j, nees={"objects:cooperative": [[1.0, c, 3.0 * scale] for c in range(3)]}, tx_bytes=10, tx_msgs=1,
+                tx_bytes_centralized=50, tx_msgs_centralized=1) for j in range(2, 5)]  # fmt: skip
+    f = fg.sim_figures(rs, 1.0)
+    f["startup"] = fg.startup_summary(_startup_runs((_locks_at_1_2, _dip_then_at_2_0), (_never, _silent)), 4.1)
+    f["over_time"] = {"cv0:cooperative": fg.time_series(rs, "cv0:cooperative")}
+    return f
+
+
+def _res(claims: bool = True, seeds: str = "evaluation") -> dict:
+    sim = {"urban": _sim(1.0), "suburban": _sim(2.0)}
+    ov = fg.rv_figures("overlap", [_run(series={"obstacle:ego_car": [[1.0, 0.09]], "obstacle:connected_car": [[1.0, 0.16]],
+                                                "obstacle:fused": [[1.0, 0.04]]})], 1.0)  # fmt: skip
+    bs = fg.rv_figures("blindspot", [_run(series={"cv1:cooperative": [[1.0, 0.01]], "obstacle:cooperative": [[1.0, 0.09]]})],
+                       1.0)  # fmt: skip
+    res = {
+        "simulation": sim,
+        "overlap": {"dense": ov},
+        "blindspot": {"ii": {"sparse": bs}, "iii": {}},
+        "sensitivity": {"all_on": {"urban ego cooperative": 0.1234, "coverage": 0.9}, "map_error_off": {"urban ego cooperative": 0.05}},
+        "bytes": {
+            "ratio": 12.5,
+            "measured": {
+                "seeds": [90000, 90001, 90002], "duration_s": 20.0, "scenario": "paper-urban",
+                "variants": {
+                    "distributed": {"bytes_per_message": 410.2, "bytes_per_message_signed": 520.7,
+                                    "bytes_per_s_per_vehicle": 4102.0, "bytes_per_s_per_vehicle_signed": 5207.0},
+                    "centralized": {"bytes_per_message": 5127.5, "bytes_per_s_per_vehicle": 51275.0},
+                },
+                "ratio": {"with_lane_mask_per_message": 12.5, "without_lane_mask_per_message": 3.25,
+                          "with_lane_mask_per_message_signed": 9.8, "with_lane_mask_per_s": 12.5,
+                          "without_lane_mask_per_s": 3.25},
+            },
+        },
+        "runs": 5,
+        "seed": 90000 if seeds == "evaluation" else 1,
+        "seeds": seeds,
+        "settings": {"start": "cold", "evaluation_seeds_from": 90000, "duration_s": 4.1, "burnin_s": 1.0,
+                     "real_vehicle_runs": 1, "sensitivity_runs": 2, "radius_m": 50.0, "workers": 2,
+                     "scenarios": {"urban": "paper-urban", "suburban": "paper-suburban"}},
+        "wall_s": 123.4,
+        "cpu_s_total": 456.7,
+        "cpu_s_per_run": {"sim:urban": 12.34, "sim:suburban": 23.45},
+    }  # fmt: skip
+    if claims:
+        res["claims"] = fg.evaluate_claims(sim)
+    res["targets"] = fg.evaluate_targets(res)
+    return res
+
+
+def test_the_report_is_the_reviewed_one() -> None:
+    text = report(_res())
+    if os.environ.get("MAPC_REGENERATE"):
+        GOLDEN.write_text(text, encoding="utf-8")
+    assert text == GOLDEN.read_text(encoding="utf-8")
+
+
+def test_the_report_of_development_seeds_of_other_scenarios_says_so() -> None:
+    res = _res(claims=False, seeds="development")
+    res["settings"] = {**res["settings"], "start": "warm", "scenarios": {"urban": "urban", "suburban": "paper-suburban"}}
+    res["overlap"], res["blindspot"], res["sensitivity"], res["bytes"] = {}, {"ii": {}}, {}, {}
+    for s in res["simulation"].values():
+        s.pop("startup")
+        s["efficiency"] = {}
+    text = report(res)
+    assert "`mapc experiment paper --runs 5 --seed 1 --scenario urban` — wall time 123 s" in text
+    assert "NOT the evaluation range (from 90000): not figures to report." in text
+    assert "* **Start**: WARM (a labelled variant): every vehicle starts from its true pose plus seeded noise." in text
+    assert "The paper's claims are about its own scenarios: not evaluated on these." in text
+    for section in ("## Cold start", "## Test-site", "## Sensitivity", "## Distributed against", "## Bandwidth"):
+        assert section not in text
+    assert "## Consistency (NEES)" in text and text.endswith(" |\n") and "## Targets" in text
+
+
+def test_fmt() -> None:
+    assert (_fmt(0.12345), _fmt(0.12345, 1), _fmt(math.inf), _fmt(-math.inf), _fmt(math.nan)) == (
+        "0.123", "0.1", "inf", "n/a", "n/a")  # fmt: skip
+    assert (_fmt([0.5, (1.0, 2)], 2), _fmt(3), _fmt(None), _fmt("x")) == ("[0.50, [1.00, 2]]", "3", "n/a", "x")
+
+
+def test_runs_csv_to_the_character() -> None:
+    rs = [
+        {**_run(1, series={"cv0:cooperative": [[0.5, 9.0], [1.0, 0.04]], "obstacle:fused": [[1.0, 1.0]]}), "cpu_s": 1.234},
+        {**_run(0, series={"obstacle:fused": [[1.0, 0.25]], "cv0:cooperative": [[1.0, 1.0]]}), "kind": "overlap",
+         "key": "overlap", "variant": "all", "cpu_s": 2.0},
+    ]  # fmt: skip
+    lines = runs_csv(rs, burnin_s=1.0).split("\n")
+    cols = lines[0].split(",")
+    assert cols[:5] == ["kind", "key", "variant", "seed", "cpu_s"] and cols[5:] == sorted(cols[5:]) and len(cols) == 5 + 15
+    rows = [dict(zip(cols, line.split(","), strict=True)) for line in lines[1:3]]
+    assert lines[3:] == [""]
+    assert [r["kind"] for r in rows] == ["overlap", "sim"]  # sorted by kind
+    assert rows[0]["obstacle:fused"] == "0.5000" and rows[0]["cv0:cooperative"] == "" and rows[0]["cpu_s"] == "2.00"
+    assert rows[1]["cv0:cooperative"] == "0.2000" and rows[1]["obstacle:fused"] == "" and rows[1]["cpu_s"] == "1.23"
+    assert rows[1]["cv0:gnss"] == "" and (rows[1]["seed"], rows[1]["key"], rows[1]["variant"]) == ("1", "urban", "dense")
+
+
+@pytest.mark.slow
+def test_plots_are_written(tmp_path: Path) -> None:
+    written = plots(_res(), [], tmp_path)
+    assert [p.name for p in written] == ["exp_sim.png", "over_time.png", "real_vehicle.png"]
+    assert all(p.stat().st_size > 10_000 for p in written)
