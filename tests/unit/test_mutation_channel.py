@@ -141,15 +141,32 @@ def test_duplicates_are_counted_and_not_in_flight() -> None:
     s = ch.stats()
     assert (s["delivered_msgs"], s["delivered_bytes"], s["duplicated_msgs"], s["duplicated_bytes"]) == (2, 6, 1, 3)
     assert s["links"]["a->b"]["duplicated_msgs"] == 1 and out[0].link == "a->b"
+    assert [d.t_sent for d in out] == [0.0, 0.0] and all(0.005 <= d.latency for d in out)
+
+
+def test_stats_are_a_copy() -> None:
+    ch = Channel(NetworkProfile.custom(loss=1.0), seed=0)
+    ch.send("a", "b", b"xy", 0.0)
+    s = ch.stats()
+    s["links"]["a->b"]["dropped_msgs"]["loss"] = 99
+    s["dropped_msgs"]["loss"] = 99
+    again = ch.stats()
+    assert again["dropped_msgs"] == {"loss": 1, "queue_full": 0}
+    assert again["links"]["a->b"]["dropped_msgs"] == {"loss": 1, "queue_full": 0}
+    assert again["links"]["a->b"]["dropped_bytes"] == {"loss": 2, "queue_full": 0}
 
 
 def test_arguments_are_checked() -> None:
     ch = Channel(NetworkProfile.custom(), seed=0)
-    with pytest.raises(TypeError, match="src and dst"):
+    with pytest.raises(TypeError, match="src and dst must be str, got str, int"):
         ch.send("a", 1, b"", 0.0)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="src and dst must be str, got float, str"):
+        ch.send(1.0, "b", b"", 0.0)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="payload must be bytes, got str"):
+        ch.send("a", "b", "text", 0.0)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="finite"):
         ch.send("a", "b", b"", math.inf)
-    with pytest.raises(TypeError, match="NetworkProfile"):
+    with pytest.raises(TypeError, match="profile must be a NetworkProfile, got dict"):
         Channel({"name": "x"}, 0)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="seed"):
         Channel(NetworkProfile.custom(), True)  # type: ignore[arg-type]

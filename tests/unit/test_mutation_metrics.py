@@ -89,3 +89,9 @@ def test_match_objects_empty_and_bad_arguments() -> None:
 def test_match_objects_default_cutoff_is_three_metres() -> None:
     assert m.match_objects(np.array([[2.99, 0.0]]), np.array([[0.0, 0.0]]))[0].tolist() == [0]
     assert m.match_objects(np.array([[3.0, 0.0]]), np.array([[0.0, 0.0]]))[0].tolist() == []
+
+
+def test_match_objects_takes_empty_lists() -> None:
+    for est, true in (([], [[0.0, 0.0, 0.0]]), ([[0.0, 0.0, 0.0]], [])):
+        ti, fi = m.match_objects(est, true)
+        assert (ti.tolist(), fi.tolist()) == ([], [])
