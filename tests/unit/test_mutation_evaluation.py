@@ -127,7 +127,9 @@ def test_relative_target_errors_in_the_ego_frame() -> None:
     ids, err, n_near = ev.relative_target_errors(fused, truth, "cv0", radius_m=60.0)
     assert ids.tolist() == [0, 1] and n_near == 2
     ids, err, n_near = ev.relative_target_errors(fused, truth, "cv9", radius_m=50.0)
-    assert (ids.shape, err.shape, n_near) == ((0,), (0, 2), 0)
+    assert (ids.shape, err.shape, n_near) == ((0,), (0, 2), 0) and ids.dtype == np.int64
+    ids, err, _ = ev.relative_target_errors(fused, truth, "cv0", radius_m=50.0)
+    assert ids.dtype == np.int64 and err.shape == (1, 2)
 
 
 def test_within_radius_is_horizontal_and_inclusive() -> None:
@@ -178,6 +180,8 @@ def test_gospa_parts_and_distance() -> None:
     assert ev.gospa_parts([], 0, 0).distance == 0.0
     with pytest.raises(ValueError, match="below the cutoff 3.0"):
         ev.gospa_parts([3.0], 0, 0)
+    g1 = ev.gospa([[1.0, 0.0], [9.0, 0.0]], [[0.0, 0.0]], c=2.5, p=1)
+    assert (g1.localization, g1.missed, g1.false, g1.p) == (1.0, 0.0, 1.25, 1)
     p1 = ev.gospa_parts([1.0, 2.0], 1, 0, c=2.5, p=1)
     assert (p1.localization, p1.missed, p1.p, p1.distance) == (3.0, 1.25, 1, pytest.approx(4.25))
 
@@ -197,13 +201,14 @@ def test_match_vehicles_and_vehicle_pose() -> None:
     ti, fi = ev.match_vehicles(["cv2", "x", "cv0"], ["cv0", "cv1", "cv2"])
     assert (ti.tolist(), fi.tolist()) == ([2, 0], [0, 2])
     ti, fi = ev.match_vehicles([], ["cv0"])
-    assert (ti.tolist(), fi.tolist()) == ([], [])
+    assert (ti.tolist(), fi.tolist()) == ([], []) and ti.dtype.kind == fi.dtype.kind == "i"
     truth = truth_state(poses=[[1, 2, 3, 0, 0, 0]], ids=["cv5"])
     assert ev.vehicle_pose(truth, "cv5").tolist() == [1, 2, 3, 0, 0, 0] and ev.vehicle_pose(truth, "cv0") is None
 
 
 def test_helpers() -> None:
     assert ev.horizontal_sq_error([1, 2, 30], [0, 0, 0]) == 5.0
+    assert ev.horizontal_sq_error([3, 5, 0], [2, 3, 7]) == 5.0
     assert ev.rmse_sq([1.0, 9.0]) == pytest.approx(np.sqrt(5.0)) and ev.rmse_sq(np.array([4.0])) == 2.0
     assert np.isnan(ev.rmse_sq([]))
     assert ev.pose_error([[0, 0, 0, 0, 0, 3.0]], [[1, 0, 0, 0, 0, -3.0]]) == pytest.approx(
