@@ -162,3 +162,42 @@ def test_the_window_edge(ca, creds) -> None:
     out = v.verify(s.sign(prior("cv1"), NOW + 1.0), NOW + 1.5 + 1e-3)
     assert_rejected(out, "replayed")
     assert out.detail == "cv1: generated -0.501 s from now (window +-0.5 s)"
+
+
+def test_credentials_files_messages_name_what_is_wrong(tmp_path, ca, creds) -> None:
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    from mapcontainer.config import ConfigError
+
+    nested = tmp_path / "a" / "b"
+    key_path, cert_path = sec.save_credentials(creds["cv0"], nested)  # parents created
+    assert key_path.parent == nested and sec.load_credentials(nested, "cv0").subject == "cv0"
+    key_path.unlink()
+    with pytest.raises(ConfigError, match=r"^private key .*cv0\.key\.pem does not exist"):
+        sec.load_credentials(nested, "cv0")
+    key_path.write_bytes(ed25519.Ed25519PrivateKey.generate().private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))  # fmt: skip
+    with pytest.raises(ConfigError, match=r"cv0\.key\.pem holds a Ed25519PrivateKey, not a P-256"):
+        sec.load_credentials(nested, "cv0")
+    sec.save_credentials(Credentials(creds["cv1"].private_key, creds["cv0"].certificate), nested, "cv0")
+    with pytest.raises(ConfigError, match=r"cv0\.key\.pem and .*cv0\.cert\.json do not match"):
+        sec.load_credentials(nested, "cv0")
+    with pytest.raises(ValueError, match="is not an id"):
+        sec.save_credentials(creds["cv0"], nested, "not an id")
+
+
+def test_write_fleet_keys_defaults(tmp_path) -> None:
+    doc = sec.write_fleet_keys(tmp_path, ["cv0"], 3600.0)
+    ca_cert = sec.load_certificate(tmp_path, sec.CA_NAME)
+    assert ca_cert.subject == "fleet-ca" and doc["ca"] == {"subject": "fleet-ca", "digest": sec.certificate_digest(
+        ca_cert).hex()}  # fmt: skip
+    assert doc["valid_until"] - doc["valid_from"] == 3600 + int(sec.KEYS_SKEW_S)
+    assert doc["vehicles"] == {"cv0": sec.load_credentials(tmp_path, "cv0").digest.hex()}
+
+
+def test_inner_payload(creds) -> None:
+    payload = prior("cv0")
+    assert sec.inner_payload(Signer(creds["cv0"]).sign(payload, NOW)) == payload
+    assert sec.inner_payload(payload) == payload  # not a SecuredMessage: itself
+    assert sec.inner_payload(b"\xc1garbage") == b"\xc1garbage"
