@@ -265,3 +265,72 @@ def test_two_denials_flag_only_when_together() -> None:
 def test_biased_vehicle_reason_names_every_accuser() -> None:
     mon = run({"cv1": (0.0, -5.0)}, ["cv0", "cv2", "cv3"])
     assert mon.flagged == {"cv1": "seen 5.0 m from its reported position (+0.0, +5.0) by cv0, cv2, cv3 in the last 2 s"}
+
+
+def test_nothing_is_disputed_before_the_first_update() -> None:
+    mon = MisbehaviourMonitor(FusionParams())
+    assert mon.disputes("cv0", "cv1") is False and mon.flagged == {} and mon.denied == []
+
+
+def _deny_at(mon: MisbehaviourMonitor, t_end: float, tid: int, observer=EAST, where=(20.0, 0.0)) -> list[int]:
+    """cv0 looks at cv1's track ``tid`` 8 times, every 0.125 s up to ``t_end`` (binary-exact times), sees nothing."""
+    denied = []
+    for k in range(8):
+        t = t_end - 0.125 * (7 - k)
+        mon.look("cv0", t, observer, KNOWS, np.zeros((0, 3)), [(tid, "cv1")], np.array([where]), np.zeros((0, 2)))
+        mon.update(t)
+        denied += mon.denied
+    return denied
+
+
+def test_the_denial_window_keeps_a_denial_exactly_its_length_ago() -> None:
+    mon = MisbehaviourMonitor(FusionParams())
+    assert _deny_at(mon, 1.0, 7) == [7] and _deny_at(mon, 3.0, 8) == [8]
+    assert mon.flagged == {}
+    assert _deny_at(mon, 5.0, 9) == [9]  # the first denial is exactly ghost_denial_window_s (4 s) ago: three
+    assert mon.flagged == {"cv1": "reported 3 objects in 4 s that others should see and did not (#7 by cv0, #8 by cv0, "
+                                  "#9 by cv0)"}  # fmt: skip
+
+
+def test_two_denials_exactly_ghost_together_s_apart_flag() -> None:
+    mon = MisbehaviourMonitor(FusionParams())
+    _deny_at(mon, 1.0, 7)
+    _deny_at(mon, 1.5, 8, where=(20.0, 5.0))
+    assert list(mon.flagged) == ["cv1"]
+    mon = MisbehaviourMonitor(FusionParams())
+    _deny_at(mon, 1.0, 7)
+    _deny_at(mon, 1.625, 8, where=(20.0, 5.0))
+    assert mon.flagged == {}
+
+
+def test_looks_from_an_observer_away_from_the_origin_heading_west() -> None:
+    """Observer at (100, 50) heading 3.0 rad; a track 20 m away at bearing -3.0 rad (6 rad apart unwrapped,
+    0.28 rad wrapped): in view."""
+    west = np.array([100.0, 50.0, 0.0, 0.0, 0.0, 3.0])
+    where = (100.0 + 20.0 * np.cos(-3.0), 50.0 + 20.0 * np.sin(-3.0))
+    assert _deny_at(MisbehaviourMonitor(FusionParams()), 1.0, 7, observer=west, where=where) == [7]
+    behind = (100.0 + 20.0, 50.0)
+    assert _deny_at(MisbehaviourMonitor(FusionParams()), 1.0, 7, observer=west, where=behind) == []
+
+
+def test_an_occluder_beside_a_diagonal_line_of_sight() -> None:
+    """Line of sight at 45 deg to (20, 20); an occluder at (10, 12) is 1.41 m off it: hides; at (10, 12.2) 1.56 m."""
+    pp = FusionParams()
+    for occ, expect in (((10.0, 12.0), []), ((10.0, 12.2), [7])):
+        mon = MisbehaviourMonitor(pp)
+        assert look_for(mon, 0.0, pp.ghost_min_looks, [], (20.0, 20.0), [occ]) == expect, occ
+
+
+def test_a_corroborated_accuser_is_named_alone_when_the_accusers_disagree() -> None:
+    mon = MisbehaviourMonitor(FusionParams())
+    for k in range(30):
+        t = 0.1 * k
+        # cv1 sees cv2 where it says (cv1 is corroborated); cv1 and cv3 see cv9 off, 2 m apart from each other
+        rep = _reported(["cv1", "cv2", "cv3", "cv9"], [(50, 50), (20, 0), (-50, -50), (0, 0)])
+        mon.observe("cv1", t, np.array([[20.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), np.tile(0.01 * I3, (2, 1, 1)),
+                    np.array([2, 2]), rep)  # fmt: skip
+        if k >= 4:
+            mon.observe("cv3", t, np.array([[3.0, 2.0, 0.0]]), (0.01 * I3)[None], np.array([2]), rep)
+        mon.update(t)
+    # the median of both views, named by the corroborated one only
+    assert mon.flagged == {"cv9": "seen 3.2 m from its reported position (+3.0, +1.0) by cv1 in the last 2 s"}
