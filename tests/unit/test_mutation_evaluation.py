@@ -8,7 +8,7 @@ import pytest
 from scipy import stats
 
 from mapcontainer import evaluation as ev
-from tests.unit.test_evaluation import HALF, fused_state, truth_state
+from .test_evaluation import HALF, fused_state, truth_state
 
 DIAG_POSE = np.diag([0.01, 0.04, 0.25, 1e-4, 4e-4, 9e-4])  # sigmas 0.1, 0.2, 0.5 m; 0.01, 0.02, 0.03 rad
 

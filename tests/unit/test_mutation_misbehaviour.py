@@ -8,7 +8,7 @@ import pytest
 
 from mapcontainer.fusion import FusionParams
 from mapcontainer.fusion.misbehaviour import MisbehaviourMonitor
-from tests.unit.test_fusion_misbehaviour import EAST, KNOWS, look_for, run
+from .test_fusion_misbehaviour import EAST, KNOWS, look_for, run
 
 I3 = np.eye(3)
 

@@ -16,8 +16,8 @@ import pytest
 
 from mapcontainer.experiments.paper import figures as fg
 from mapcontainer.experiments.paper.report import _fmt, plots, report, runs_csv
-from tests.unit.test_mutation_paper_figures import _run, _sim_runs
-from tests.unit.test_paper_figures import _dip_then_at_2_0, _locks_at_1_2, _never, _silent, _startup_runs
+from .test_mutation_paper_figures import _run, _sim_runs
+from .test_paper_figures import _dip_then_at_2_0, _locks_at_1_2, _never, _silent, _startup_runs
 
 GOLDEN = Path(__file__).parent / "data" / "paper_report.md"
 

@@ -11,7 +11,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from mapcontainer import security as sec
 from mapcontainer.security import Credentials, Signer, Verified, Verifier, certificate_bytes, issue, make_ca
 from schemas import Certificate, SecuredMessage, decode
-from tests.unit.test_security import NOW, WINDOW_S, assert_rejected, prior
+from .test_security import NOW, WINDOW_S, assert_rejected, prior
 
 
 @pytest.fixture(scope="module")
