@@ -95,3 +95,13 @@ def test_match_objects_takes_empty_lists() -> None:
     for est, true in (([], [[0.0, 0.0, 0.0]]), ([[0.0, 0.0, 0.0]], [])):
         ti, fi = m.match_objects(est, true)
         assert (ti.tolist(), fi.tolist()) == ([], [])
+
+
+def test_integer_inputs_are_computed_in_floats() -> None:
+    """int16 errors and positions would overflow if squared or subtracted in their own type."""
+    assert m.rmse(np.array([[200, 0]], dtype=np.int16)) == 200.0
+    far = np.array([[30000, 0]], dtype=np.int16)
+    ti, _ = m.match_objects(far, -far, gate_m=1e9)
+    assert ti.tolist() == [0]
+    ti, _ = m.match_objects(-far, far, gate_m=59999.0)  # 60000 m apart: beyond the cutoff
+    assert ti.tolist() == []
