@@ -215,3 +215,20 @@ def test_helpers() -> None:
         np.array([[-1, 0, 0, 0, 0, 6.0 - 2 * np.pi]]))  # fmt: skip
     assert (ev.GOSPA_P, ev.GOSPA_ALPHA, ev.GOSPA_C_M, ev.GATE_M, ev.CONFIDENCE) == (2, 2, 3.0, 3.0, 0.95)
     assert (ev.VEHICLE_DOF, ev.OBJECT_DOF) == (6, 3)
+
+
+def test_score_frame_names_bad_scope_masks() -> None:
+    fused, truth = fused_state(objects=[[0, 0, 0]]), truth_state(obstacles=[[0, 0, 0], [5, 0, 0]])
+    with pytest.raises(ValueError, match=r"scope masks \(3,\), \(1,\) for 2 obstacles, 1 objects"):
+        ev.score_frame(fused, truth, truth_in_scope=np.ones(3, bool))
+
+
+def test_gospa_of_a_frame_checks_each_pair_against_the_cutoff() -> None:
+    """Two pairs 2.5 m off: each below the 3 m cutoff (together 3.5 m: not a reason to refuse)."""
+    s = ev.score_frame(fused_state(objects=[[2.5, 0, 0], [22.5, 0, 0]]), truth_state(obstacles=[[0, 0, 0], [20, 0, 0]]))
+    assert s.gospa == ev.Gospa(pytest.approx(12.5), 0.0, 0.0) and s.n_matched == 2
+
+
+def test_rmse_vs_time_of_nothing_is_empty_arrays() -> None:
+    r = ev.rmse_vs_time([], [], [])
+    assert [a.shape for a in (r.t_start, r.mean, r.lo, r.hi, r.runs)] == [(0,)] * 5 and r.runs.dtype.kind == "i"
