@@ -26,7 +26,11 @@ def _sim(scale: float) -> dict:
     rs = _sim_runs()
     for r in rs:
         r["series"] = {k: [[t, scale * e] for t, e in v] for k, v in r["series"].items()}
-        r["nees"] = {"objects:cooperative": [[1.0, c, 3.0 * scale] for c in range(3)]}
+        r["nees"] = {"objects:cooperative": [[1.0, c, 3.0 * scale] for c in range(3)],
+                     "cv0:cooperative": [[1.0, 1, 6.0 * scale]], "cv0:onboard": [[1.0, 1, 7.0 * scale]]}
+        # per frame: [t, true, matched, fused, GOSPA^2, localization, missed, false]
+        r["objects"] = {"objects:cooperative": [[1.0, 4, 3, 7, 4.5 * 5 + 1.234 * scale, 1.234 * scale, 4.5, 18.0]],
+                        "objects:ego_only": [[1.0, 4, 1, 1, 4.5 * 3 + 0.321, 0.321, 13.5, 0.0]]}  # fmt: skip
     rs += [_run(j, nees={"objects:cooperative": [[1.0, c, 3.0 * scale] for c in range(3)]}, tx_bytes=10, tx_msgs=1,
                 tx_bytes_centralized=50, tx_msgs_centralized=1) for j in range(2, 5)]  # fmt: skip
     f = fg.sim_figures(rs, 1.0)
@@ -39,12 +43,14 @@ def _res(claims: bool = True, seeds: str = "evaluation") -> dict:
     sim = {"urban": _sim(1.0), "suburban": _sim(2.0)}
     ov = fg.rv_figures("overlap", [_run(series={"obstacle:ego_car": [[1.0, 0.09]], "obstacle:connected_car": [[1.0, 0.16]],
                                                 "obstacle:fused": [[1.0, 0.04]]})], 1.0)  # fmt: skip
-    bs = fg.rv_figures("blindspot", [_run(series={"cv1:cooperative": [[1.0, 0.01]], "obstacle:cooperative": [[1.0, 0.09]]})],
+    bs = fg.rv_figures("blindspot", [_run(series={"cv1:cooperative": [[1.0, 0.01]], "obstacle:cooperative": [[1.0, 0.09]]},
+                                          objects={"obstacle:cooperative": [[1.0, 3, 2, 2, 4.59, 0.09, 4.5, 0.0]],
+                                                   "obstacle:ego_only": [[1.0, 3, 1, 1, 9.01, 0.01, 9.0, 0.0]]})],
                        1.0)  # fmt: skip
     res = {
         "simulation": sim,
         "overlap": {"dense": ov},
-        "blindspot": {"ii": {"sparse": bs}, "iii": {}},
+        "blindspot": {"ii": {"sparse": bs}},  # no (iii) at all
         "sensitivity": {"all_on": {"urban ego cooperative": 0.1234, "coverage": 0.9}, "map_error_off": {"urban ego cooperative": 0.05}},
         "bytes": {
             "ratio": 12.5,
@@ -54,9 +60,11 @@ def _res(claims: bool = True, seeds: str = "evaluation") -> dict:
                     "distributed": {"bytes_per_message": 410.2, "bytes_per_message_signed": 520.7,
                                     "bytes_per_s_per_vehicle": 4102.0, "bytes_per_s_per_vehicle_signed": 5207.0},
                     "centralized": {"bytes_per_message": 5127.5, "bytes_per_s_per_vehicle": 51275.0},
+                    "centralized_no_lane_mask": {"bytes_per_message": 1333.3, "bytes_per_s_per_vehicle": 13333.0},
                 },
                 "ratio": {"with_lane_mask_per_message": 12.5, "without_lane_mask_per_message": 3.25,
-                          "with_lane_mask_per_message_signed": 9.8, "with_lane_mask_per_s": 12.5,
+                          "with_lane_mask_per_message_signed": 9.8, "without_lane_mask_per_message_signed": 2.56,
+                          "with_lane_mask_per_s": 12.5,
                           "without_lane_mask_per_s": 3.25},
             },
         },
@@ -65,7 +73,7 @@ def _res(claims: bool = True, seeds: str = "evaluation") -> dict:
         "seeds": seeds,
         "settings": {"start": "cold", "evaluation_seeds_from": 90000, "duration_s": 4.1, "burnin_s": 1.0,
                      "real_vehicle_runs": 1, "sensitivity_runs": 2, "radius_m": 50.0, "workers": 2,
-                     "scenarios": {"urban": "paper-urban", "suburban": "paper-suburban"}},
+                     "scenarios": {"urban": "urban", "suburban": "suburban"}},
         "wall_s": 123.4,
         "cpu_s_total": 456.7,
         "cpu_s_per_run": {"sim:urban": 12.34, "sim:suburban": 23.45},
@@ -87,6 +95,7 @@ def test_the_report_of_development_seeds_of_other_scenarios_says_so() -> None:
     res = _res(claims=False, seeds="development")
     res["settings"] = {**res["settings"], "start": "warm", "scenarios": {"urban": "urban", "suburban": "paper-suburban"}}
     res["overlap"], res["blindspot"], res["sensitivity"], res["bytes"] = {}, {"ii": {}}, {}, {}
+    res["settings"]["scenarios"] = {"urban": "urban", "suburban": "paper-suburban"}
     for s in res["simulation"].values():
         s.pop("startup")
         s["efficiency"] = {}
