@@ -181,3 +181,25 @@ def test_overlap_and_blind_spot_target_bounds() -> None:
     assert rows["blind spot (ii, sparse): obstacle <= 0.35 m"]["threshold"] == 0.35
     assert len(rows) == 3
     assert fg._row("x", float("nan"), 1.0, ">=")["pass"] is False and fg._row("x", 1.0, 1.0, ">=")["pass"] is True
+
+
+def test_bytes_per_message_to_a_tenth() -> None:
+    r = _run(0, series={"cv0:cooperative": [[1.0, 0.04]]}, tx_bytes=1000, tx_msgs=3, tx_bytes_centralized=2000,
+             tx_msgs_centralized=3)  # fmt: skip
+    e = fg.sim_figures([r], 1.0)["efficiency"]
+    assert e["bytes_per_message"] == {"distributed": 333.3, "centralized": 666.7} and e["bytes_ratio"] == 2.0
+
+
+def test_independent_fusion_of_a_perfect_view_is_not_computed() -> None:
+    r = _run(series={"obstacle:ego_car": [[1.0, 0.09]], "obstacle:connected_car": [[1.0, 0.0]],
+                     "obstacle:fused": [[1.0, 0.04]]})  # fmt: skip
+    out = fg.rv_figures("overlap", [r], 1.0)
+    assert out["connected_car_m"] == 0.0 and math.isnan(out["independent_fusion_m"])
+
+
+def test_time_to_localize_is_rounded_to_10_ms() -> None:
+    """Frames every 0.125 s; within from the fourth frame on: localized 0.375 s after the first, reported 0.38 s."""
+    locks = [[0.125 * k, 0, 1, 0.5 if k < 3 else 0.1] for k in range(24)]
+    st = fg.startup_summary([_run(locks=locks)], duration_s=3.0)
+    f = st["time_to_localize_s"]
+    assert (f["median"], f["p90"], f["p95"], f["max"], f["never"], f["vehicles"]) == (0.38, 0.38, 0.38, 0.38, 0, 1)
