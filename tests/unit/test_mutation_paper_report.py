@@ -137,3 +137,68 @@ def test_plots_are_written(tmp_path: Path) -> None:
     written = plots(_res(), [], tmp_path)
     assert [p.name for p in written] == ["exp_sim.png", "over_time.png", "real_vehicle.png"]
     assert all(p.stat().st_size > 10_000 for p in written)
+
+
+def test_the_plots_show_the_figures(tmp_path: Path, monkeypatch) -> None:
+    """What each plot draws, read from the matplotlib figures (layout, saving and closing skipped: fast): titles,
+    axes, the bars' heights and the lines' points."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
+
+    plt.close("all")
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: None)
+    monkeypatch.setattr(Figure, "tight_layout", lambda self, *a, **k: None)
+    monkeypatch.setattr(plt, "close", lambda *a, **k: None)
+    res = _res()
+    res["simulation"]["urban"]["over_time"] = {"cv0:cooperative": [[0.0, 0.5, 0.4, 0.6, 5], [1.0, 0.3, 0.2, 0.4, 5]],
+                                               "targets:ego_only": [[0.0, 1.0, 0.9, 1.1, 5]]}  # fmt: skip
+    with pytest.warns(UserWarning, match="No artists with labels"):  # suburban has no curves over time
+        written = plots(res, [], tmp_path)
+    assert [p.name for p in written] == ["exp_sim.png", "over_time.png", "real_vehicle.png"]
+    exp_sim, over_time, site = (plt.figure(n) for n in plt.get_fignums())
+
+    a, b = exp_sim.axes
+    assert exp_sim._suptitle.get_text() == "Simulation, 5 runs, steady state (t >= 1 s)"
+    assert (a.get_title(), a.get_ylabel(), a.get_yscale()) == ("(a) ego self-positioning (rms1)", "RMSE (m)", "log")
+    assert (b.get_title(), b.get_ylabel(), b.get_yscale()) == ("(b) target relative positioning (rms2)", "RMSE (m)", "linear")
+    assert [t.get_text() for t in a.get_xticklabels()] == ["urban", "suburban"]
+    assert [t.get_text() for t in b.get_xticklabels()] == ["urban", "suburban"]
+    ego = {c.get_label(): [r.get_height() for r in c] for c in a.containers}
+    assert list(ego) == ["GNSS alone", "vehicle alone (filtered on-board)", "per-frame map matching",
+                         "cooperative (host, fused)", "centralized joint estimator (raw observations)"]  # fmt: skip
+    assert ego["GNSS alone"] == [2.0, 2.8284] and ego["cooperative (host, fused)"] == [0.2828, 0.4]
+    xs = [[round(r.get_x() + r.get_width() / 2, 3) for r in c] for c in a.containers]
+    assert xs == [[-0.4, 0.6], [-0.2, 0.8], [0.0, 1.0], [0.2, 1.2], [0.4, 1.4]]
+    assert {round(r.get_width(), 3) for c in a.containers for r in c} == {0.2}
+    tgt = {c.get_label(): [r.get_height() for r in c] for c in b.containers}
+    assert tgt == {"ego only": [1.0, 1.4142], "cooperative": [0.5, 0.7071], "centralized joint": [0.4, 0.5657]}
+    assert [[round(r.get_x() + r.get_width() / 2, 3) for r in c] for c in b.containers] == [[-0.25, 0.75], [0.0, 1.0],
+                                                                                             [0.25, 1.25]]  # fmt: skip
+    assert [t.get_text() for t in a.get_legend().get_texts()] == list(ego)
+    assert [t.get_text() for t in b.get_legend().get_texts()] == list(tgt)
+
+    top, bottom = over_time.axes[0], over_time.axes[2]  # urban: ego pose, targets
+    assert (top.get_title(), top.get_xlabel(), top.get_ylabel(), top.get_yscale()) == (
+        "urban: ego pose", "time (s)", "RMSE (m)", "log")  # fmt: skip
+    assert bottom.get_title() == "urban: targets (rms2)"
+    line = next(ln for ln in top.get_lines() if ln.get_label() == "cooperative (host, fused)")
+    assert line.get_xdata().tolist() == [0.5, 1.5] and line.get_ydata().tolist() == [0.5, 0.3]
+    burnin = [ln for ln in top.get_lines() if ln.get_linestyle() == ":"]
+    assert [ln.get_xdata()[0] for ln in burnin] == [1.0]
+    band = top.collections[0].get_paths()[0].vertices
+    assert band[:, 1].min() == pytest.approx(0.2) and band[:, 1].max() == pytest.approx(0.6)
+    assert [ln.get_label() for ln in bottom.get_lines() if ln.get_linestyle() != ":"] == ["targets, ego only"]
+    assert [t.get_text() for t in top.get_legend().get_texts()] == ["cooperative (host, fused)"]
+
+    ax = site.axes[0]
+    assert (ax.get_title(), ax.get_ylabel(), ax.get_yscale()) == ("test site (res1, res2)", "RMSE (m)", "log")
+    paper, ours = ax.containers
+    assert (paper.get_label(), ours.get_label()) == ("paper", "ours")
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["overlap dense: fused", "(ii) sparse: car",
+                                                           "(ii) sparse: obstacle"]  # fmt: skip
+    assert [r.get_height() for r in paper] == [0.23, 0.18, 0.29] and [r.get_height() for r in ours] == [0.2, 0.1, 0.3]
+    assert [round(r.get_x(), 3) for r in paper] == [-0.4, 0.6, 1.6] and [round(r.get_x(), 3) for r in ours] == [0.0, 1.0, 2.0]
+    plt.close("all")
