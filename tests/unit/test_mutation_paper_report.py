@@ -199,6 +199,8 @@ def test_the_plots_show_the_figures(tmp_path: Path, monkeypatch) -> None:
     assert (paper.get_label(), ours.get_label()) == ("paper", "ours")
     assert [t.get_text() for t in ax.get_xticklabels()] == ["overlap dense: fused", "(ii) sparse: car",
                                                            "(ii) sparse: obstacle"]  # fmt: skip
+    assert {(t.get_fontsize(), t.get_rotation(), t.get_horizontalalignment()) for t in ax.get_xticklabels()} == {
+        (7.0, 30.0, "right")}  # fmt: skip
     assert [r.get_height() for r in paper] == [0.23, 0.18, 0.29] and [r.get_height() for r in ours] == [0.2, 0.1, 0.3]
     assert [round(r.get_x(), 3) for r in paper] == [-0.4, 0.6, 1.6] and [round(r.get_x(), 3) for r in ours] == [0.0, 1.0, 2.0]
     plt.close("all")
