@@ -19,9 +19,17 @@ from mapcontainer.channel import Channel, GilbertElliott, NetworkProfile
 PINNED_PROFILE = {"loss": 0.3, "latency_ms": 10, "jitter_ms": 5, "duplicate": 0.2}
 PINNED_SENT = [True, False, True, True, False, True, True, True, True, True, False, False]
 PINNED_ARRIVALS = [  # (t_arrive, duplicate) in arrival order
-    (0.01403804, False), (0.216368311, False), (0.31052819, False), (0.510265376, False), (0.619961107, False),
-    (0.715299149, False), (0.717204716, True), (0.81328643, False), (0.912579193, True), (0.916845686, False),
-]  # fmt: skip
+    (0.01403804, False),
+    (0.216368311, False),
+    (0.31052819, False),
+    (0.510265376, False),
+    (0.619961107, False),
+    (0.715299149, False),
+    (0.717204716, True),
+    (0.81328643, False),
+    (0.912579193, True),
+    (0.916845686, False),
+]
 # Seed 3, link a->b, Gilbert-Elliott 0.2 / 0.3 (loss 0 good, 1 bad): X lost, . delivered.
 PINNED_BURST = "XX...............X....X..X...X.........X"
 

@@ -8,6 +8,7 @@ import pytest
 from scipy import stats
 
 from mapcontainer import evaluation as ev
+
 from .test_evaluation import HALF, fused_state, truth_state
 
 DIAG_POSE = np.diag([0.01, 0.04, 0.25, 1e-4, 4e-4, 9e-4])  # sigmas 0.1, 0.2, 0.5 m; 0.01, 0.02, 0.03 rad
@@ -15,8 +16,9 @@ DIAG_POSE = np.diag([0.01, 0.04, 0.25, 1e-4, 4e-4, 9e-4])  # sigmas 0.1, 0.2, 0.
 
 def _one_vehicle_frame(err6, t=1.0, cov=DIAG_POSE, objects=(), obstacles=(), obj_cov=None) -> ev.FrameScore:
     truth_pose = np.array([10.0, -5.0, 1.0, 0.0, 0.0, 0.5])
-    fused = fused_state(t, poses=[truth_pose + np.asarray(err6, float)], pose_covs=cov[None], objects=objects,
-                        obj_covs=obj_cov)  # fmt: skip
+    fused = fused_state(
+        t, poses=[truth_pose + np.asarray(err6, float)], pose_covs=cov[None], objects=objects, obj_covs=obj_cov
+    )
     return ev.score_frame(fused, truth_state(t, poses=[truth_pose], obstacles=obstacles))
 
 
@@ -42,7 +44,10 @@ def test_object_error_is_horizontal_and_nees_is_three_dof() -> None:
     assert (row["object_sq_sum_m2"], row["object_nees_sum"]) == (pytest.approx(0.13), pytest.approx(3.0))
     assert (row["object_pairs"], row["obstacles"], row["objects"], row["false_tracks"]) == (1, 1, 1, 0)
     assert (row["gospa_localization_m2"], row["gospa_missed_m2"], row["gospa_false_m2"]) == (
-        pytest.approx(0.13), 0.0, 0.0)  # fmt: skip
+        pytest.approx(0.13),
+        0.0,
+        0.0,
+    )
 
 
 def test_empty_frames_have_empty_nees() -> None:
@@ -86,8 +91,17 @@ def test_totals_object_in_band_uses_the_three_dof_band() -> None:
 def test_an_empty_summary() -> None:
     s = ev.Totals().summary()
     assert s["frames"] == 0 and s["vehicle_rmse_by_id_m"] == {}
-    for k in ("vehicle_rmse_m", "object_rmse_m", "coverage", "false_tracks_per_frame", "false_track_fraction",
-              "gospa_m", "gospa_localization_m2", "gospa_missed_m2", "gospa_false_m2"):  # fmt: skip
+    for k in (
+        "vehicle_rmse_m",
+        "object_rmse_m",
+        "coverage",
+        "false_tracks_per_frame",
+        "false_track_fraction",
+        "gospa_m",
+        "gospa_localization_m2",
+        "gospa_missed_m2",
+        "gospa_false_m2",
+    ):
         assert s[k] is None, k
     assert s["vehicle_nees"] == {"anees": None, "anees_band": None, "nees_in_band": None, "cells": 0}
 
@@ -147,12 +161,14 @@ def test_age_of_information_counts_from_t_start_and_from_the_newest_arrival() ->
     ]
     times = [10.0, 10.1, 10.2, 10.5]
     age = ev.age_of_information(deliveries, ["a", "b", "c"], times, t_start=9.5)
-    expected = np.array([
-        [0.5, 0.5, 0.5],  # nothing arrived yet: counted from t_start
-        [0.1, 0.6, 0.6],  # a's 10.0 arrived at 10.05
-        [0.1, 0.7, 0.7],  # a's 10.1 arrived at 10.15
-        [0.3, 0.2, 1.0],  # a's 10.2 arrived at 10.4; b's 10.3 at 10.31
-    ])  # fmt: skip
+    expected = np.array(
+        [
+            [0.5, 0.5, 0.5],  # nothing arrived yet: counted from t_start
+            [0.1, 0.6, 0.6],  # a's 10.0 arrived at 10.05
+            [0.1, 0.7, 0.7],  # a's 10.1 arrived at 10.15
+            [0.3, 0.2, 1.0],  # a's 10.2 arrived at 10.4; b's 10.3 at 10.31
+        ]
+    )
     assert age == pytest.approx(expected, abs=1e-12)
     # an arrival exactly at a fuse time counts; a later stamp arriving earlier is the newest
     at = ev.age_of_information([("a", 1.0, 2.0), ("a", 0.5, 2.5)], ["a"], [2.0, 3.0], t_start=0.0)
@@ -212,7 +228,8 @@ def test_helpers() -> None:
     assert ev.rmse_sq([1.0, 9.0]) == pytest.approx(np.sqrt(5.0)) and ev.rmse_sq(np.array([4.0])) == 2.0
     assert np.isnan(ev.rmse_sq([]))
     assert ev.pose_error([[0, 0, 0, 0, 0, 3.0]], [[1, 0, 0, 0, 0, -3.0]]) == pytest.approx(
-        np.array([[-1, 0, 0, 0, 0, 6.0 - 2 * np.pi]]))  # fmt: skip
+        np.array([[-1, 0, 0, 0, 0, 6.0 - 2 * np.pi]])
+    )
     assert (ev.GOSPA_P, ev.GOSPA_ALPHA, ev.GOSPA_C_M, ev.GATE_M, ev.CONFIDENCE) == (2, 2, 3.0, 3.0, 0.95)
     assert (ev.VEHICLE_DOF, ev.OBJECT_DOF) == (6, 3)
 

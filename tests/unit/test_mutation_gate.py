@@ -1,4 +1,4 @@
-"""mapcontainer.fusion.gate.FrameGate: which senders it waits for, its defaults and edges, which frame a message joins."""
+"""mapcontainer.fusion.gate.FrameGate: whom it waits for, its defaults and edges, which frame a message joins."""
 
 from __future__ import annotations
 

@@ -68,7 +68,9 @@ def test_match_objects_cutoff_and_order() -> None:
     assert (ti.tolist(), fi.tolist()) == ([0, 1], [0, 1])
     ti, fi = m.match_objects(e2, t2, gate_m=10.0)  # order 2 by default
     assert (ti.tolist(), fi.tolist()) == ([0, 1], [1, 0])
-    ti, fi = m.match_objects(e2, t2, gate_m=3.0)  # the cutoff caps the 4 m pair at 9: the identity costs 9, the cross 8.82
+    ti, fi = m.match_objects(
+        e2, t2, gate_m=3.0
+    )  # the cutoff caps the 4 m pair at 9: the identity costs 9, the cross 8.82
     assert (ti.tolist(), fi.tolist()) == ([0, 1], [1, 0])
     ti, fi = m.match_objects(e2, t2, gate_m=2.0)  # cross pairs beyond it: the identity keeps its 0 m pair
     assert (ti.tolist(), fi.tolist()) == ([0], [0])

@@ -8,6 +8,7 @@ import pytest
 
 from mapcontainer.fusion import FusionParams
 from mapcontainer.fusion.misbehaviour import MisbehaviourMonitor
+
 from .test_fusion_misbehaviour import EAST, KNOWS, look_for, run
 
 I3 = np.eye(3)
@@ -24,13 +25,13 @@ def test_a_sighting_is_the_nearest_vehicle_like_detection_within_the_radius() ->
     cls = np.array([2, 1, 0, 2, 0])  # the one at 10.1 is a pedestrian: not vehicle-like
     rep = _reported(["cv0", "cv1", "cv2", "cv3"], [(0, 0), (10, 0), (30, 0.5), (40, 0)], var=0.01)
     mon.observe("cv0", 1.0, p, cov, cls, rep)
-    s1, = mon._sightings["cv1"]
+    (s1,) = mon._sightings["cv1"]
     assert (s1.t, s1.observer) == (1.0, "cv0")
     assert s1.offset == pytest.approx(np.array([0.5, 0.2]))
     assert s1.cov == pytest.approx(0.11 * np.eye(2))  # the detection's (0.1) and the vehicle's (0.01)
-    s2, = mon._sightings["cv2"]
+    (s2,) = mon._sightings["cv2"]
     assert s2.offset == pytest.approx(np.array([0.0, -0.5]))  # 30.0 nearer than 16.0 (class 0 = unknown)
-    s3, = mon._sightings["cv3"]
+    (s3,) = mon._sightings["cv3"]
     assert s3.offset == pytest.approx(np.array([0.0, 6.0]))  # exactly the 6 m radius: a sighting
     assert "cv0" not in mon._sightings  # nobody sights themself
 
@@ -133,8 +134,14 @@ def test_a_corroborated_single_observer_flags_and_the_corroboration_expires() ->
     def frame(t: float, cv9_off: float) -> None:
         # cv1 sees cv2 where it says (corroborating cv1) and cv9 cv9_off metres off
         rep = _reported(["cv1", "cv2", "cv9"], [(50, 50), (20, 0), (0, 0)])
-        mon.observe("cv1", t, np.array([[20.0, 0.0, 0.0], [cv9_off, 0.0, 0.0]]), np.tile(0.01 * I3, (2, 1, 1)),
-                    np.array([2, 2]), rep)  # fmt: skip
+        mon.observe(
+            "cv1",
+            t,
+            np.array([[20.0, 0.0, 0.0], [cv9_off, 0.0, 0.0]]),
+            np.tile(0.01 * I3, (2, 1, 1)),
+            np.array([2, 2]),
+            rep,
+        )
 
     for k in range(4):
         frame(0.1 * k, 0.0)
@@ -169,8 +176,9 @@ def test_message_repeats() -> None:
     assert mon._newest["cv1"] == 1.0
     assert mon.update(1.4) == {}  # 2 repeats < clock_min_repeats = 3
     mon.message("cv1", 1.0, 1.5, "stale")
-    assert mon.update(1.5) == {"cv1": "3 of its 6 messages in the last 2 s repeat instants it had sent (a frozen clock "
-                                      "or a replay)"}  # fmt: skip
+    assert mon.update(1.5) == {
+        "cv1": "3 of its 6 messages in the last 2 s repeat instants it had sent (a frozen clock or a replay)"
+    }
 
 
 def test_repeats_must_be_a_fraction_of_the_messages() -> None:
@@ -255,8 +263,9 @@ def test_two_denials_flag_only_when_together() -> None:
     look_for(mon, 0.0, pp.ghost_min_looks, [], tid=7)
     mon.look("cv0", 0.8, EAST, KNOWS, np.zeros((0, 3)), [(8, "cv1")], np.array([[20.0, 5.0]]), np.zeros((0, 2)))
     for k in range(1, pp.ghost_min_looks):
-        mon.look("cv0", 0.8 + 0.1 * k, EAST, KNOWS, np.zeros((0, 3)), [(8, "cv1")], np.array([[20.0, 5.0]]),
-                 np.zeros((0, 2)))  # fmt: skip
+        mon.look(
+            "cv0", 0.8 + 0.1 * k, EAST, KNOWS, np.zeros((0, 3)), [(8, "cv1")], np.array([[20.0, 5.0]]), np.zeros((0, 2))
+        )
     mon.update(1.2)  # denied at 1.2: 0.5 s after the first, exactly ghost_together_s
     assert mon.flagged == {"cv1": "reported 2 objects in 4 s that others should see and did not (#7 by cv0, #8 by cv0)"}
     assert mon.flagged_total == 1
@@ -288,8 +297,9 @@ def test_the_denial_window_keeps_a_denial_exactly_its_length_ago() -> None:
     assert _deny_at(mon, 1.0, 7) == [7] and _deny_at(mon, 3.0, 8) == [8]
     assert mon.flagged == {}
     assert _deny_at(mon, 5.0, 9) == [9]  # the first denial is exactly ghost_denial_window_s (4 s) ago: three
-    assert mon.flagged == {"cv1": "reported 3 objects in 4 s that others should see and did not (#7 by cv0, #8 by cv0, "
-                                  "#9 by cv0)"}  # fmt: skip
+    assert mon.flagged == {
+        "cv1": "reported 3 objects in 4 s that others should see and did not (#7 by cv0, #8 by cv0, #9 by cv0)"
+    }
 
 
 def test_two_denials_exactly_ghost_together_s_apart_flag() -> None:
@@ -327,8 +337,14 @@ def test_a_corroborated_accuser_is_named_alone_when_the_accusers_disagree() -> N
         t = 0.1 * k
         # cv1 sees cv2 where it says (cv1 is corroborated); cv1 and cv3 see cv9 off, 2 m apart from each other
         rep = _reported(["cv1", "cv2", "cv3", "cv9"], [(50, 50), (20, 0), (-50, -50), (0, 0)])
-        mon.observe("cv1", t, np.array([[20.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), np.tile(0.01 * I3, (2, 1, 1)),
-                    np.array([2, 2]), rep)  # fmt: skip
+        mon.observe(
+            "cv1",
+            t,
+            np.array([[20.0, 0.0, 0.0], [3.0, 0.0, 0.0]]),
+            np.tile(0.01 * I3, (2, 1, 1)),
+            np.array([2, 2]),
+            rep,
+        )
         if k >= 4:
             mon.observe("cv3", t, np.array([[3.0, 2.0, 0.0]]), (0.01 * I3)[None], np.array([2]), rep)
         mon.update(t)

@@ -11,8 +11,18 @@ from mapcontainer.experiments.paper import figures as fg
 
 
 def _run(seed=0, series=None, nees=None, objects=None, **extra) -> dict:
-    return {"kind": "sim", "key": "urban", "variant": "dense", "seed": seed, "vehicles": ["cv0", "cv1"],
-            "series": series or {}, "nees": nees or {}, "objects": objects or {}, "locks": [], **extra}  # fmt: skip
+    return {
+        "kind": "sim",
+        "key": "urban",
+        "variant": "dense",
+        "seed": seed,
+        "vehicles": ["cv0", "cv1"],
+        "series": series or {},
+        "nees": nees or {},
+        "objects": objects or {},
+        "locks": [],
+        **extra,
+    }
 
 
 def _sim_runs() -> list[dict]:
@@ -33,13 +43,19 @@ def _sim_runs() -> list[dict]:
             "objects:cooperative": [[1.0, 0.09]],
             "objects:centralized": [[1.0, 0.0729]],  # 0.27 m
         },
-        tx_bytes=1000, tx_msgs=10, tx_bytes_centralized=5000, tx_msgs_centralized=10,
-    )  # fmt: skip
+        tx_bytes=1000,
+        tx_msgs=10,
+        tx_bytes_centralized=5000,
+        tx_msgs_centralized=10,
+    )
     r1 = _run(
         1,
         series={"cv0:cooperative": [[1.0, 0.16]], "cv1:onboard": [[2.0, 4.0]]},  # cv1 2 m off: lost lock
-        tx_bytes=1000, tx_msgs=10, tx_bytes_centralized=5000, tx_msgs_centralized=10,
-    )  # fmt: skip
+        tx_bytes=1000,
+        tx_msgs=10,
+        tx_bytes_centralized=5000,
+        tx_msgs_centralized=10,
+    )
     return [r1, r0]
 
 
@@ -59,8 +75,13 @@ def test_sim_figures() -> None:
     assert f["objects"]["cooperative"] == {"frames": 0}
     assert f["lost_lock_runs"] == {"ego": 0, "any_vehicle": 1}
     assert set(f["consistency"]) == {
-        "objects_cooperative_3d", "objects_centralized_3d", "vehicles_cooperative_6dof", "vehicles_onboard_6dof",
-        "vehicles_map_matching_6dof", "vehicles_centralized_6dof"}  # fmt: skip
+        "objects_cooperative_3d",
+        "objects_centralized_3d",
+        "vehicles_cooperative_6dof",
+        "vehicles_onboard_6dof",
+        "vehicles_map_matching_6dof",
+        "vehicles_centralized_6dof",
+    }
     assert f["consistency"]["objects_cooperative_3d"] == {"dof": 3, "runs": 0}
 
 
@@ -72,8 +93,19 @@ def test_efficiency_is_centralized_mse_over_distributed_mse() -> None:
     assert e["targets"] == round((0.4 / 0.5) ** 2, 4) and e["objects"] == round((0.27 / 0.3) ** 2, 4)
     assert e["bytes_per_message"] == {"distributed": 100.0, "centralized": 500.0}
     assert e["bytes_ratio"] == 5.0 and e["runs"] == 2
-    only_one = fg.sim_figures([_run(0, series={"cv0:cooperative": [[1.0, 0.04]]}, tx_bytes=0, tx_msgs=0,
-                                    tx_bytes_centralized=10, tx_msgs_centralized=1)], 1.0)["efficiency"]  # fmt: skip
+    only_one = fg.sim_figures(
+        [
+            _run(
+                0,
+                series={"cv0:cooperative": [[1.0, 0.04]]},
+                tx_bytes=0,
+                tx_msgs=0,
+                tx_bytes_centralized=10,
+                tx_msgs_centralized=1,
+            )
+        ],
+        1.0,
+    )["efficiency"]
     assert math.isnan(only_one["bytes_ratio"]) and math.isnan(only_one["all_vehicles"])
     assert only_one["bytes_per_message"] == {"distributed": 0.0, "centralized": 10.0}
     assert fg.sim_figures([_run(0)], 1.0)["efficiency"] == {}  # no centralized estimate
@@ -92,8 +124,14 @@ def test_efficiency_ratio_needs_a_positive_distributed_figure() -> None:
 
 
 def test_rv_figures_overlap() -> None:
-    r = _run(series={"obstacle:ego_car": [[1.0, 0.09]], "obstacle:connected_car": [[1.0, 0.16]],
-                     "obstacle:fused": [[1.0, 0.04]], "cv1:onboard": [[1.0, 1.21]]})  # fmt: skip
+    r = _run(
+        series={
+            "obstacle:ego_car": [[1.0, 0.09]],
+            "obstacle:connected_car": [[1.0, 0.16]],
+            "obstacle:fused": [[1.0, 0.04]],
+            "cv1:onboard": [[1.0, 1.21]],
+        }
+    )
     out = fg.rv_figures("overlap", [r], burnin_s=1.0)
     assert (out["ego_car_m"], out["connected_car_m"], out["fused_m"]) == (0.3, 0.4, 0.2)
     assert out["independent_fusion_m"] == 0.24  # (1/0.09 + 1/0.16)^-1/2 = 0.12 / 0.5
@@ -104,19 +142,32 @@ def test_rv_figures_overlap() -> None:
 
 
 def test_rv_figures_blind_spot() -> None:
-    r = _run(series={"cv1:cooperative": [[1.0, 0.01]], "cv1:onboard": [[1.0, 0.04]], "cv1:map_matching": [[1.0, 0.09]],
-                     "obstacle:cooperative": [[1.0, 0.16]], "obstacle:ego_only": [[1.0, 0.25]]})  # fmt: skip
+    r = _run(
+        series={
+            "cv1:cooperative": [[1.0, 0.01]],
+            "cv1:onboard": [[1.0, 0.04]],
+            "cv1:map_matching": [[1.0, 0.09]],
+            "obstacle:cooperative": [[1.0, 0.16]],
+            "obstacle:ego_only": [[1.0, 0.25]],
+        }
+    )
     out = fg.rv_figures("blindspot", [r, r], burnin_s=1.0)
     assert out == {
-        "connected_car_m": 0.1, "connected_car_onboard_m": 0.2, "connected_car_map_matching_m": 0.3,
-        "obstacle_m": 0.4, "ego_only_obstacle_m": 0.5,
-        "objects": {"ego_only": {"frames": 0}, "cooperative": {"frames": 0}}, "lost_lock_runs": 0, "runs": 2,
-    }  # fmt: skip
+        "connected_car_m": 0.1,
+        "connected_car_onboard_m": 0.2,
+        "connected_car_map_matching_m": 0.3,
+        "obstacle_m": 0.4,
+        "ego_only_obstacle_m": 0.5,
+        "objects": {"ego_only": {"frames": 0}, "cooperative": {"frames": 0}},
+        "lost_lock_runs": 0,
+        "runs": 2,
+    }
 
 
 def test_group_orders_each_cell_by_seed() -> None:
     rs = [{"kind": "a", "key": "k", "variant": "v", "seed": s} for s in (3, 1, 2)] + [
-        {"kind": "a", "key": "k", "variant": "w", "seed": 0}]  # fmt: skip
+        {"kind": "a", "key": "k", "variant": "w", "seed": 0}
+    ]
     g = fg.group(rs)
     assert [r["seed"] for r in g[("a", "k", "v")]] == [1, 2, 3] and len(g[("a", "k", "w")]) == 1 and len(g) == 2
 
@@ -136,8 +187,7 @@ def test_time_series_of_no_runs_and_buckets() -> None:
 
 
 def test_pooled_consistency_keeps_vehicles_apart_and_averages_cells() -> None:
-    runs = [_run(j, nees={"cv0:cooperative": [[1.0, 7, 6.0]], "cv1:cooperative": [[1.0, 7, 12.0]]})
-            for j in range(5)]  # fmt: skip
+    runs = [_run(j, nees={"cv0:cooperative": [[1.0, 7, 6.0]], "cv1:cooperative": [[1.0, 7, 12.0]]}) for j in range(5)]
     c = fg.sim_figures(runs, 1.0)["consistency"]["vehicles_cooperative_6dof"]
     assert c["runs"] == 5 and c["anees"] == 9.0 and c["cells"] == 2  # cell 7 of cv0 and of cv1: two cells
     assert c["dof"] == 6 and c["per_run_p5_p50_p95"] == [9.0, 9.0, 9.0]
@@ -150,17 +200,30 @@ def test_objects_summary_without_truth_or_fused() -> None:
     s = fg.objects_summary([_run(objects={"v": [[1.0, 0, 0, 0, 0.0, 0.0, 0.0, 0.0]]})], "v", 1.0)
     assert math.isnan(s["coverage"]) and math.isnan(s["false_fraction"])
     assert (s["false_per_frame"], s["gospa_m"], s["frames"]) == (0.0, 0.0, 1)
-    two = fg.objects_summary([_run(objects={"v": [[1.0, 2, 1, 1, 4.5, 0.0, 4.5, 0.0]]}),
-                              _run(objects={"v": [[2.0, 2, 2, 3, 4.5, 0.0, 0.0, 4.5]]})], "v", 1.0)  # fmt: skip
+    two = fg.objects_summary(
+        [
+            _run(objects={"v": [[1.0, 2, 1, 1, 4.5, 0.0, 4.5, 0.0]]}),
+            _run(objects={"v": [[2.0, 2, 2, 3, 4.5, 0.0, 0.0, 4.5]]}),
+        ],
+        "v",
+        1.0,
+    )
     assert (two["coverage"], two["false_per_frame"], two["false_fraction"], two["frames"]) == (0.75, 0.5, 0.25, 2)
     assert (two["gospa_missed_m2"], two["gospa_false_m2"]) == (2.25, 2.25)
 
 
 def test_efficiency_targets_and_bytes_rows() -> None:
-    res = {"overlap": {}, "blindspot": {},
-           "simulation": {"urban": {"consistency": {"objects_cooperative_3d": {}},
-                                    "efficiency": {"all_vehicles": 0.9, "objects": 0.89, "bytes_ratio": 5.0}}},
-           "bytes": {"ratio": 10.0}}  # fmt: skip
+    res = {
+        "overlap": {},
+        "blindspot": {},
+        "simulation": {
+            "urban": {
+                "consistency": {"objects_cooperative_3d": {}},
+                "efficiency": {"all_vehicles": 0.9, "objects": 0.89, "bytes_ratio": 5.0},
+            }
+        },
+        "bytes": {"ratio": 10.0},
+    }
     rows = {t["target"]: t for t in fg.evaluate_targets(res)}
     v = rows["urban: distributed efficiency (centralized MSE / distributed MSE), vehicles >= 0.9"]
     assert v == {"target": v["target"], "value": 0.9, "threshold": 0.9, "pass": True}
@@ -171,9 +234,11 @@ def test_efficiency_targets_and_bytes_rows() -> None:
 
 
 def test_overlap_and_blind_spot_target_bounds() -> None:
-    res = {"overlap": {"sparse": {"fused_m": 0.264, "independent_fusion_m": 0.24}},
-           "blindspot": {"ii": {"sparse": {"connected_car_m": 0.18, "obstacle_m": 0.35}}},
-           "simulation": {}}  # fmt: skip
+    res = {
+        "overlap": {"sparse": {"fused_m": 0.264, "independent_fusion_m": 0.24}},
+        "blindspot": {"ii": {"sparse": {"connected_car_m": 0.18, "obstacle_m": 0.35}}},
+        "simulation": {},
+    }
     rows = {t["target"]: t for t in fg.evaluate_targets(res)}
     o = rows["overlap (sparse): fused <= 1.1 (1/a^2 + 1/b^2)^-1/2"]
     assert (o["value"], o["threshold"], o["pass"]) == (0.264, 0.264, True)  # at the bound: passes
@@ -184,15 +249,26 @@ def test_overlap_and_blind_spot_target_bounds() -> None:
 
 
 def test_bytes_per_message_to_a_tenth() -> None:
-    r = _run(0, series={"cv0:cooperative": [[1.0, 0.04]]}, tx_bytes=1000, tx_msgs=3, tx_bytes_centralized=2000,
-             tx_msgs_centralized=3)  # fmt: skip
+    r = _run(
+        0,
+        series={"cv0:cooperative": [[1.0, 0.04]]},
+        tx_bytes=1000,
+        tx_msgs=3,
+        tx_bytes_centralized=2000,
+        tx_msgs_centralized=3,
+    )
     e = fg.sim_figures([r], 1.0)["efficiency"]
     assert e["bytes_per_message"] == {"distributed": 333.3, "centralized": 666.7} and e["bytes_ratio"] == 2.0
 
 
 def test_independent_fusion_of_a_perfect_view_is_not_computed() -> None:
-    r = _run(series={"obstacle:ego_car": [[1.0, 0.09]], "obstacle:connected_car": [[1.0, 0.0]],
-                     "obstacle:fused": [[1.0, 0.04]]})  # fmt: skip
+    r = _run(
+        series={
+            "obstacle:ego_car": [[1.0, 0.09]],
+            "obstacle:connected_car": [[1.0, 0.0]],
+            "obstacle:fused": [[1.0, 0.04]],
+        }
+    )
     out = fg.rv_figures("overlap", [r], 1.0)
     assert out["connected_car_m"] == 0.0 and math.isnan(out["independent_fusion_m"])
 

@@ -11,6 +11,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from mapcontainer import security as sec
 from mapcontainer.security import Credentials, Signer, Verified, Verifier, certificate_bytes, issue, make_ca
 from schemas import Certificate, SecuredMessage, decode
+
 from .test_security import NOW, WINDOW_S, assert_rejected, prior
 
 
@@ -76,7 +77,13 @@ def test_a_full_certificate_goes_again_at_the_same_instant_when_the_period_is_ze
     s = Signer(creds["cv0"])  # default: once a second
     assert s.full_cert_every_s == 1.0
     assert [full(s, t) for t in (NOW, NOW, NOW + 0.999, NOW + 1.0, NOW + 1.5, NOW + 2.0)] == [
-        True, False, False, True, False, True]  # fmt: skip
+        True,
+        False,
+        False,
+        True,
+        False,
+        True,
+    ]
     with pytest.raises(ValueError, match="full_cert_every_s must be >= 0"):
         Signer(creds["cv0"], float("nan"))
 
@@ -176,8 +183,11 @@ def test_credentials_files_messages_name_what_is_wrong(tmp_path, ca, creds) -> N
     key_path.unlink()
     with pytest.raises(ConfigError, match=r"^private key .*cv0\.key\.pem does not exist"):
         sec.load_credentials(nested, "cv0")
-    key_path.write_bytes(ed25519.Ed25519PrivateKey.generate().private_bytes(
-        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))  # fmt: skip
+    key_path.write_bytes(
+        ed25519.Ed25519PrivateKey.generate().private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+        )
+    )
     with pytest.raises(ConfigError, match=r"cv0\.key\.pem holds a Ed25519PrivateKey, not a P-256"):
         sec.load_credentials(nested, "cv0")
     sec.save_credentials(Credentials(creds["cv1"].private_key, creds["cv0"].certificate), nested, "cv0")
@@ -190,8 +200,10 @@ def test_credentials_files_messages_name_what_is_wrong(tmp_path, ca, creds) -> N
 def test_write_fleet_keys_defaults(tmp_path) -> None:
     doc = sec.write_fleet_keys(tmp_path, ["cv0"], 3600.0)
     ca_cert = sec.load_certificate(tmp_path, sec.CA_NAME)
-    assert ca_cert.subject == "fleet-ca" and doc["ca"] == {"subject": "fleet-ca", "digest": sec.certificate_digest(
-        ca_cert).hex()}  # fmt: skip
+    assert ca_cert.subject == "fleet-ca" and doc["ca"] == {
+        "subject": "fleet-ca",
+        "digest": sec.certificate_digest(ca_cert).hex(),
+    }
     assert doc["valid_until"] - doc["valid_from"] == 3600 + int(sec.KEYS_SKEW_S)
     assert doc["vehicles"] == {"cv0": sec.load_credentials(tmp_path, "cv0").digest.hex()}
 
