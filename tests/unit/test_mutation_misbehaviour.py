@@ -350,3 +350,50 @@ def test_a_corroborated_accuser_is_named_alone_when_the_accusers_disagree() -> N
         mon.update(t)
     # the median of both views, named by the corroborated one only
     assert mon.flagged == {"cv9": "seen 3.2 m from its reported position (+3.0, +1.0) by cv1 in the last 2 s"}
+
+
+def test_an_observer_unsure_along_one_axis_does_not_look() -> None:
+    """Its position 1-sigma is 1 m along x (0.1 m along y): the largest, not the smallest, decides."""
+    pp = FusionParams()
+    cov = np.diag([1.0, 0.01, 0.01, 1e-4, 1e-4, 1e-4])
+    assert look_for(MisbehaviourMonitor(pp), 0.0, pp.ghost_min_looks, [], cov=cov) == []
+
+
+def test_the_field_of_view_is_about_the_observers_heading() -> None:
+    north = np.array([0.0, 0.0, 0.0, 0.0, 0.0, np.pi / 2])
+    assert _deny_at(MisbehaviourMonitor(FusionParams()), 1.0, 7, observer=north, where=(0.0, 20.0)) == [7]
+    assert _deny_at(MisbehaviourMonitor(FusionParams()), 1.0, 7, observer=north, where=(20.0, 0.0)) == []
+
+
+def test_occluders_are_taken_relative_to_an_observer_away_from_the_origin() -> None:
+    o = np.array([100.0, 50.0, 0.0, 0.0, 0.0, 0.0])
+    mon = MisbehaviourMonitor(FusionParams())
+    for k in range(8):
+        t = 0.125 * k
+        mon.look(
+            "cv0", t, o, KNOWS, np.zeros((0, 3)), [(7, "cv1")], np.array([[120.0, 50.0]]), np.array([[110.0, 50.0]])
+        )
+        mon.update(t)
+        assert mon.denied == []  # the vehicle at (110, 50) hides it
+
+
+def test_a_ghost_flag_holds_exactly_ghost_hold_s() -> None:
+    mon = MisbehaviourMonitor(FusionParams())
+    _deny_at(mon, 1.0, 7)
+    _deny_at(mon, 1.5, 8, where=(20.0, 5.0))  # two at once: flagged at 1.5
+    mon.update(6.5)
+    assert list(mon.flagged) == ["cv1"]  # exactly 5 s after the last denial
+    mon.update(6.625)
+    assert mon.flagged == {}
+
+
+def test_two_reasons_are_joined() -> None:
+    mon = MisbehaviourMonitor(FusionParams())
+    for k in range(4):
+        mon.message("cv1", 0.0, 0.125 * k, "duplicate" if k else None)
+    _deny_at(mon, 1.0, 7)
+    _deny_at(mon, 1.5, 8, where=(20.0, 5.0))
+    assert mon.flagged == {
+        "cv1": "reported 2 objects in 4 s that others should see and did not (#7 by cv0, #8 by cv0); "
+        "3 of its 4 messages in the last 2 s repeat instants it had sent (a frozen clock or a replay)"
+    }

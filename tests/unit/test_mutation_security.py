@@ -213,3 +213,27 @@ def test_inner_payload(creds) -> None:
     assert sec.inner_payload(Signer(creds["cv0"]).sign(payload, NOW)) == payload
     assert sec.inner_payload(payload) == payload  # not a SecuredMessage: itself
     assert sec.inner_payload(b"\xc1garbage") == b"\xc1garbage"
+
+
+def test_a_ca_may_be_valid_to_the_last_uint32_second() -> None:
+    from schemas.models import MAX_CERT_TIME_S
+
+    c = make_ca("edge-ca", now=float(MAX_CERT_TIME_S - 10), validity_s=10.0)
+    assert c.certificate.valid_until == MAX_CERT_TIME_S
+
+
+def test_a_ca_certificate_whose_key_is_not_a_point_is_a_configuration_error(ca) -> None:
+    from mapcontainer.config import ConfigError
+
+    bad = ca.certificate.model_copy(update={"public_key": b"\x02" + b"\xff" * 32})
+    with pytest.raises(ConfigError, match="CA certificate fleet-ca: its public key is not a P-256 point"):
+        Verifier(bad, WINDOW_S)
+
+
+def test_the_refused_certificates_kept_are_bounded_by_max_certificates(ca) -> None:
+    v = Verifier(ca.certificate, WINDOW_S, max_certificates=2)
+    for k in range(3):
+        cert = _ca_signed(ca, f"cv{k}", b"\x02" + b"\xff" * 32, int(NOW) - 60, int(NOW) + 60)
+        signer = Signer(Credentials(ec.generate_private_key(ec.SECP256R1()), cert), 0.0)
+        assert_rejected(v.verify(signer.sign(prior(f"cv{k}"), NOW + k), NOW + k), "forged")
+        assert len(v._bad) == min(k + 1, 2)
