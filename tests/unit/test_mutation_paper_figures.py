@@ -279,3 +279,41 @@ def test_time_to_localize_is_rounded_to_10_ms() -> None:
     st = fg.startup_summary([_run(locks=locks)], duration_s=3.0)
     f = st["time_to_localize_s"]
     assert (f["median"], f["p90"], f["p95"], f["max"], f["never"], f["vehicles"]) == (0.38, 0.38, 0.38, 0.38, 0, 1)
+
+
+def test_consistency_per_run_percentiles() -> None:
+    runs = [_run(j, nees={"x": [[1.0, 1, float(v)]]}) for j, v in enumerate([1, 2, 3, 4, 10])]
+    c = fg.consistency(runs, "x", 3, 1.0)
+    assert c["per_run_p5_p50_p95"] == [1.2, 3.0, 8.8] and c["anees"] == 4.0 and c["cells"] == 1
+
+
+def test_centralized_objects_consistency_is_three_dof() -> None:
+    assert fg.sim_figures(_sim_runs(), 1.0)["consistency"]["objects_centralized_3d"] == {"dof": 3, "runs": 0}
+
+
+def test_overlap_objects_per_view() -> None:
+    rows = {n: [[1.0, 2, k, k, 0.0, 0.0, 0.0, 0.0]] for k, n in enumerate(("ego_car", "connected_car", "fused"))}
+    out = fg.rv_figures("overlap", [_run(objects={f"obstacle:{n}": v for n, v in rows.items()})], 1.0)
+    assert [out["objects"][n]["coverage"] for n in ("ego_car", "connected_car", "fused")] == [0.0, 0.5, 1.0]
+
+
+def test_silent_frames_add_up_over_the_vehicles_of_a_run() -> None:
+    """Two vehicles of one run, each localized from the start, then silent (1.5 m off, saying map matching)."""
+    locks = [[0.125 * k, i, 1, 1.5 if k >= 10 + i else 0.1] for i in (0, 1) for k in range(16)]
+    st = fg.startup_summary([_run(locks=locks)], duration_s=2.0)
+    a = st["after_localized"]
+    assert (a["frames"], a["gross_frames"], a["silent_frames"], a["silent_runs"]) == (32, 11, 11, 1)
+
+
+def test_a_target_claim_needs_a_strictly_smaller_error() -> None:
+    sim = {
+        key: {
+            "ego_rmse_m": {"cooperative": 0.1, "onboard": 0.2, "gnss": 2.0},
+            "per_vehicle_rmse_m": {},
+            "target_rmse_m": {"cooperative": 0.3, "ego_only": 0.3},
+            "objects": {"cooperative": {"coverage": 0.9}, "ego_only": {"coverage": 0.9}},
+        }
+        for key in ("urban", "suburban")
+    }
+    verdict = {c["claim"]: c["holds"] for c in fg.evaluate_claims(sim)}
+    assert verdict["urban: targets cooperative < ego only (at no less coverage)"] is False

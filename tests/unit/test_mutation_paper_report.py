@@ -229,7 +229,8 @@ def test_the_plots_show_the_figures(tmp_path: Path, monkeypatch) -> None:
     from matplotlib.figure import Figure
 
     plt.close("all")
-    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: None)
+    saved = []
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: saved.append((a, k)))
     monkeypatch.setattr(Figure, "tight_layout", lambda self, *a, **k: None)
     monkeypatch.setattr(plt, "close", lambda *a, **k: None)
     res = _res()
@@ -240,7 +241,9 @@ def test_the_plots_show_the_figures(tmp_path: Path, monkeypatch) -> None:
     with pytest.warns(UserWarning, match="No artists with labels"):  # suburban has no curves over time
         written = plots(res, [], tmp_path)
     assert [p.name for p in written] == ["exp_sim.png", "over_time.png", "real_vehicle.png"]
+    assert saved == [((p,), {"dpi": 110}) for p in written]
     exp_sim, over_time, site = (plt.figure(n) for n in plt.get_fignums())
+    assert [tuple(f.get_size_inches()) for f in (exp_sim, over_time, site)] == [(11, 4), (11, 7), (6, 4)]
 
     a, b = exp_sim.axes
     assert exp_sim._suptitle.get_text() == "Simulation, 5 runs, steady state (t >= 1 s)"
@@ -271,6 +274,8 @@ def test_the_plots_show_the_figures(tmp_path: Path, monkeypatch) -> None:
         [0.0, 1.0],
         [0.25, 1.25],
     ]
+    assert {round(r.get_width(), 3) for c in b.containers for r in c} == {0.25}
+    assert {ax.get_legend().get_texts()[0].get_fontsize() for ax in (a, b)} == {7.0}
     assert [t.get_text() for t in a.get_legend().get_texts()] == list(ego)
     assert [t.get_text() for t in b.get_legend().get_texts()] == list(tgt)
 
@@ -285,7 +290,8 @@ def test_the_plots_show_the_figures(tmp_path: Path, monkeypatch) -> None:
     line = next(ln for ln in top.get_lines() if ln.get_label() == "cooperative (host, fused)")
     assert line.get_xdata().tolist() == [0.5, 1.5] and line.get_ydata().tolist() == [0.5, 0.3]
     burnin = [ln for ln in top.get_lines() if ln.get_linestyle() == ":"]
-    assert [ln.get_xdata()[0] for ln in burnin] == [1.0]
+    assert [(ln.get_xdata()[0], ln.get_color(), ln.get_linewidth()) for ln in burnin] == [(1.0, "k", 1.0)]
+    assert top.get_legend().get_texts()[0].get_fontsize() == 7.0
     band = top.collections[0].get_paths()[0].vertices
     assert band[:, 1].min() == pytest.approx(0.2) and band[:, 1].max() == pytest.approx(0.6)
     assert [ln.get_label() for ln in bottom.get_lines() if ln.get_linestyle() != ":"] == ["targets, ego only"]
@@ -310,3 +316,15 @@ def test_the_plots_show_the_figures(tmp_path: Path, monkeypatch) -> None:
         2.0,
     ]
     plt.close("all")
+
+
+def test_consistency_rows_skip_an_estimate_without_figures() -> None:
+    from mapcontainer.experiments.paper.report import _consistency
+
+    row = {"dof": 6, "anees": 6.5, "band": [5.0, 7.0], "inside": True, "per_run_p5_p50_p95": [6.0, 6.5, 7.0],
+           "cells": 4, "cells_inside_fraction": 0.75}  # fmt: skip
+    sim = {"urban": {"consistency": {"objects_cooperative_3d": {"dof": 3, "runs": 0}, "vehicles_onboard_6dof": row}}}
+    rows = [line for line in _consistency(sim) if line.startswith("| urban")]
+    assert rows == [
+        "| urban | vehicle poses, on-board filtered | 6 | 6.50 | [5.00, 7.00] | yes | [6.00, 6.50, 7.00] | 4 | 0.75 |"
+    ]
