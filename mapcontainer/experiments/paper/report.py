@@ -32,6 +32,8 @@ VIEW_LABELS = {"ego_only": "ego only", "cooperative": "cooperative", "centralize
 
 
 def _fmt(x, nd: int = 3) -> str:
+    if x is None:  # a figure with nothing to compute it from (objects_summary of no frames): like NaN
+        return "n/a"
     if isinstance(x, (list, tuple)):
         return "[" + ", ".join(_fmt(v, nd) for v in x) + "]"
     if isinstance(x, float):
