@@ -133,13 +133,18 @@ def list_profiles() -> list[str]:
 def load_profile(name_or_path: str | Path) -> NetworkProfile:
     """A preset by name (configs/network/NAME.yaml) or a YAML file by path; ConfigError on any problem.
 
-    A file without a ``name`` key takes its file name (stem).
+    A file without a ``name`` key takes its file name (stem). A file with a ``radio`` section is a
+    :class:`~mapcontainer.radio.link.RadioProfile` (a NetworkProfile whose loss the radio model decides).
     """
     path = Path(name_or_path)
     if not path.suffix:
         path = find_preset("network", str(name_or_path), "network profile")
     data = read_yaml(path)
     data.setdefault("name", path.stem)
+    if isinstance(data, dict) and "radio" in data:  # a geometric radio profile (mapcontainer.radio)
+        from .radio.link import RadioProfile
+
+        return validate_model(RadioProfile, data, path)
     return validate_model(NetworkProfile, data, path)
 
 

@@ -39,11 +39,12 @@ from schemas import FusedState, GroundTruth, Rejection, body_pose_cov, encode
 from schemas.codec import peek
 
 from . import geometry as geo
-from .channel import Channel, NetworkProfile, load_profile
+from .channel import NetworkProfile, load_profile
 from .faults import FaultInjector
 from .fusion import FusionParams
 from .fusion.gate import MAX_WAIT_S, FrameGate
 from .host import make_host
+from .radio import RadioChannel, make_channel
 from .sim import Tick, World, load_scenario
 from .sim.config import ScenarioConfig
 from .vehicle import Mode, VehicleAgent
@@ -186,7 +187,10 @@ def run_pipeline(
     faults = {v: FaultInjector(v, sc.faults) for v in world.vehicle_ids}
     if mode != "distributed" and any(faults.values()):
         raise ValueError("faults act on a vehicle's priors: they need mode='distributed'")
-    channel = Channel(profile, seed=seed)
+    channel = make_channel(profile, seed, world.hdmap)  # a RadioChannel for a radio profile
+    radio = isinstance(channel, RadioChannel)
+    if radio:
+        channel.place(HOST_ID, ego)  # the container runs on the ego
     hosts = {
         view.name: make_host(
             world.hdmap,
@@ -261,6 +265,8 @@ def run_pipeline(
     for tick in _closing(world, duration):
         t = t_last = tick.t
         rec = TickRecord(t, tick.truth, {}, {}, {}, {})
+        if radio:
+            channel.observe_truth(tick.truth)
         onboard: list[tuple[str, bytes]] = []
         for vid, frame in tick.frames.items():
             msg = agents[vid].handle(t, frame)
@@ -285,6 +291,8 @@ def run_pipeline(
                 payload = signers[vid].sign(message, SIGNING_EPOCH_S + t) if signing else message
                 if vid == ego:
                     onboard.append((vid, payload))
+                    if radio:
+                        channel.on_air(vid, payload, t)  # the ego broadcasts too: it loads the medium
                 else:
                     result.tx_bytes[vid] += len(payload)
                     result.tx_message_bytes[vid] += len(message)
