@@ -324,6 +324,15 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_experiment_radio(args: argparse.Namespace) -> int:
+    from .experiments.radio import run_radio_validation
+
+    doc = run_radio_validation(args.out, messages=args.messages, seed=args.seed)
+    worst = {f"{p['profile']} {p['state']}": p["max_abs_diff"] for p in doc["prr"]}
+    print(jsonout.dumps({"out": str(args.out), "all_within_tolerance": doc["all_within_tolerance"], "max_abs_diff": worst}))
+    return 0 if doc["all_within_tolerance"] else 1
+
+
 def _cmd_experiment_scale(args: argparse.Namespace) -> int:
     from .experiments.scale import analyse, run_scale_experiment
 
@@ -612,6 +621,16 @@ def build_parser() -> argparse.ArgumentParser:
     en.add_argument("--scenario", default="paper-urban")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
+
+    er = exp.add_parser(
+        "radio",
+        help="validate the geometric radio model: PRR vs distance (LOS, NLOS) per PHY profile against the sources' "
+        "closed forms, CBR vs density (docs/radio.md)",
+    )
+    er.add_argument("--out", required=True, type=output_dir, help="output directory")
+    er.add_argument("--messages", type=positive_int, default=1000, help="messages per distance point")
+    er.add_argument("--seed", type=non_negative_int, default=0)
+    er.set_defaults(func=_cmd_experiment_radio)
 
     es = exp.add_parser(
         "scale",

@@ -28,38 +28,37 @@ def node_key(name: str) -> int:
 
 
 def _mix(x: np.ndarray) -> np.ndarray:
-    with np.errstate(over="ignore"):
-        x = x ^ (x >> np.uint64(30))
-        x = x * _M1
-        x = x ^ (x >> np.uint64(27))
-        x = x * _M2
-        return x ^ (x >> np.uint64(31))
+    """SplitMix64's finaliser on a uint64 array (arrays wrap silently; numpy scalars would warn)."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * _M1
+    x = x ^ (x >> np.uint64(27))
+    x = x * _M2
+    return x ^ (x >> np.uint64(31))
+
+
+def _u64(a) -> np.ndarray:
+    return np.atleast_1d(np.asarray(a, dtype=np.uint64))
 
 
 def link_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Unordered link keys from node keys (uint64 arrays): key(a, b) == key(b, a)."""
-    a = np.asarray(a, dtype=np.uint64)
-    b = np.asarray(b, dtype=np.uint64)
+    a, b = _u64(a), _u64(b)
     lo, hi = np.minimum(a, b), np.maximum(a, b)
-    with np.errstate(over="ignore"):
-        return _mix(_mix(lo) ^ (hi * _GOLDEN))
+    return _mix(_mix(lo) ^ (hi * _GOLDEN))
 
 
 def directed_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Ordered link keys: key(a, b) != key(b, a)."""
-    a = np.asarray(a, dtype=np.uint64)
-    b = np.asarray(b, dtype=np.uint64)
-    with np.errstate(over="ignore"):
-        return _mix(_mix(a) + b * _GOLDEN + np.uint64(1))
+    a, b = _u64(a), _u64(b)
+    return _mix(_mix(a) + b * _GOLDEN + np.uint64(1))
 
 
-def uniforms(seed: int, key: np.ndarray, counter: np.ndarray, lane: int = 0) -> np.ndarray:
-    """U(0, 1) per (seed, key, counter, lane), open at both ends, broadcast over key and counter."""
-    key = np.asarray(key, dtype=np.uint64)
-    counter = np.asarray(counter, dtype=np.uint64)
-    s = _mix(np.uint64(seed & 0xFFFFFFFFFFFFFFFF) ^ np.uint64((lane * 0x632BE59BD9B4E019) & 0xFFFFFFFFFFFFFFFF))
-    with np.errstate(over="ignore"):
-        x = _mix(_mix(key ^ s) + counter * _GOLDEN)
+def uniforms(seed: int, key: np.ndarray, counter: np.ndarray, lane=0) -> np.ndarray:
+    """U(0, 1) per (seed, key, counter, lane), open at both ends; key, counter and lane broadcast
+    (the result is at least 1-d)."""
+    lane = np.atleast_1d(np.asarray(lane, dtype=np.int64)).astype(np.uint64)
+    s = _mix(_u64(seed & 0xFFFFFFFFFFFFFFFF) ^ (lane * np.uint64(0x632BE59BD9B4E019)))
+    x = _mix(_mix(_u64(key) ^ s) + _u64(counter) * _GOLDEN)
     return ((x >> np.uint64(11)).astype(np.float64) + 0.5) / float(1 << 53)
 
 

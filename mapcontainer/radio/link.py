@@ -295,7 +295,7 @@ class RadioChannel:
         m = self._msg_n.get((src, dst), 0)
         self._msg_n[(src, dst)] = m + 1
         key = directed_keys(np.uint64(node_key(src)), np.uint64(node_key(dst)))
-        u = [float(uniforms(self.seed, key, np.uint64(m), lane)) for lane in range(4)]
+        u = uniforms(self.seed, key, m, np.arange(4)).tolist()  # lanes: PER, collision, back-off, jitter
         rx = self._places.get(dst, dst)
         i, j = self._index.get(src), self._index.get(rx)
         if i is None or j is None:

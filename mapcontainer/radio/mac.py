@@ -143,7 +143,7 @@ class Sps:
     def _u(self, node: str, lane: int) -> float:
         c = self.draws.get(node, 0)
         self.draws[node] = c + 1
-        return float(uniforms(self.seed, np.uint64(node_key(node)), np.uint64(c), lane))
+        return float(uniforms(self.seed, node_key(node), c, lane)[0])
 
     def _active(self, t: float) -> list[str]:
         return [n for n, tl in self.last_tx.items() if t - tl <= self.mac.rri_s * 1.5]
@@ -185,7 +185,8 @@ class Sps:
         while (ok := rsrp < th).sum() < 0.2 * total:
             th += 3.0
         flat = np.flatnonzero(ok.ravel())
-        order = flat[np.argsort(cand_rssi.ravel()[flat], kind="stable")]
+        tie = uniforms(self.seed, node_key(node), np.arange(total) + total * self.draws.get(node, 0), 4)
+        order = flat[np.lexsort((tie[flat], cand_rssi.ravel()[flat]))]  # lowest S-RSSI first, ties at random
         best = order[: max(1, int(np.ceil(0.2 * total)))]
         pick = int(best[min(len(best) - 1, int(self._u(node, 3) * len(best)))])
         return (pick // s_count, pick % s_count, w)

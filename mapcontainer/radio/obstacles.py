@@ -21,10 +21,18 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from matplotlib.path import Path
 
 from ..hdmap.model import HDMap
 
 __all__ = ["Buildings", "vehicle_blocked"]
+
+_SHIFT = 4  # sub-pixel bits of the vertices given to OpenCV
+
+
+def _pixels(p: np.ndarray, origin: np.ndarray, cell_m: float) -> np.ndarray:
+    """Map x, y -> OpenCV fixed-point pixel coordinates (pixel i spans [origin + i cell, origin + (i+1) cell))."""
+    return np.round(((np.asarray(p, float)[:, :2] - origin) / cell_m - 0.5) * (1 << _SHIFT)).astype(np.int32)
 
 
 class Buildings:
@@ -57,14 +65,14 @@ class Buildings:
         open_ = np.zeros((size[1], size[0]), np.uint8)
 
         def px(p: np.ndarray) -> np.ndarray:
-            return np.round((np.asarray(p)[:, :2] - origin) / cell_m - 0.5).astype(np.int32)
+            return _pixels(p, origin, cell_m)
 
         for c in hdmap.centerlines:
             thick = max(1, int(round(c.width_m / cell_m)))
-            cv2.polylines(open_, [px(c.points)], bool(c.closed), 1, thickness=thick)
+            cv2.polylines(open_, [px(c.points)], bool(c.closed), 1, thickness=thick, shift=_SHIFT)
         polys = [px(w.polygon) for w in hdmap.walkable] + [px(j.polygon) for j in hdmap.junctions]
         if polys:
-            cv2.fillPoly(open_, polys, 1)
+            cv2.fillPoly(open_, polys, 1, shift=_SHIFT)
         r = int(round(setback_m / cell_m))
         if r > 0:
             open_ = cv2.dilate(open_, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
@@ -78,9 +86,16 @@ class Buildings:
         allp = np.vstack([np.asarray(p, float)[:, :2] for p in polygons])
         origin = allp.min(axis=0) - cell_m
         size = np.ceil((allp.max(axis=0) + cell_m - origin) / cell_m).astype(int) + 1
-        mask = np.zeros((size[1], size[0]), np.uint8)
-        cv2.fillPoly(mask, [np.round((np.asarray(p, float)[:, :2] - origin) / cell_m - 0.5).astype(np.int32) for p in polygons], 1)
-        return cls(mask > 0, origin, cell_m)
+        mask = np.zeros((size[1], size[0]), bool)
+        for poly in polygons:  # exact: a cell is a building when its centre is inside an outline
+            poly = np.asarray(poly, float)[:, :2]
+            lo = np.floor((poly.min(axis=0) - origin) / cell_m).astype(int)
+            hi = np.ceil((poly.max(axis=0) - origin) / cell_m).astype(int)
+            cols, rows = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+            centres = origin + (np.stack([cols, rows], axis=-1) + 0.5) * cell_m
+            inside = Path(poly).contains_points(centres.reshape(-1, 2)).reshape(cols.shape)
+            mask[rows[inside], cols[inside]] = True
+        return cls(mask, origin, cell_m)
 
     def at(self, p: np.ndarray) -> np.ndarray:
         """True where points p (..., 2) are inside a building."""
