@@ -174,9 +174,10 @@ class RadioChannel:
         for n in pos:
             self.cbr_samples.setdefault(n, []).append(float(self._cbr[self._index[n]]))
 
-    def observe_truth(self, truth) -> None:
-        """:meth:`observe` from a :class:`schemas.GroundTruth`: its connected vehicles send, its obstacles of
-        class vehicle block (and send background traffic); pedestrians do neither."""
+    def observe_truth(self, truth, t: float | None = None) -> None:
+        """:meth:`observe` from a :class:`schemas.GroundTruth` at ``t`` (default its ``t_meas``; the relay
+        passes its own clock): its connected vehicles send, its obstacles of class vehicle block (and send
+        background traffic); pedestrians do neither."""
         from schemas import ObjectClass
 
         nodes = {v: np.asarray(p[:2], float) for v, p in zip(truth.vehicle_ids, truth.vehicle_pose, strict=True)}
@@ -186,7 +187,7 @@ class RadioChannel:
             for i, p, v in zip(truth.obstacle_id, truth.obstacle_p_map, is_vehicle, strict=True)
             if v
         }
-        self.observe(float(truth.t_meas), nodes, others)
+        self.observe(float(truth.t_meas) if t is None else float(t), nodes, others)
 
     def _geometry(self, p: np.ndarray, vehicles: np.ndarray) -> None:
         r = self.radio
