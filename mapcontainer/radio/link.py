@@ -36,6 +36,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from ..channel import Delivery, NetworkProfile
+from .dcc import DccParams, ReactiveDcc
 from .hashing import directed_keys, link_keys, node_key, uniforms
 from .mac import Csma, MacParams, Sps, airtime_s
 from .obstacles import Buildings, vehicle_blocked
@@ -44,7 +45,7 @@ from .propagation import LOS, NLOS, NLOSV, PropagationParams, Shadowing, mean_pa
 
 __all__ = ["RADIO_CAUSES", "RadioChannel", "RadioParams", "RadioProfile", "make_channel"]
 
-RADIO_CAUSES = ("sensing", "propagation", "collision", "half_duplex")
+RADIO_CAUSES = ("dcc", "sensing", "propagation", "collision", "half_duplex")
 
 
 class RadioParams(BaseModel):
@@ -55,6 +56,7 @@ class RadioParams(BaseModel):
     propagation: PropagationParams = PropagationParams()
     phy: PhyParams = PhyParams()
     mac: MacParams = MacParams()
+    dcc: DccParams = Field(DccParams(), description="ETSI reactive DCC on every sender (off unless enabled)")
     buildings: bool = Field(True, description="NLOS behind the map's buildings (obstacles.Buildings.from_map)")
     building_cell_m: float = Field(1.0, gt=0)
     building_setback_m: float = Field(2.0, ge=0, description="open ground beyond road and sidewalk edges")
@@ -143,6 +145,8 @@ class RadioChannel:
         self._tx_log: deque[tuple[float, str, float]] = deque()
         self._t0: float | None = None
         self._last_tx: dict[str, tuple] = {}
+        self._dcc: dict[str, ReactiveDcc] = {}
+        self._keys: dict[str, int] = {}
         self._msg_n: dict[tuple[str, str], int] = {}
         self._links: dict[tuple[str, str], dict[str, Any]] = {}
         self._heap: list[tuple[float, int, Delivery]] = []
@@ -206,10 +210,8 @@ class RadioChannel:
             state[vehicle_blocked(a, b, ends[iu], ends[ju], vehicles, r.vehicle_half_width_m)] = NLOSV
         if r.buildings and self.buildings.mask.any():
             state[self.buildings.crossed_m(a, b) > 0] = NLOS
-        keys = link_keys(
-            np.array([node_key(self.names[i]) for i in iu], dtype=np.uint64),
-            np.array([node_key(self.names[j]) for j in ju], dtype=np.uint64),
-        )
+        nk = np.array([self._node_key(nm) for nm in self.names], dtype=np.uint64)
+        keys = link_keys(nk[iu], nk[ju])
         moved = np.array(
             [np.hypot(*(self._pos[self.names[i]] - self._prev[self.names[i]])) for i in range(n)]
         )
@@ -231,11 +233,15 @@ class RadioChannel:
                 self._bg_last[name] = t
                 self._register(name, ("bg", t), self.radio.background_bytes, t)
 
-    def _register(self, src: str, key: tuple, nbytes: int, t: float) -> dict:
-        """One transmission of ``src`` on the air (a broadcast, whatever the number of receivers)."""
+    def _register(self, src: str, key: tuple, nbytes: int, t: float) -> dict | None:
+        """One transmission of ``src`` on the air (a broadcast, whatever the number of receivers); None
+        if the sender's DCC gate refuses it."""
         last = self._last_tx.get(src)
         if last is not None and last[0] == key:
             return last[1]
+        if self.radio.dcc.enabled and not self._dcc_for(src).allow(t):
+            self._last_tx[src] = (key, None)
+            return None
         air = float(airtime_s(nbytes, self.radio.phy.data_rate_bps))
         info: dict[str, Any] = {"air": air, "t": t}
         if isinstance(self.mac, Sps):
@@ -244,6 +250,22 @@ class RadioChannel:
         self._tx_log.append((t, src, info["air"]))
         self._last_tx[src] = (key, info)
         return info
+
+    def _node_key(self, name: str) -> int:
+        k = self._keys.get(name)
+        if k is None:
+            k = self._keys[name] = node_key(name)
+        return k
+
+    def _dcc_for(self, node: str) -> ReactiveDcc:
+        d = self._dcc.get(node)
+        if d is None:
+            d = self._dcc[node] = ReactiveDcc(self.radio.dcc)
+        return d
+
+    def dcc_states(self) -> dict[str, int]:
+        """Each sender's DCC state (0 = Relaxed) at the last observation (empty without DCC)."""
+        return {n: d.state for n, d in self._dcc.items()}
 
     def _update_load(self, t: float) -> None:
         w = self.radio.mac.rate_window_s
@@ -265,6 +287,9 @@ class RadioChannel:
             self._cbr = self.mac.cbr(self.power_dbm, self._rate, self._air) if n else np.zeros(0)
         else:
             self._cbr = self.mac.cbr(self.names, self.power_dbm, t) if n else np.zeros(0)
+        if self.radio.dcc.enabled:
+            for i, name in enumerate(self.names):
+                self._dcc_for(name).update(t, float(self._cbr[i]))
 
     # -- the channel ------------------------------------------------------------------------------
 
@@ -295,7 +320,7 @@ class RadioChannel:
         c["offered_bytes"] += nbytes
         m = self._msg_n.get((src, dst), 0)
         self._msg_n[(src, dst)] = m + 1
-        key = directed_keys(np.uint64(node_key(src)), np.uint64(node_key(dst)))
+        key = directed_keys(self._node_key(src), self._node_key(dst))
         u = uniforms(self.seed, key, m, np.arange(4)).tolist()  # lanes: PER, collision, back-off, jitter
         rx = self._places.get(dst, dst)
         i, j = self._index.get(src), self._index.get(rx)
@@ -305,6 +330,8 @@ class RadioChannel:
         if i == j:
             return self._push(src, dst, payload, t, t, u[3])
         info = self._register(src, (t, nbytes, hash(payload)), nbytes, t)
+        if info is None:
+            return self._drop(c, "dcc", nbytes)
         phy = self.radio.phy
         pr = float(self.power_dbm[i, j])
         if pr < phy.sensing_dbm:
@@ -393,6 +420,8 @@ class RadioChannel:
             n: {"mean": float(np.mean(s)), "max": float(np.max(s))} for n, s in self.cbr_samples.items() if s
         }
         total["link_states"] = dict(self.state_counts)
+        if self.radio.dcc.enabled:
+            total["dcc_gated"] = {n: d.gated for n, d in self._dcc.items() if n in self.cbr_samples}
         return total
 
     def reset_stats(self) -> None:

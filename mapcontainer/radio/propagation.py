@@ -164,33 +164,36 @@ class Shadowing:
     def __init__(self, params: PropagationParams, seed: int) -> None:
         self.params = params
         self.seed = int(seed)
-        self._z: dict[int, float] = {}
-        self._k: dict[int, int] = {}
+        self._keys = np.zeros(0, dtype=np.uint64)  # sorted; the links' state in the same order
+        self._z = np.zeros(0)
+        self._k = np.zeros(0, dtype=np.uint64)
 
     def update(self, keys: np.ndarray, moved_m: np.ndarray, state: np.ndarray) -> np.ndarray:
-        """Advance links ``keys`` (uint64, from :func:`~.hashing.link_keys`) by their motion ``moved_m``
-        and return their shadowing (dB) in their ``state``."""
-        keys = np.asarray(keys, dtype=np.uint64)
-        n = len(keys)
-        z_prev = np.empty(n)
-        k = np.empty(n, dtype=np.uint64)
-        new = np.zeros(n, dtype=bool)
-        for i, key in enumerate(keys.tolist()):
-            z = self._z.get(key)
-            new[i] = z is None
-            z_prev[i] = 0.0 if z is None else z
-            k[i] = self._k.get(key, 0)
+        """Advance links ``keys`` (uint64, from :func:`~.hashing.link_keys`; distinct) by their motion
+        ``moved_m`` and return their shadowing (dB) in their ``state``."""
+        keys = np.asarray(keys, dtype=np.uint64).reshape(-1)
+        pos = np.searchsorted(self._keys, keys)
+        found = pos < len(self._keys)
+        found[found] = self._keys[pos[found]] == keys[found]
+        z_prev = np.where(found, self._z[np.minimum(pos, len(self._z) - 1)] if len(self._z) else 0.0, 0.0)
+        k = np.where(found, self._k[np.minimum(pos, len(self._k) - 1)] if len(self._k) else 0, 0).astype(np.uint64)
         draws = normals(self.seed, keys, k)
         d_corr = np.where(
             np.asarray(state) == LOS, self.params.decorrelation_los_m, self.params.decorrelation_nlos_m
         )
-        rho = np.exp(-np.maximum(np.asarray(moved_m, dtype=float), 0.0) / d_corr)
-        z = np.where(new, draws, rho * z_prev + np.sqrt(1.0 - rho**2) * draws)
-        moved = np.asarray(moved_m) > 0
-        for i, key in enumerate(keys.tolist()):
-            if new[i] or moved[i]:
-                self._z[key] = float(z[i])
-                self._k[key] = int(k[i]) + 1
+        moved = np.maximum(np.asarray(moved_m, dtype=float), 0.0)
+        rho = np.exp(-moved / d_corr)
+        z = np.where(found, rho * z_prev + np.sqrt(1.0 - rho**2) * draws, draws)
+        step = ~found | (moved > 0)  # a standing link keeps its value and its counter
+        k_new = k + step.astype(np.uint64)
+        self._z[pos[found]] = z[found]
+        self._k[pos[found]] = k_new[found]
+        if (~found).any():
+            all_keys = np.concatenate([self._keys, keys[~found]])
+            order = np.argsort(all_keys, kind="stable")
+            self._keys = all_keys[order]
+            self._z = np.concatenate([self._z, z[~found]])[order]
+            self._k = np.concatenate([self._k, k_new[~found]])[order]
         return shadowing_sigma_db(self.params, state) * z
 
 

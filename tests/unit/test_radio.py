@@ -320,3 +320,55 @@ def test_the_analytic_prr_has_the_sources_shape():
     a = analytic_prr(prof, np.array([10.0]), LOS)
     assert a[0] == pytest.approx((1 - 0.01) * (1 - 1e-3), abs=1e-3)  # half duplex lambda / 1000, BLER floor
     assert analytic_prr(_plain("its-g5"), np.array([2000.0]), LOS)[0] < 1e-6
+
+
+# -- DCC ---------------------------------------------------------------------------------------------
+
+
+def test_reactive_dcc_rises_on_sustained_load_and_falls_on_sustained_quiet():
+    from mapcontainer.radio.dcc import DccParams, ReactiveDcc
+
+    d = ReactiveDcc(DccParams(enabled=True))
+    t = 0.0
+    for _ in range(5):  # a single high sample does not raise it while the last second held lower ones
+        t += 0.1
+        d.update(t, 0.1)
+    assert d.update(t + 0.1, 0.5) == 0
+    t += 0.1
+    for _ in range(11):
+        t += 0.1
+        d.update(t, 0.5)
+    assert d.state == 4 and d.interval_s == pytest.approx(0.34)  # 0.43 <= 0.5 < 0.51: Active 4
+    for _ in range(20):  # 2 s of quiet: the last 5 s still held 0.5
+        t += 0.1
+        d.update(t, 0.05)
+    assert d.state == 4
+    for _ in range(31):
+        t += 0.1
+        d.update(t, 0.05)
+    assert d.state == 0
+    assert d.allow(10.0) and not d.allow(10.05) and d.allow(10.06) and d.gated == 1
+    with pytest.raises(ValueError, match="intervals_s"):
+        DccParams(thresholds=(0.2,), intervals_s=(0.1,))
+
+
+def test_dcc_on_every_sender_cuts_the_load_of_a_dense_road():
+    prof = _plain("its-g5")
+    dense = prof.model_copy(update={"radio": prof.radio.model_copy(update={"background_rate_hz": 20.0})})
+    from mapcontainer.radio.dcc import DccParams
+
+    gated = dense.model_copy(update={"radio": dense.radio.model_copy(update={"dcc": DccParams(enabled=True)})})
+    out = {}
+    for name, p in (("off", dense), ("on", gated)):
+        ch = RadioChannel(p, 0)
+        ch.place("host", "a")
+        others = {str(k): (4.0 * k, 3.5 * (k % 2)) for k in range(1, 100)}
+        for k in range(40):
+            t = 0.1 * k
+            ch.observe(t, {"a": (0.0, 0.0), "b": (60.0, 0.0)}, others)
+            ch.send("b", "host", PAYLOAD, t)
+        out[name] = (ch.cbr()["a"], ch.stats())
+    assert out["on"][0] < 0.8 * out["off"][0]
+    st = out["on"][1]
+    _balance(st)
+    assert st["radio_drops"]["dcc"] > 0 and max(ch.dcc_states().values()) > 0
