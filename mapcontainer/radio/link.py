@@ -110,6 +110,7 @@ def _new_counters() -> dict[str, Any]:
         "dropped_msgs": {"loss": 0, "queue_full": 0},
         "dropped_bytes": {"loss": 0, "queue_full": 0},
         "radio_drops": dict.fromkeys(RADIO_CAUSES, 0),
+        "radio_drop_bytes": dict.fromkeys(RADIO_CAUSES, 0),
     }
 
 
@@ -360,6 +361,7 @@ class RadioChannel:
 
     def _drop(self, c: dict[str, Any], cause: str, nbytes: int) -> bool:
         c["radio_drops"][cause] += 1
+        c["radio_drop_bytes"][cause] += nbytes
         c["dropped_msgs"]["loss"] += 1
         c["dropped_bytes"]["loss"] += nbytes
         return False
