@@ -305,6 +305,22 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
 def _cmd_experiment_network(args: argparse.Namespace) -> int:
     from .experiments.network import run_network_sweep
 
+    if args.radio:
+        from .experiments.network_radio import run_radio_sweeps
+
+        rows = run_radio_sweeps(
+            args.out,
+            profiles=tuple(args.radio.split(",")),
+            sweeps=tuple(args.sweep.split(",")),
+            quick=args.quick,
+            seed=args.seed,
+            workers=args.workers,
+            duration=args.duration,
+            progress=not args.quiet,
+        )
+        print(jsonout.dumps({"out": str(args.out), "points": len(rows), "radio": args.radio}))
+        return 0
+
     if args.duration is not None and args.duration <= 1.0:
         print(f"mapc: --duration must exceed the 1 s warm-up, got {args.duration}", file=sys.stderr)
         return 2
@@ -619,6 +635,13 @@ def build_parser() -> argparse.ArgumentParser:
     en.add_argument("--workers", type=positive_int, default=2, help="worker processes")
     en.add_argument("--duration", type=seconds, default=None, help="seconds per point (default 4, quick 2.5)")
     en.add_argument("--scenario", default="paper-urban")
+    en.add_argument(
+        "--radio",
+        default=None,
+        help="geometric radio profiles (comma-separated, e.g. its-g5,cv2x-mode4): run the distance and density "
+        "sweeps (docs/radio.md) instead of the latency x loss x bandwidth grid",
+    )
+    en.add_argument("--sweep", default="distance,density", help="with --radio: distance, density or both")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
 
