@@ -152,7 +152,7 @@ class RadioChannel:
         self._links: dict[tuple[str, str], dict[str, Any]] = {}
         self._heap: list[tuple[float, int, Delivery]] = []
         self._seq = 0
-        self.cbr_samples: dict[str, list[float]] = {}
+        self._cbr_acc: dict[str, list] = {}  # connected vehicle -> [sum, count, max] of its CBR samples
         self.state_counts = {"los": 0, "nlosv": 0, "nlos": 0}
 
     # -- geometry -----------------------------------------------------------------------------------
@@ -176,8 +176,12 @@ class RadioChannel:
         self._geometry(np.array([senders[nm] for nm in self.names]).reshape(-1, 2), np.array(vehicles).reshape(-1, 2))
         self._background_traffic(t)
         self._update_load(t)
-        for n in pos:
-            self.cbr_samples.setdefault(n, []).append(float(self._cbr[self._index[n]]))
+        for n in pos:  # running sums: the relay runs for hours
+            c = float(self._cbr[self._index[n]])
+            acc = self._cbr_acc.setdefault(n, [0.0, 0, 0.0])
+            acc[0] += c
+            acc[1] += 1
+            acc[2] = max(acc[2], c)
 
     def observe_truth(self, truth, t: float | None = None) -> None:
         """:meth:`observe` from a :class:`schemas.GroundTruth` at ``t`` (default its ``t_meas``; the relay
@@ -418,16 +422,14 @@ class RadioChannel:
                 else:
                     total[k] += v
         total["links"] = links
-        total["cbr"] = {
-            n: {"mean": float(np.mean(s)), "max": float(np.max(s))} for n, s in self.cbr_samples.items() if s
-        }
+        total["cbr"] = {n: {"mean": a[0] / a[1], "max": a[2]} for n, a in self._cbr_acc.items() if a[1]}
         total["link_states"] = dict(self.state_counts)
         if self.radio.dcc.enabled:
-            total["dcc_gated"] = {n: d.gated for n, d in self._dcc.items() if n in self.cbr_samples}
+            total["dcc_gated"] = {n: d.gated for n, d in self._dcc.items() if n in self._cbr_acc}
         return total
 
     def reset_stats(self) -> None:
         for key in self._links:
             self._links[key] = _new_counters()
-        self.cbr_samples = {}
+        self._cbr_acc = {}
         self.state_counts = {"los": 0, "nlosv": 0, "nlos": 0}

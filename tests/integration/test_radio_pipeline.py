@@ -7,7 +7,7 @@ import pytest
 from mapcontainer.experiments.network_radio import gap_scenario, radio_figures
 from mapcontainer.pipeline import run_pipeline
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]  # three short runs: about 20 s on a loaded machine
 
 
 def test_round_the_corner_the_link_is_nlos_and_the_classic_profiles_are_unchanged():
