@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..channel import Delivery, NetworkProfile
+from ..channel import Delivery, NetworkProfile, link_totals
 from .dcc import DccParams, ReactiveDcc
 from .hashing import directed_keys, link_keys, node_key, uniforms
 from .mac import Csma, MacParams, Sps, airtime_s
@@ -403,25 +403,7 @@ class RadioChannel:
         """The classic channel's counters (radio drops summed as ``loss``) plus ``radio_drops`` by cause,
         ``unlocated_msgs``, ``cbr`` per connected vehicle (mean and max over observations) and
         ``link_states`` (pair-observations that were LOS / NLOSv / NLOS)."""
-        in_flight: dict[tuple[str, str], list[int]] = {}
-        for _, _, d in self._heap:
-            f = in_flight.setdefault((d.src, d.dst), [0, 0])
-            f[0] += 1
-            f[1] += len(d.payload)
-        total = _new_counters()
-        total["in_flight_msgs"] = total["in_flight_bytes"] = 0
-        links = {}
-        for key, lc in self._links.items():
-            c = {k: dict(v) if isinstance(v, dict) else v for k, v in lc.items()}
-            c["in_flight_msgs"], c["in_flight_bytes"] = in_flight.get(key, (0, 0))
-            links[f"{key[0]}->{key[1]}"] = c
-            for k, v in c.items():
-                if isinstance(v, dict):
-                    for cause, x in v.items():
-                        total[k][cause] += x
-                else:
-                    total[k] += v
-        total["links"] = links
+        total = link_totals(self._links, self._heap, _new_counters())
         total["cbr"] = {n: {"mean": a[0] / a[1], "max": a[2]} for n, a in self._cbr_acc.items() if a[1]}
         total["link_states"] = dict(self.state_counts)
         if self.radio.dcc.enabled:
