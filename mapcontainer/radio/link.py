@@ -14,7 +14,7 @@ is received, or not, by each receiver as :mod:`~.propagation`, :mod:`~.obstacles
 
 and arrives after the access delay (802.11p: back-off and air time; C-V2X: the wait for the reserved
 subframe) plus the profile's ``latency_ms`` and jitter (processing above the radio). Drops are
-counted by radio cause (``sensing``, ``propagation``, ``collision``, ``half_duplex``) and, summed, as
+counted by radio cause (``dcc``, ``sensing``, ``propagation``, ``collision``, ``half_duplex``) and, summed, as
 the link model's ``loss`` cause. Per-message uniforms are counter-based hashes of (seed, directed
 link, message count on that link), so a run is reproducible and a link's fate does not depend on
 other links' traffic order.
@@ -58,6 +58,9 @@ class RadioParams(BaseModel):
     mac: MacParams = MacParams()
     dcc: DccParams = Field(DccParams(), description="ETSI reactive DCC on every sender (off unless enabled)")
     buildings: bool = Field(True, description="NLOS behind the map's buildings (obstacles.Buildings.from_map)")
+    building_file: str | None = Field(
+        None, description="a SUMO additional file whose 'building' polygons are the buildings (instead of the map's)"
+    )
     building_cell_m: float = Field(1.0, gt=0)
     building_setback_m: float = Field(2.0, ge=0, description="open ground beyond road and sidewalk edges")
     vehicle_blockage: bool = Field(True, description="NLOSv behind other vehicles")
@@ -87,11 +90,11 @@ def make_channel(profile: NetworkProfile, seed: int, hdmap=None):
     profile, else the classic :class:`~mapcontainer.channel.Channel`."""
     if isinstance(profile, RadioProfile):
         r = profile.radio
-        b = (
-            Buildings.from_map(hdmap, cell_m=r.building_cell_m, setback_m=r.building_setback_m)
-            if r.buildings and hdmap is not None
-            else None
-        )
+        b = None
+        if r.buildings and r.building_file is not None:
+            b = Buildings.from_sumo(r.building_file, cell_m=r.building_cell_m)
+        elif r.buildings and hdmap is not None:
+            b = Buildings.from_map(hdmap, cell_m=r.building_cell_m, setback_m=r.building_setback_m)
         return RadioChannel(profile, seed, b)
     from ..channel import Channel
 

@@ -97,6 +97,23 @@ class Buildings:
             mask[rows[inside], cols[inside]] = True
         return cls(mask, origin, cell_m)
 
+    @classmethod
+    def from_sumo(cls, path, cell_m: float = 1.0) -> Buildings:
+        """Buildings from a SUMO additional file's polygons whose type starts with "building" (what
+        ``polyconvert`` writes for OpenStreetMap buildings), in the network's x, y (the map frame of a
+        SUMO map). Needs sumolib (the roads extra)."""
+        from ..hdmap.errors import MapFileError, require
+
+        require("sumolib", "Reading building polygons of a SUMO additional file")
+        from sumolib.shapes.polygon import read as read_polygons
+
+        try:
+            polys = read_polygons(str(path))
+        except OSError as exc:
+            raise MapFileError(f"{path}: {exc}") from None
+        shapes = [np.asarray(p.shape, float)[:, :2] for p in polys if (p.type or "").startswith("building")]
+        return cls.from_polygons([s for s in shapes if len(s) >= 3], cell_m)
+
     def at(self, p: np.ndarray) -> np.ndarray:
         """True where points p (..., 2) are inside a building."""
         p = np.asarray(p, float)

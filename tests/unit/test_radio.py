@@ -372,3 +372,20 @@ def test_dcc_on_every_sender_cuts_the_load_of_a_dense_road():
     st = out["on"][1]
     _balance(st)
     assert st["radio_drops"]["dcc"] > 0 and max(ch.dcc_states().values()) > 0
+
+
+def test_buildings_from_a_sumo_additional_file(tmp_path):
+    pytest.importorskip("sumolib")
+    f = tmp_path / "city.poly.xml"
+    f.write_text(
+        '<additional>\n'
+        '  <poly id="b1" type="building" color="red" fill="1" layer="-1" shape="10,-5 12,-5 12,5 10,5 10,-5"/>\n'
+        '  <poly id="p1" type="natural.water" color="blue" fill="1" layer="-1" shape="30,-5 40,-5 40,5 30,5"/>\n'
+        '</additional>\n'
+    )
+    b = Buildings.from_sumo(f)
+    assert b.crossed_m(np.array([[0.0, 0.0]]), np.array([[20.0, 0.0]]))[0] == pytest.approx(2.0, abs=0.6)
+    assert b.crossed_m(np.array([[25.0, 0.0]]), np.array([[45.0, 0.0]]))[0] == 0  # water does not block
+    prof = load_profile("its-g5")
+    prof = prof.model_copy(update={"radio": prof.radio.model_copy(update={"building_file": str(f)})})
+    assert make_channel(prof, 0).buildings.mask.any()
