@@ -205,9 +205,10 @@ def _balance(st):
 
 
 def test_radio_profiles_load_and_refuse_a_loss_of_their_own(tmp_path):
-    for name in ("its-g5", "cv2x-mode4"):
+    for name in ("its-g5", "its-g5-dcc", "cv2x-mode4"):
         p = load_profile(name)
         assert isinstance(p, RadioProfile) and p.description
+        assert p.radio.dcc.enabled == (name == "its-g5-dcc")
         assert isinstance(make_channel(p, 0), RadioChannel)
     assert isinstance(make_channel(load_profile("dsrc"), 0), Channel)
     bad = tmp_path / "bad.yaml"
