@@ -131,18 +131,24 @@ def run_radio_sweeps(
     duration: float | None = None,
     warmup_s: float = 1.0,
     progress: bool = True,
+    gaps_m: tuple[float, ...] | None = None,
+    extra_vehicles: tuple[int, ...] | None = None,
+    density_profiles: tuple[str, ...] | None = None,
 ) -> list[dict]:
-    """Run the sweeps and write ``distance.csv``, ``density.csv``, ``degradation.json`` and the PNGs."""
+    """Run the sweeps and write ``distance.csv``, ``density.csv``, ``degradation.json`` and the PNGs.
+
+    ``gaps_m``, ``extra_vehicles``: the grids (default :data:`GAPS_M`, :data:`EXTRA_VEHICLES`; quick: 3 and 2
+    points); ``density_profiles``: the profiles of the density sweep (default ``profiles``)."""
     dur = duration if duration is not None else (3.0 if quick else 8.0)
-    gaps = (12.0, 100.0, 200.0) if quick else GAPS_M
-    extras = (0, 60) if quick else EXTRA_VEHICLES
+    gaps = gaps_m or ((12.0, 100.0, 200.0) if quick else GAPS_M)
+    extras = extra_vehicles or ((0, 60) if quick else EXTRA_VEHICLES)
     tasks: list[tuple] = []
     if "distance" in sweeps:
         tasks += [("distance", g, p, False, False, "distributed", seed, dur, warmup_s) for p in profiles for g in gaps]
     if "density" in sweeps:
         for n, mode in itertools.product(extras, ("distributed", "centralized")):
             tasks.append(("density", n, "ideal", False, False, mode, seed, dur, warmup_s))
-            for p, dcc in itertools.product(profiles, (False, True)):
+            for p, dcc in itertools.product(density_profiles or profiles, (False, True)):
                 tasks.append(("density", n, p, dcc, False, mode, seed, dur, warmup_s))
                 if mode == "distributed":
                     tasks.append(("density", n, p, dcc, True, mode, seed, dur, warmup_s))
