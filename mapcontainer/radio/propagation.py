@@ -7,7 +7,8 @@ loss and a shadowing standard deviation. Distances are in metres, losses in dB, 
 
 Path-loss families (``family`` of :class:`PropagationParams`):
 
-* ``"winner_b1"`` — WINNER+ B1 LOS, as used for V2V in 3GPP TR 36.885 Table A.1.4-1 and by the
+* ``"winner_b1"`` — WINNER+ B1 LOS, as used for V2V in 3GPP TR 36.885 (its V2V channel table; the
+  table number A.1.4-1 is from memory, not re-checked against the document) and by the
   analytical models of Sepulcre et al., "Analytical Models of the Performance of IEEE 802.11p Vehicle
   to Vehicle Communications", IEEE TVT 2021 (their ``get_PL_SH``), and Gonzalez-Martín et al.,
   "Analytical Models of the Performance of C-V2X Mode 4 Vehicular Communications", IEEE TVT 68(2)
@@ -20,8 +21,8 @@ Path-loss families (``family`` of :class:`PropagationParams`):
                     + 2.7 \log_{10}(f_c/\mathrm{GHz}), \quad d \ge d_{BP}
 
   never below free space :math:`20 \log_{10} d + 46.4 + 20 \log_{10}(f_c / 5\,\mathrm{GHz})`, and
-  with :math:`d` floored at 3 m (TR 36.885: "pathloss at 3 m is used if the distance is less than
-  3 m"). :math:`h_e` is the environment height (0.5 m in the 802.11p paper, 0 in the C-V2X one).
+  with :math:`d` floored at 3 m (as both papers' implementations do). :math:`h_e` is the environment
+  height (0.5 m in the 802.11p paper, 0 in the C-V2X one).
 * ``"tr37885_urban"`` — TR 37.885 Table 6.2.1-1, urban: :math:`PL_{LOS} = 38.77 + 16.7 \log_{10} d
   + 18.2 \log_{10} f_c`.
 * ``"tr37885_highway"`` — TR 37.885 Table 6.2.1-1, highway: :math:`PL_{LOS} = 32.4 + 20 \log_{10} d
@@ -33,7 +34,8 @@ NLOSv is the LOS loss plus the vehicle-blockage loss of TR 37.885 §6.2.1 (:func
 
 Shadowing (TR 37.885 Table 6.2.1-1 / ns-3's ``ThreeGppV2vUrbanPropagationLossModel``): standard
 deviation 3 dB for LOS and NLOSv, 4 dB for NLOS; spatially correlated with decorrelation distance
-10 m (LOS) and 13 m (NLOS, NLOSv) in urban, 25 m on highways (TR 36.885 Table A.1.4-1). It is the
+10 m (LOS) and 13 m (NLOS, NLOSv) in urban (ns-3's values; 25 m is the highway figure of TR 36.885 as we
+recall it, not re-checked: set ``decorrelation_*_m`` for a highway). It is the
 Gudmundson AR(1) process along the link's own motion, :class:`Shadowing`.
 """
 
