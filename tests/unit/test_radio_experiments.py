@@ -39,3 +39,26 @@ def test_degradation_interpolates_the_density_of_a_10_percent_loss():
     assert got[("centralized", False)] == 30
     assert len(got) == 3
     assert not math.isnan(got[("distributed", False)])
+
+
+def test_radio_figures_of_a_run():
+    from mapcontainer.experiments.network_radio import radio_figures
+    from mapcontainer.pipeline import PipelineResult
+
+    res = PipelineResult("s", 0, "distributed", "its-g5", "cv0", duration_s=2.0)
+    res.tx_msgs.update({"cv1": 20, "cv2": 20})
+    res.tx_bytes.update({"cv1": 10000, "cv2": 10000})
+    res.channel_stats = {
+        "offered_msgs": 40,
+        "radio_drops": {"dcc": 4, "sensing": 2, "propagation": 0, "collision": 2, "half_duplex": 0},
+        "radio_drop_bytes": {"dcc": 2000},
+        "cbr": {"cv0": {"mean": 0.1, "max": 0.2}, "cv1": {"mean": 0.3, "max": 0.4}, "7": {"mean": 0.9, "max": 1.0}},
+        "link_states": {"los": 6, "nlosv": 2, "nlos": 2},
+    }
+    f = radio_figures(res)
+    assert f["cbr_mean"] == pytest.approx(0.2)  # the ego and the senders, not the background vehicle 7
+    assert f["drop_dcc_fraction"] == pytest.approx(0.1) and f["drop_collision_fraction"] == pytest.approx(0.05)
+    assert f["state_nlos_fraction"] == pytest.approx(0.2)
+    assert f["bytes_on_air_per_s_per_vehicle"] == pytest.approx((20000 - 2000) / 2.0 / 2)
+    res.channel_stats = {"offered_msgs": 40}  # a classic link
+    assert math.isnan(radio_figures(res)["cbr_mean"])
