@@ -345,8 +345,9 @@ def _cmd_experiment_radio(args: argparse.Namespace) -> int:
 
     doc = run_radio_validation(args.out, messages=args.messages, seed=args.seed)
     worst = {f"{p['profile']} {p['state']}": p["max_abs_diff"] for p in doc["prr"]}
-    print(jsonout.dumps({"out": str(args.out), "all_within_tolerance": doc["all_within_tolerance"], "max_abs_diff": worst}))
-    return 0 if doc["all_within_tolerance"] else 1
+    ok = doc["all_within_tolerance"]
+    print(jsonout.dumps({"out": str(args.out), "all_within_tolerance": ok, "max_abs_diff": worst}))
+    return 0 if ok else 1
 
 
 def _cmd_experiment_scale(args: argparse.Namespace) -> int:

@@ -112,12 +112,27 @@ def _task(task: tuple) -> dict:
     if isinstance(prof, RadioProfile):
         prof = _with_dcc(prof, dcc)
     row = run_network_point(
-        prof, mode, seed, duration, scenario=sc, warmup_s=warmup, radius_m=radius,
+        prof,
+        mode,
+        seed,
+        duration,
+        scenario=sc,
+        warmup_s=warmup,
+        radius_m=radius,
         start="warm" if mode == "distributed" else "cold",  # centralized: the host localizes from raw data
-        cpm_rules=cpm, extra=radio_figures,
+        cpm_rules=cpm,
+        extra=radio_figures,
     )
-    row.update({"sweep": kind, "x": x, "vehicles_per_km": rounded(vehicles_per_km(sc), 1), "dcc": dcc, "cpm": cpm,
-                "radio_profile": profile_name})
+    row.update(
+        {
+            "sweep": kind,
+            "x": x,
+            "vehicles_per_km": rounded(vehicles_per_km(sc), 1),
+            "dcc": dcc,
+            "cpm": cpm,
+            "radio_profile": profile_name,
+        }
+    )
     return row
 
 
@@ -153,7 +168,9 @@ def run_radio_sweeps(
                 if mode == "distributed":
                     tasks.append(("density", n, p, dcc, True, mode, seed, dur, warmup_s))
     t0 = time.perf_counter()
-    rows = run_all(_task, tasks, workers, "experiment network --radio", lambda r: f"{r['sweep']} {r['x']} {r['profile']}", progress)
+    rows = run_all(
+        _task, tasks, workers, "experiment network --radio", lambda r: f"{r['sweep']} {r['x']} {r['profile']}", progress
+    )
     rows.sort(key=lambda r: (r["sweep"], r["mode"], r["radio_profile"], r["dcc"], r["cpm"], r["x"]))
     _reference(rows)
     out = Path(out_dir)
@@ -166,8 +183,15 @@ def run_radio_sweeps(
                 w.writeheader()
                 w.writerows(part)
     deg = degradation(rows)
-    meta = {"seed": seed, "duration_s": dur, "warmup_s": warmup_s, "quick": quick, "profiles": list(profiles),
-            "wall_s": round(time.perf_counter() - t0, 1), "degradation_threshold": DEGRADATION}
+    meta = {
+        "seed": seed,
+        "duration_s": dur,
+        "warmup_s": warmup_s,
+        "quick": quick,
+        "profiles": list(profiles),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "degradation_threshold": DEGRADATION,
+    }
     (out / "degradation.json").write_text(json.dumps({"meta": meta, "degradation": deg}, indent=1, default=str) + "\n")
     _plots(rows, out)
     return rows
@@ -202,8 +226,17 @@ def degradation(rows: list[dict]) -> list[dict]:
                     x0, y0 = x[i - 1], y[i - 1]
                     at = x0 + (x[i] - x0) * (1 + DEGRADATION - y0) / (yi - y0) if yi != y0 else x[i]
                 break
-        out.append({"mode": mode, "profile": prof, "dcc": dcc, "cpm": cpm, "densities_per_km": x,
-                    "rmse_vs_ideal": y, "degrades_10pct_at_per_km": None if at is None else round(float(at), 1)})
+        out.append(
+            {
+                "mode": mode,
+                "profile": prof,
+                "dcc": dcc,
+                "cpm": cpm,
+                "densities_per_km": x,
+                "rmse_vs_ideal": y,
+                "degrades_10pct_at_per_km": None if at is None else round(float(at), 1),
+            }
+        )
     return out
 
 
@@ -243,8 +276,16 @@ def _plots(rows: list[dict], out: Path) -> None:
                 ax[2].plot(x, [r["rmse_vs_ideal"] for r in rs], "o-", label=lab)
             ax[3].plot(x, [r["bytes_on_air_per_s_per_vehicle"] for r in rs], "o-", label=lab)
         ax[2].axhline(1 + DEGRADATION, color="grey", ls=":")
-        for a, lab in zip(ax, ("CBR (connected vehicles)", "PRR to the host", "vehicle RMSE / ideal link's",
-                               "bytes on air / s / vehicle"), strict=True):
+        for a, lab in zip(
+            ax,
+            (
+                "CBR (connected vehicles)",
+                "PRR to the host",
+                "vehicle RMSE / ideal link's",
+                "bytes on air / s / vehicle",
+            ),
+            strict=True,
+        ):
             a.set(xlabel="vehicles per km of ring", ylabel=lab)
             a.legend(fontsize=6)
         fig.tight_layout()

@@ -63,7 +63,13 @@ def run_radio_validation(
     for dens in densities_per_km:
         beta = dens / 1000.0
         sim, _ = simulated_cbr(prof, beta, seed=seed)
-        cbr.append({"density_per_km": dens, "analytic": round(analytic_cbr(prof, beta, 10.0, 190), 4), "simulated": round(sim, 4)})
+        cbr.append(
+            {
+                "density_per_km": dens,
+                "analytic": round(analytic_cbr(prof, beta, 10.0, 190), 4),
+                "simulated": round(sim, 4),
+            }
+        )
     doc = {
         "messages_per_point": messages,
         "seed": seed,
@@ -91,7 +97,12 @@ def _plots(doc: dict, out: Path) -> None:
             a.plot(p["distance_m"], p["simulated"], "o", ms=3.5, color=colour, label=f"{p['state']}: simulated")
             lo = np.asarray(p["analytic"]) - PRR_TOLERANCE
             a.fill_between(p["distance_m"], lo, lo + 2 * PRR_TOLERANCE, color=colour, alpha=0.12)
-        a.set(title=f"{name}: PRR vs distance (band: +-{PRR_TOLERANCE})", xlabel="distance (m)", ylabel="PRR", ylim=(-0.02, 1.02))
+        a.set(
+            title=f"{name}: PRR vs distance (band: +-{PRR_TOLERANCE})",
+            xlabel="distance (m)",
+            ylabel="PRR",
+            ylim=(-0.02, 1.02),
+        )
         a.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "prr_vs_distance.png", dpi=110)

@@ -34,8 +34,12 @@ class DccParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     enabled: bool = False
-    thresholds: tuple[float, ...] = Field((0.19, 0.27, 0.35, 0.43, 0.51, 0.59), description="CBR lower bound of each state above Relaxed")
-    intervals_s: tuple[float, ...] = Field((0.06, 0.10, 0.18, 0.26, 0.34, 0.42, 0.46), description="per state, Relaxed first")
+    thresholds: tuple[float, ...] = Field(
+        (0.19, 0.27, 0.35, 0.43, 0.51, 0.59), description="CBR lower bound of each state above Relaxed"
+    )
+    intervals_s: tuple[float, ...] = Field(
+        (0.06, 0.10, 0.18, 0.26, 0.34, 0.42, 0.46), description="per state, Relaxed first"
+    )
     up_window_s: float = Field(1.0, gt=0, description="rise on the minimum CBR over this window")
     down_window_s: float = Field(5.0, gt=0, description="fall on the maximum CBR over this window")
 

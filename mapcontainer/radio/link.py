@@ -77,7 +77,13 @@ class RadioProfile(NetworkProfile):
 
     @model_validator(mode="after")
     def _radio_decides(self) -> RadioProfile:
-        if self.loss or self.burst is not None or self.bandwidth_bps is not None or self.shared_medium or self.duplicate:
+        if (
+            self.loss
+            or self.burst is not None
+            or self.bandwidth_bps is not None
+            or self.shared_medium
+            or self.duplicate
+        ):
             raise ValueError(
                 "a radio profile takes its loss, capacity and contention from the radio model: "
                 "loss, burst, bandwidth_bps, shared_medium and duplicate must be left at their defaults"
@@ -220,9 +226,7 @@ class RadioChannel:
             state[self.buildings.crossed_m(a, b) > 0] = NLOS
         nk = np.array([self._node_key(nm) for nm in self.names], dtype=np.uint64)
         keys = link_keys(nk[iu], nk[ju])
-        moved = np.array(
-            [np.hypot(*(self._pos[self.names[i]] - self._prev[self.names[i]])) for i in range(n)]
-        )
+        moved = np.array([np.hypot(*(self._pos[self.names[i]] - self._prev[self.names[i]])) for i in range(n)])
         shadow = self.shadowing.update(keys, moved[iu] + moved[ju], state)
         loss = mean_path_loss_db(r.propagation, d, state) + shadow
         v = state == NLOSV

@@ -101,7 +101,14 @@ class Csma:
         return (self.mac.aifs_s + u * self.mac.cw * SLOT_S) / max(1e-3, 1.0 - cbr) + air_s
 
     def collision_free(
-        self, i: int, j: int, power_dbm: np.ndarray, rate_hz: np.ndarray, air_s: np.ndarray, cbr: np.ndarray, noise_mw: float
+        self,
+        i: int,
+        j: int,
+        power_dbm: np.ndarray,
+        rate_hz: np.ndarray,
+        air_s: np.ndarray,
+        cbr: np.ndarray,
+        noise_mw: float,
     ) -> float:
         """P(no destructive overlap) for a packet i -> j, given it is detected (SEN passed)."""
         n = len(rate_hz)
@@ -148,7 +155,9 @@ class Sps:
     def _active(self, t: float) -> list[str]:
         return [n for n, tl in self.last_tx.items() if t - tl <= self.mac.rri_s * 1.5]
 
-    def transmit(self, node: str, nbytes: int, t: float, names: list[str], power_dbm: np.ndarray) -> tuple[int, int, int]:
+    def transmit(
+        self, node: str, nbytes: int, t: float, names: list[str], power_dbm: np.ndarray
+    ) -> tuple[int, int, int]:
         """The resource ``node`` uses for a packet offered at ``t`` (reselecting when its counter ran out)."""
         w = self.width(nbytes)
         res = self.res.get(node)

@@ -180,9 +180,7 @@ class Shadowing:
         z_prev = np.where(found, self._z[np.minimum(pos, len(self._z) - 1)] if len(self._z) else 0.0, 0.0)
         k = np.where(found, self._k[np.minimum(pos, len(self._k) - 1)] if len(self._k) else 0, 0).astype(np.uint64)
         draws = normals(self.seed, keys, k)
-        d_corr = np.where(
-            np.asarray(state) == LOS, self.params.decorrelation_los_m, self.params.decorrelation_nlos_m
-        )
+        d_corr = np.where(np.asarray(state) == LOS, self.params.decorrelation_los_m, self.params.decorrelation_nlos_m)
         moved = np.maximum(np.asarray(moved_m, dtype=float), 0.0)
         rho = np.exp(-moved / d_corr)
         z = np.where(found, rho * z_prev + np.sqrt(1.0 - rho**2) * draws, draws)

@@ -73,7 +73,9 @@ def simulated_prr(
         b = None
         if state == NLOS:
             y0 = dist / 2.0
-            b = Buildings.from_polygons([np.array([[-20, y0 - 2], [hop + 20, y0 - 2], [hop + 20, y0 + 2], [-20, y0 + 2]])])
+            b = Buildings.from_polygons(
+                [np.array([[-20, y0 - 2], [hop + 20, y0 - 2], [hop + 20, y0 + 2], [-20, y0 + 2]])]
+            )
         ch = RadioChannel(profile, seed, b)
         ch.place("host", "rx")
         ok = 0
@@ -97,8 +99,13 @@ def analytic_cbr(profile: RadioProfile, beta_per_m: float, rate_hz: float, nbyte
 
 
 def simulated_cbr(
-    profile: RadioProfile, beta_per_m: float, rate_hz: float = 10.0, nbytes: int = 190, road_m: float = 2000.0,
-    seconds: float = 1.5, seed: int = 0,
+    profile: RadioProfile,
+    beta_per_m: float,
+    rate_hz: float = 10.0,
+    nbytes: int = 190,
+    road_m: float = 2000.0,
+    seconds: float = 1.5,
+    seed: int = 0,
 ) -> tuple[float, np.ndarray]:
     """Mean CBR of the vehicles in the middle third of a straight road of ``road_m`` with a vehicle every
     1/beta m (all connected, each sending ``rate_hz``), after ``seconds``; and every vehicle's CBR."""

@@ -15,7 +15,6 @@ from mapcontainer.radio.phy import PhyParams, per
 from mapcontainer.radio.propagation import (
     LOS,
     NLOS,
-    NLOSV,
     PropagationParams,
     Shadowing,
     mean_path_loss_db,
@@ -379,10 +378,10 @@ def test_buildings_from_a_sumo_additional_file(tmp_path):
     pytest.importorskip("sumolib")
     f = tmp_path / "city.poly.xml"
     f.write_text(
-        '<additional>\n'
+        "<additional>\n"
         '  <poly id="b1" type="building" color="red" fill="1" layer="-1" shape="10,-5 12,-5 12,5 10,5 10,-5"/>\n'
         '  <poly id="p1" type="natural.water" color="blue" fill="1" layer="-1" shape="30,-5 40,-5 40,5 30,5"/>\n'
-        '</additional>\n'
+        "</additional>\n"
     )
     b = Buildings.from_sumo(f)
     assert b.crossed_m(np.array([[0.0, 0.0]]), np.array([[20.0, 0.0]]))[0] == pytest.approx(2.0, abs=0.6)

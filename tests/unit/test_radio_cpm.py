@@ -22,7 +22,9 @@ def _prior(t: float, objects: list[tuple[float, float, int]], x0: float = 0.0) -
         pose_cov=(np.diag([0.1, 0.1, 0.05, 0.005, 0.005, 0.005]) ** 2)[np.triu_indices(6)],
         v_map=np.zeros(3),
         quality=LocalizationQuality(mode="map_matching"),
-        objects=ObjectObservations.from_metres(p, np.tile(np.eye(3) * 0.04, (len(objects), 1, 1)), [c for *_, c in objects]),
+        objects=ObjectObservations.from_metres(
+            p, np.tile(np.eye(3) * 0.04, (len(objects), 1, 1)), [c for *_, c in objects]
+        ),
     )
 
 

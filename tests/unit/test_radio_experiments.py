@@ -24,8 +24,15 @@ def test_density_scenario_adds_vehicles_over_the_lanes():
 
 
 def _row(mode, dcc, x, ratio):
-    return {"sweep": "density", "mode": mode, "radio_profile": "its-g5", "dcc": dcc, "cpm": False,
-            "vehicles_per_km": x, "rmse_vs_ideal": ratio}
+    return {
+        "sweep": "density",
+        "mode": mode,
+        "radio_profile": "its-g5",
+        "dcc": dcc,
+        "cpm": False,
+        "vehicles_per_km": x,
+        "rmse_vs_ideal": ratio,
+    }
 
 
 def test_degradation_interpolates_the_density_of_a_10_percent_loss():
