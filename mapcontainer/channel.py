@@ -133,13 +133,18 @@ def list_profiles() -> list[str]:
 def load_profile(name_or_path: str | Path) -> NetworkProfile:
     """A preset by name (configs/network/NAME.yaml) or a YAML file by path; ConfigError on any problem.
 
-    A file without a ``name`` key takes its file name (stem).
+    A file without a ``name`` key takes its file name (stem). A file with a ``radio`` section is a
+    :class:`~mapcontainer.radio.link.RadioProfile` (a NetworkProfile whose loss the radio model decides).
     """
     path = Path(name_or_path)
     if not path.suffix:
         path = find_preset("network", str(name_or_path), "network profile")
     data = read_yaml(path)
     data.setdefault("name", path.stem)
+    if isinstance(data, dict) and "radio" in data:  # a geometric radio profile (mapcontainer.radio)
+        from .radio.link import RadioProfile
+
+        return validate_model(RadioProfile, data, path)
     return validate_model(NetworkProfile, data, path)
 
 
@@ -175,6 +180,32 @@ def _new_counters() -> dict[str, Any]:
         "dropped_msgs": dict.fromkeys(DROP_CAUSES, 0),
         "dropped_bytes": dict.fromkeys(DROP_CAUSES, 0),
     }
+
+
+def link_totals(counters: dict[tuple[str, str], dict[str, Any]], heap, total: dict[str, Any]) -> dict[str, Any]:
+    """Totals (summed into the zeroed ``total``) and per-link copies (key ``"src->dst"`` under ``"links"``) of
+    link counters, each with ``in_flight_*``: the messages of the delivery ``heap`` (entries ``(t, seq,
+    Delivery)``) not delivered yet, extra copies excluded."""
+    in_flight: dict[tuple[str, str], list[int]] = {}
+    for _, _, d in heap:
+        if not d.duplicate:
+            f = in_flight.setdefault((d.src, d.dst), [0, 0])
+            f[0] += 1
+            f[1] += len(d.payload)
+    total["in_flight_msgs"] = total["in_flight_bytes"] = 0
+    links: dict[str, dict[str, Any]] = {}
+    for key, counts in counters.items():
+        c = {k: dict(v) if isinstance(v, dict) else v for k, v in counts.items()}
+        c["in_flight_msgs"], c["in_flight_bytes"] = in_flight.get(key, (0, 0))
+        links[f"{key[0]}->{key[1]}"] = c
+        for k, v in c.items():
+            if isinstance(v, dict):
+                for cause, n in v.items():
+                    total[k][cause] += n
+            else:
+                total[k] += v
+    total["links"] = links
+    return total
 
 
 class _Server:
@@ -372,27 +403,7 @@ class Channel:
         ``dropped_*``: by cause {"loss", "queue_full"}; ``in_flight_*``: offered messages not yet
         delivered (extra copies excluded). Bytes are payload bytes.
         """
-        in_flight: dict[tuple[str, str], list[int]] = {}
-        for _, _, d in self._heap:
-            if not d.duplicate:
-                f = in_flight.setdefault((d.src, d.dst), [0, 0])
-                f[0] += 1
-                f[1] += len(d.payload)
-        total = _new_counters()
-        total["in_flight_msgs"] = total["in_flight_bytes"] = 0
-        links: dict[str, dict[str, Any]] = {}
-        for key, link in self._links.items():
-            c = {k: dict(v) if isinstance(v, dict) else v for k, v in link.counters.items()}
-            c["in_flight_msgs"], c["in_flight_bytes"] = in_flight.get(key, (0, 0))
-            links[f"{key[0]}->{key[1]}"] = c
-            for k, v in c.items():
-                if isinstance(v, dict):
-                    for cause, n in v.items():
-                        total[k][cause] += n
-                else:
-                    total[k] += v
-        total["links"] = links
-        return total
+        return link_totals({key: link.counters for key, link in self._links.items()}, self._heap, _new_counters())
 
     def reset_stats(self) -> None:
         """Zero the counters (link state, queues and messages in flight are kept).

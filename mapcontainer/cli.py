@@ -305,6 +305,22 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
 def _cmd_experiment_network(args: argparse.Namespace) -> int:
     from .experiments.network import run_network_sweep
 
+    if args.radio:
+        from .experiments.network_radio import run_radio_sweeps
+
+        rows = run_radio_sweeps(
+            args.out,
+            profiles=tuple(args.radio.split(",")),
+            sweeps=tuple(args.sweep.split(",")),
+            quick=args.quick,
+            seed=args.seed,
+            workers=args.workers,
+            duration=args.duration,
+            progress=not args.quiet,
+        )
+        print(jsonout.dumps({"out": str(args.out), "points": len(rows), "radio": args.radio}))
+        return 0
+
     if args.duration is not None and args.duration <= 1.0:
         print(f"mapc: --duration must exceed the 1 s warm-up, got {args.duration}", file=sys.stderr)
         return 2
@@ -322,6 +338,16 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
         doc["smoke_test"] = "short cold-started points: they show the sweep runs, not what the network does"
     print(jsonout.dumps(doc))
     return 0
+
+
+def _cmd_experiment_radio(args: argparse.Namespace) -> int:
+    from .experiments.radio import run_radio_validation
+
+    doc = run_radio_validation(args.out, messages=args.messages, seed=args.seed)
+    worst = {f"{p['profile']} {p['state']}": p["max_abs_diff"] for p in doc["prr"]}
+    ok = doc["all_within_tolerance"]
+    print(jsonout.dumps({"out": str(args.out), "all_within_tolerance": ok, "max_abs_diff": worst}))
+    return 0 if ok else 1
 
 
 def _cmd_experiment_scale(args: argparse.Namespace) -> int:
@@ -610,8 +636,25 @@ def build_parser() -> argparse.ArgumentParser:
     en.add_argument("--workers", type=positive_int, default=2, help="worker processes")
     en.add_argument("--duration", type=seconds, default=None, help="seconds per point (default 4, quick 2.5)")
     en.add_argument("--scenario", default="paper-urban")
+    en.add_argument(
+        "--radio",
+        default=None,
+        help="geometric radio profiles (comma-separated, e.g. its-g5,cv2x-mode4): run the distance and density "
+        "sweeps (docs/radio.md) instead of the latency x loss x bandwidth grid",
+    )
+    en.add_argument("--sweep", default="distance,density", help="with --radio: distance, density or both")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
+
+    er = exp.add_parser(
+        "radio",
+        help="validate the geometric radio model: PRR vs distance (LOS, NLOS) per PHY profile against the sources' "
+        "closed forms, CBR vs density (docs/radio.md)",
+    )
+    er.add_argument("--out", required=True, type=output_dir, help="output directory")
+    er.add_argument("--messages", type=positive_int, default=1000, help="messages per distance point")
+    er.add_argument("--seed", type=non_negative_int, default=0)
+    er.set_defaults(func=_cmd_experiment_radio)
 
     es = exp.add_parser(
         "scale",

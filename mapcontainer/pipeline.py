@@ -39,11 +39,13 @@ from schemas import FusedState, GroundTruth, Rejection, body_pose_cov, encode
 from schemas.codec import peek
 
 from . import geometry as geo
-from .channel import Channel, NetworkProfile, load_profile
+from .channel import NetworkProfile, load_profile
 from .faults import FaultInjector
 from .fusion import FusionParams
 from .fusion.gate import MAX_WAIT_S, FrameGate
 from .host import make_host
+from .radio import RadioChannel, make_channel
+from .radio.cpm import CpmRules
 from .sim import Tick, World, load_scenario
 from .sim.config import ScenarioConfig
 from .vehicle import Mode, VehicleAgent
@@ -154,6 +156,7 @@ def run_pipeline(
     start: Start = "cold",
     signing: bool = False,
     max_wait_s: float = MAX_WAIT_S,
+    cpm_rules: bool = False,
 ) -> PipelineResult:
     """Run one episode and return per-frame records for evaluation.
 
@@ -166,6 +169,9 @@ def run_pipeline(
     (:class:`~mapcontainer.security.Signer`, credentials from a CA made for the run), and each host view
     verifies it before ingesting it; Unix time in the signatures is ``SIGNING_EPOCH_S`` + scenario time.
     ``tx_bytes`` are then the signed bytes, ``tx_message_bytes`` the messages inside.
+
+    ``cpm_rules``: every vehicle but the ego thins the objects of the prior it sends with the ETSI CPM
+    inclusion rules (:class:`~mapcontainer.radio.cpm.CpmRules`; distributed mode).
 
     ``max_wait_s``: scenario seconds a view's frame waits for its late senders (the FrameGate's; the
     live host's ``--max-wait`` is wall seconds, i.e. ``max_wait * time_scale`` scenario seconds).
@@ -186,7 +192,13 @@ def run_pipeline(
     faults = {v: FaultInjector(v, sc.faults) for v in world.vehicle_ids}
     if mode != "distributed" and any(faults.values()):
         raise ValueError("faults act on a vehicle's priors: they need mode='distributed'")
-    channel = Channel(profile, seed=seed)
+    if cpm_rules and mode != "distributed":
+        raise ValueError("cpm_rules thin the objects of a vehicle's prior: they need mode='distributed'")
+    cpm = {v: CpmRules() for v in world.vehicle_ids[1:]} if cpm_rules else {}
+    channel = make_channel(profile, seed, world.hdmap)  # a RadioChannel for a radio profile
+    radio = isinstance(channel, RadioChannel)
+    if radio:
+        channel.place(HOST_ID, ego)  # the container runs on the ego
     hosts = {
         view.name: make_host(
             world.hdmap,
@@ -261,6 +273,8 @@ def run_pipeline(
     for tick in _closing(world, duration):
         t = t_last = tick.t
         rec = TickRecord(t, tick.truth, {}, {}, {}, {})
+        if radio:
+            channel.observe_truth(tick.truth)
         onboard: list[tuple[str, bytes]] = []
         for vid, frame in tick.frames.items():
             msg = agents[vid].handle(t, frame)
@@ -280,11 +294,15 @@ def run_pipeline(
                         rec.per_frame[vid], rec.per_frame_covs[vid] = res.pose_frame, res.cov_frame + bias
                     else:
                         rec.per_frame[vid], rec.per_frame_covs[vid] = rec.onboard[vid], rec.onboard_covs[vid]
+            if vid in cpm:
+                msg = cpm[vid].filter(msg)
             for m in faults[vid].apply(msg) if faults[vid] else [msg]:
                 message = encode(m)
                 payload = signers[vid].sign(message, SIGNING_EPOCH_S + t) if signing else message
                 if vid == ego:
                     onboard.append((vid, payload))
+                    if radio:
+                        channel.on_air(vid, payload, t)  # the ego broadcasts too: it loads the medium
                 else:
                     result.tx_bytes[vid] += len(payload)
                     result.tx_message_bytes[vid] += len(message)

@@ -50,7 +50,7 @@ import csv
 import itertools
 import math
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -177,13 +177,26 @@ def run_network_point(
     warmup_s: float = 1.0,
     radius_m: float = 50.0,
     signing: bool = True,
+    start: str = "cold",
+    cpm_rules: bool = False,
+    extra: Callable[[PipelineResult], dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """One sweep point: run the pipeline and return its row (keys: ``NETWORK_COLUMNS``)."""
+    """One sweep point: run the pipeline and return its row (keys: ``NETWORK_COLUMNS``, then ``extra(res)``'s).
+
+    ``scenario``: a preset name or a ScenarioConfig; ``start``, ``cpm_rules``: :func:`run_pipeline`'s."""
     if duration <= warmup_s:
         raise ValueError(f"duration ({duration} s) must exceed warmup_s ({warmup_s} s)")
     t0 = time.perf_counter()
     res = run_pipeline(
-        scenario, seed=seed, duration_s=duration, mode=mode, network=profile, views=(View("fused"),), signing=signing
+        scenario,
+        seed=seed,
+        duration_s=duration,
+        mode=mode,
+        network=profile,
+        views=(View("fused"),),
+        signing=signing,
+        start=start,
+        cpm_rules=cpm_rules,
     )
     scored = [r for r in res.records if r.t >= warmup_s - 1e-9]
     obj_sq, veh_sq = [], []
@@ -235,6 +248,7 @@ def run_network_point(
         **link,
         "host_rejected": int(rejected),
         "wall_s": rounded(time.perf_counter() - t0, 2),
+        **(extra(res) if extra is not None else {}),
     }
 
 

@@ -11,6 +11,13 @@ those are not relayed to it.
 
 The processing latency in the health status is the scheduler's lateness: the time a delivery is
 published minus the time the link model said it arrives (about 0.5 ms in the prototype).
+
+With a geometric radio profile (``--network its-g5``, ``cv2x-mode4``: :mod:`mapcontainer.radio`) the
+relay also subscribes the world's truth (``mc/{fleet}/sim/truth``) and tells the link where every
+vehicle is (``Relay.observe``, on the relay's wall clock); a receiver sits at its first on-board
+source (``--receiver host=cv0``: the host's radio is cv0's). Every vehicle's message is one broadcast
+on the air, relayed to a receiver or not, so it loads the medium; the health figures add the radio
+drops by cause and each vehicle's channel busy ratio (``cbr.<vehicle>.mean``).
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from collections import OrderedDict
 
 from pydantic import Field
 
+from schemas import GroundTruth
 from schemas.topics import topic
 
 from ..runtime import (
@@ -49,6 +57,7 @@ class ChannelSettings(ServiceSettings):
         default_factory=lambda: {"host": []}, description="receiver id -> its on-board sources (not relayed)"
     )
     stale_input_s: float | None = None  # an idle channel is not unhealthy
+    scenario: str | None = Field(None, description="whose map's buildings a geometric radio profile uses")
     time_scale: float = Field(
         1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="the world's: senders' rates scale"
     )
@@ -76,12 +85,20 @@ def parse_args(argv: list[str] | None = None) -> ChannelSettings:
         help="receiver id, optionally with on-board sources: host=cv0 (repeatable; default host)",
     )
     p.add_argument("--time-scale", type=float, default=1.0, help="the world's (senders' rates scale with it)")
+    p.add_argument(
+        "--scenario", default=None, help="the world's scenario: its map's buildings block a geometric radio profile"
+    )
     add_service_args(p, "channel", default_id="channel")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
     base["stale_input_s"] = None
     return ChannelSettings(
-        **base, network=a.network, seed=a.seed, receivers=parse_receivers(a.receiver), time_scale=a.time_scale
+        **base,
+        network=a.network,
+        seed=a.seed,
+        receivers=parse_receivers(a.receiver),
+        time_scale=a.time_scale,
+        scenario=a.scenario,
     )
 
 
@@ -97,6 +114,11 @@ class Relay:
     def __init__(self, channel, receivers: dict[str, list[str]], clock=time.monotonic):
         self.channel = channel
         self.receivers = receivers
+        self.radio = hasattr(channel, "observe_truth")  # a geometric link (mapcontainer.radio.RadioChannel)
+        if self.radio:
+            for dst, onboard in receivers.items():
+                if onboard:
+                    channel.place(dst, onboard[0])
         self._clock = clock
         self._t0 = clock()
         self._cond = threading.Condition()
@@ -113,12 +135,20 @@ class Relay:
             self._meta[(src, hash(payload))] = (kind, attachment)
             while len(self._meta) > self.MAX_PENDING:
                 self._meta.popitem(last=False)
+            if self.radio:
+                self.channel.on_air(src, payload, now)  # a broadcast: on the air whoever it is relayed to
             for dst, onboard in self.receivers.items():
                 if src == dst or src in onboard:
                     continue
                 self.offered += 1
                 self.accepted += bool(self.channel.send(src, dst, payload, now))
             self._cond.notify()
+
+    def observe(self, truth) -> None:
+        """The world's truth: where the vehicles are now (a geometric link only)."""
+        if self.radio:
+            with self._cond:
+                self.channel.observe_truth(truth, t=self.now())
 
     def due(self, stop: threading.Event, max_wait_s: float = 0.2):
         """Block until something is due (or ``max_wait_s``): [(delivery, kind, attachment, lateness_s)]."""
@@ -145,12 +175,19 @@ class Relay:
 
 
 def main(s: ChannelSettings) -> int:
-    from mapcontainer.channel import Channel, load_profile
+    from mapcontainer.channel import load_profile
+    from mapcontainer.radio import make_channel
 
     log = setup_logging("channel", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
     profile = load_profile(s.network)
-    relay = Relay(Channel(profile, seed=s.seed), s.receivers)
+    hdmap = None
+    if s.scenario is not None and getattr(profile, "radio", None) is not None:
+        from mapcontainer.sim.config import load_scenario
+        from mapcontainer.sim.maps import world_map
+
+        hdmap = world_map(load_scenario(s.scenario))  # the world's own map: buildings are physics, not the HD map
+    relay = Relay(make_channel(profile, s.seed, hdmap), s.receivers)
     log.info("profile %s: %s", profile.name, profile.description)
 
     with Service("channel", s, figures=relay.stats) as svc:
@@ -178,6 +215,15 @@ def main(s: ChannelSettings) -> int:
 
         for kind in KINDS:
             svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), on_tx(kind))
+
+        if relay.radio:
+
+            def on_truth(msg: Received) -> None:
+                truth = svc.decode_or_reject(msg.payload, GroundTruth)
+                if truth is not None:
+                    relay.observe(truth)
+
+            svc.subscribe(topic("truth").key(fleet=s.fleet), on_truth)
 
         def schedule() -> None:
             while not svc.stop_requested.is_set():

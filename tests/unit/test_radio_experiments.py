@@ -1,0 +1,71 @@
+"""The radio sweeps' scenario builders and the 10 %-degradation read-out (mapcontainer.experiments.network_radio)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from mapcontainer.experiments.network_radio import degradation, density_scenario, gap_scenario, vehicles_per_km
+
+
+def test_gap_scenario_moves_the_connected_vehicle_and_its_obstacle():
+    sc = gap_scenario(150.0)
+    ego, cv1 = sc.connected
+    assert cv1.s0_m - ego.s0_m == pytest.approx(150.0)
+    assert len(sc.obstacle_vehicles) == 1 and sc.obstacle_vehicles[0].s0_m - ego.s0_m == pytest.approx(162.0)
+
+
+def test_density_scenario_adds_vehicles_over_the_lanes():
+    base, dense = density_scenario(0), density_scenario(40)
+    assert len(dense.obstacle_vehicles) == len(base.obstacle_vehicles) + 40
+    assert {v.lane for v in dense.obstacle_vehicles[-40:]} == {0, 1, 2, 3}
+    assert vehicles_per_km(dense) == pytest.approx(vehicles_per_km(base) + 40 / 0.36, rel=1e-6)
+
+
+def _row(mode, dcc, x, ratio):
+    return {
+        "sweep": "density",
+        "mode": mode,
+        "radio_profile": "its-g5",
+        "dcc": dcc,
+        "cpm": False,
+        "vehicles_per_km": x,
+        "rmse_vs_ideal": ratio,
+    }
+
+
+def test_degradation_interpolates_the_density_of_a_10_percent_loss():
+    rows = [_row("distributed", False, x, r) for x, r in ((30, 1.0), (100, 1.05), (200, 1.25))]
+    rows += [_row("distributed", True, x, r) for x, r in ((30, 1.0), (100, 1.02), (200, 1.04))]
+    rows += [_row("centralized", False, x, r) for x, r in ((30, 1.3), (100, 1.4))]
+    rows.append({**_row("distributed", False, 30, 1.0), "radio_profile": "ideal"})
+    got = {(d["mode"], d["dcc"]): d["degrades_10pct_at_per_km"] for d in degradation(rows)}
+    assert got[("distributed", False)] == pytest.approx(100 + 100 * 0.05 / 0.20)
+    assert got[("distributed", True)] is None
+    assert got[("centralized", False)] == 30
+    assert len(got) == 3
+    assert not math.isnan(got[("distributed", False)])
+
+
+def test_radio_figures_of_a_run():
+    from mapcontainer.experiments.network_radio import radio_figures
+    from mapcontainer.pipeline import PipelineResult
+
+    res = PipelineResult("s", 0, "distributed", "its-g5", "cv0", duration_s=2.0)
+    res.tx_msgs.update({"cv1": 20, "cv2": 20})
+    res.tx_bytes.update({"cv1": 10000, "cv2": 10000})
+    res.channel_stats = {
+        "offered_msgs": 40,
+        "radio_drops": {"dcc": 4, "sensing": 2, "propagation": 0, "collision": 2, "half_duplex": 0},
+        "radio_drop_bytes": {"dcc": 2000},
+        "cbr": {"cv0": {"mean": 0.1, "max": 0.2}, "cv1": {"mean": 0.3, "max": 0.4}, "7": {"mean": 0.9, "max": 1.0}},
+        "link_states": {"los": 6, "nlosv": 2, "nlos": 2},
+    }
+    f = radio_figures(res)
+    assert f["cbr_mean"] == pytest.approx(0.2)  # the ego and the senders, not the background vehicle 7
+    assert f["drop_dcc_fraction"] == pytest.approx(0.1) and f["drop_collision_fraction"] == pytest.approx(0.05)
+    assert f["state_nlos_fraction"] == pytest.approx(0.2)
+    assert f["bytes_on_air_per_s_per_vehicle"] == pytest.approx((20000 - 2000) / 2.0 / 2)
+    res.channel_stats = {"offered_msgs": 40}  # a classic link
+    assert math.isnan(radio_figures(res)["cbr_mean"])
