@@ -87,6 +87,7 @@ _CURVE = ec.SECP256R1()
 _ECDSA = ec.ECDSA(hashes.SHA256())
 _CERT_FIELDS = ("subject", "public_key", "valid_from", "valid_until", "issuer", "signature")  # tag order
 _CERT_TAGS = tuple(TAGS[f] for f in _CERT_FIELDS)
+_MAX_ITEMS = 16  # maps and arrays in a SecuredMessage: six fields, a certificate of six (and room for new ones)
 _NAME = re.compile(NAME_PATTERN)
 
 _repr = reprlib.Repr()
@@ -320,6 +321,7 @@ _T_VERSION, _T_PAYLOAD, _T_CERT, _T_DIGEST, _T_TGEN, _T_SIG = (
 )
 
 
+VERIFY_WINDOW_S = 5.0  # services: a signed message generated longer ago (or ahead) than this is refused as replayed
 KEYS_SKEW_S = 3600.0  # write_fleet_keys: certificates start this long before now (clocks of other machines)
 
 
@@ -432,12 +434,22 @@ class Verifier:
         self._expiry: list[tuple[int, str]] = []  # heap of the generation times in _seen
         self._floor_us: float = -math.inf  # generation times at or below it are refused
 
-    def verify(self, data: bytes, now: float, expected_sender: str | None = None) -> Verified | Rejection:
-        """``data`` checked at ``now`` (Unix s) against ``expected_sender`` (from the key, or None)."""
-        msg = decode(data, SecuredMessage)
+    def verify(
+        self, data: bytes, now: float, expected_sender: str | None = None, *, new_certificates: bool = True
+    ) -> Verified | Rejection:
+        """``data`` checked at ``now`` (Unix s) against ``expected_sender`` (from the key, or None).
+
+        Cheapest first: the outer message is parsed with every map and array bounded (its payload stays
+        bytes, decoded by nobody before the signature holds); the signer must be a known certificate or
+        a new one of our CA (``new_certificates=False``: a certificate not verified before is refused as
+        ``unknown_certificate`` without checking the CA's signature, for traffic under a flood); the
+        validity, the time window and the replay table are checked before the one ECDSA verification."""
+        msg = decode(data, SecuredMessage, max_items=_MAX_ITEMS)
         if isinstance(msg, Rejection):
             return self._reject("unsigned", f"not a SecuredMessage ({msg.reason}: {msg.detail})")
         if msg.certificate is not None:
+            if not new_certificates and certificate_digest(msg.certificate) not in self._known:
+                return self._reject("unknown_certificate", f"{msg.certificate.subject}: a new certificate under a flood")
             known = self._learn(msg.certificate)
             if isinstance(known, Rejection):
                 return known
@@ -457,6 +469,8 @@ class Verifier:
                 "replayed",
                 f"{known.subject}: generated {(t_us - now_us) / 1e6:+.3f} s from now (window +-{self.window_s:g} s)",
             )
+        if (known.subject, t_us) in self._seen or t_us <= self._floor_us:  # a replay costs no ECDSA
+            return self._reject("replayed", f"{known.subject}: generation time {t_us} us seen before")
         if not _valid(known.key, msg.signature, _message_tbs(msg.payload, t_us, known.digest)):
             return self._reject("forged", f"bad signature on a message signed as {known.subject}")
         inner = peek(msg.payload).get("sender")

@@ -22,6 +22,8 @@ from collections import OrderedDict
 
 from pydantic import Field
 
+from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate
+from schemas.codec import Rejection
 from schemas.topics import topic
 
 from ..runtime import (
@@ -32,9 +34,9 @@ from ..runtime import (
     SimClock,
     add_service_args,
     make_attachment,
-    sender_admission,
     service_settings_from_args,
     setup_logging,
+    topic_gate,
 )
 
 __all__ = ["ChannelSettings", "Relay", "main", "parse_args", "parse_receivers"]
@@ -52,6 +54,7 @@ class ChannelSettings(ServiceSettings):
     time_scale: float = Field(
         1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="the world's: senders' rates scale"
     )
+    keys: str | None = Field(None, description="the fleet's keys directory: relay only verified messages")
 
 
 def parse_receivers(specs: list[str] | None) -> dict[str, list[str]]:
@@ -76,12 +79,18 @@ def parse_args(argv: list[str] | None = None) -> ChannelSettings:
         help="receiver id, optionally with on-board sources: host=cv0 (repeatable; default host)",
     )
     p.add_argument("--time-scale", type=float, default=1.0, help="the world's (senders' rates scale with it)")
+    p.add_argument("--keys", default=None, help="the fleet's keys directory (its CA): relay verified messages only")
     add_service_args(p, "channel", default_id="channel")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
     base["stale_input_s"] = None
     return ChannelSettings(
-        **base, network=a.network, seed=a.seed, receivers=parse_receivers(a.receiver), time_scale=a.time_scale
+        **base,
+        network=a.network,
+        seed=a.seed,
+        receivers=parse_receivers(a.receiver),
+        time_scale=a.time_scale,
+        keys=a.keys,
     )
 
 
@@ -89,7 +98,9 @@ class Relay:
     """Thread-safe glue between Zenoh callbacks and the Channel core, with a wall clock.
 
     ``offer`` is called from callbacks (short: a lock, ``send`` per receiver, a notify);
-    ``run`` is the scheduler loop. Attachments are kept by (src, payload hash) until delivery.
+    ``run`` is the scheduler loop. Attachments are kept by (src, payload hash) until delivery, the first
+    one offered for a payload: a copy of a message offered later with another attachment changes nothing
+    (the probe's copies of genuine priors with ``epoch_wall_ns = 1`` rewrote the clock of the originals).
     """
 
     MAX_PENDING = 4096
@@ -110,7 +121,7 @@ class Relay:
     def offer(self, kind: str, src: str, payload: bytes, attachment: dict) -> None:
         with self._cond:
             now = self.now()
-            self._meta[(src, hash(payload))] = (kind, attachment)
+            self._meta.setdefault((src, hash(payload)), (kind, attachment))
             while len(self._meta) > self.MAX_PENDING:
                 self._meta.popitem(last=False)
             for dst, onboard in self.receivers.items():
@@ -151,6 +162,9 @@ def main(s: ChannelSettings) -> int:
     log.info("settings: %s", s.model_dump_json())
     profile = load_profile(s.network)
     relay = Relay(Channel(profile, seed=s.seed), s.receivers)
+    # signed fleets: a message is verified before it costs its sender's budget (mapcontainer.admission.Gate)
+    verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+    gate_lock = threading.Lock()
     log.info("profile %s: %s", profile.name, profile.description)
 
     with Service("channel", s, figures=relay.stats) as svc:
@@ -164,14 +178,18 @@ def main(s: ChannelSettings) -> int:
 
         def on_tx(kind: str):
             tx = topic(f"{kind}_tx")
-            admission = sender_admission(tx.name, s.time_scale)  # a flooding source loses its own excess only
+            gate = topic_gate(tx.name, verifier, s.time_scale)  # a flooding source loses its own excess only
 
             def cb(msg: Received) -> None:
                 where = tx.parse(msg.key)
                 if where is None:  # Zenoh's * also matches chunks such as cv1.x that no rx key can hold
                     svc.metrics.reject("bad_key", f"{msg.key} is not a {tx.name} key of ours", log)
                     return
-                if svc.admit(admission, where["src"], tx.name):
+                with gate_lock:
+                    out = gate.admit(msg.payload, where["src"], time.monotonic(), time.time())
+                if isinstance(out, Rejection):
+                    svc.metrics.reject(out.reason, f"{tx.name} from {where['src']}: {out.detail}", log)
+                else:  # relayed as it came: the receiver verifies the signature again, end to end
                     relay.offer(kind, where["src"], msg.payload, msg.attachment)
 
             return cb

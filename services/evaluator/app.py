@@ -126,12 +126,12 @@ def main(s: EvaluatorSettings) -> int:
             if kind == "truth":
                 truth = svc.decode_or_reject(msg.payload, GroundTruth)
                 if truth is not None:
-                    clock.update(msg.attachment)
+                    clock.update(truth)  # the world's clock, from the message
                     ev.on_truth(truth)
             elif kind == "fused":
                 fused = svc.decode_or_reject(msg.payload, FusedState)
                 if fused is not None:
-                    clock.update(msg.attachment)
+                    clock.update(fused)
                     pub_ns = msg.attachment.get("t_wall_ns")
                     pub_ns = pub_ns if isinstance(pub_ns, int) and pub_ns > 0 else msg.t_recv_wall_ns
                     ev.on_fused(fused, pub_ns, clock.wall_ns(fused.t_meas), now)

@@ -15,9 +15,10 @@ from pathlib import Path
 from typing import Any
 
 from mapcontainer import jsonout
-from mapcontainer.admission import Admission
+from mapcontainer.admission import Admission, Gate
+from mapcontainer.security import Verifier
 from schemas import HealthStatus, decode, encode
-from schemas.topics import topic
+from schemas.topics import max_bytes, topic
 
 from .clock import read_attachment
 from .config import ServiceSettings, ZenohSettings, open_session
@@ -68,6 +69,13 @@ def sender_admission(topic_name: str, time_scale: float = 1.0, max_senders: int 
     per wall second), with one second of that as the burst."""
     rate = 2.0 * (topic(topic_name).rate_hz or 10.0) * max(time_scale, 1.0)
     return Admission(rate_hz=rate, burst=rate, max_senders=max_senders)
+
+
+def topic_gate(topic_name: str, verifier: Verifier | None, time_scale: float = 1.0, max_senders: int = 256) -> Gate:
+    """:class:`~mapcontainer.admission.Gate` for a topic: each verified sender (the key's sender on an
+    unsigned fleet) and each source of unverifiable traffic has :func:`sender_admission`'s budget."""
+    a = sender_admission(topic_name, time_scale, max_senders)
+    return Gate(verifier, a.rate_hz, a.burst, max_senders)
 
 
 class Service:
@@ -331,10 +339,14 @@ class Service:
         """A callback subscriber (runs on a Zenoh thread: keep ``callback`` short).
 
         Input is counted; an exception in ``callback`` is recorded as the last error, never raised
-        into Zenoh.
+        into Zenoh. A payload over its topic's size bound (:func:`schemas.topics.max_bytes`) is refused
+        as ``too_large`` before its bytes are copied out of Zenoh.
         """
+        bound = max_bytes(key)
 
         def on_sample(sample) -> None:
+            if not self._fits(sample, bound):
+                return
             payload = sample.payload.to_bytes()
             if count:
                 self.metrics.msgs_in.add(len(payload))
@@ -348,11 +360,24 @@ class Service:
         self._declared.append(sub)
         return sub
 
+    def _fits(self, sample, bound: int) -> bool:
+        """Whether ``sample``'s payload is within ``bound`` bytes (its length, read without copying it)."""
+        n = len(sample.payload)
+        if n <= bound:
+            return True
+        self.metrics.msgs_in.add(0)  # an arrival, not bytes we read
+        self.metrics.reject("too_large", f"{n} bytes on {sample.key_expr} (at most {bound})", self.log)
+        return False
+
     def subscribe_raw(self, key: str, callback: Callable[[str, bytes, bytes | None, int], None]):
         """A callback subscriber handed ``(key, payload, attachment bytes or None, receive wall ns)``: the
-        bytes as they travelled (the recorder keeps them). Input is counted; exceptions as in :meth:`subscribe`."""
+        bytes as they travelled (the recorder keeps them). Input is counted; exceptions and sizes as in
+        :meth:`subscribe`."""
+        bound = max_bytes(key)
 
         def on_sample(sample) -> None:
+            if not self._fits(sample, bound):
+                return
             payload = sample.payload.to_bytes()
             self.metrics.msgs_in.add(len(payload))
             att = sample.attachment

@@ -2,8 +2,8 @@
 
 Publishes each vehicle's SensorFrame on ``mc/{fleet}/sim/{vid}/sensors`` and GroundTruth on
 ``mc/{fleet}/sim/truth``. Frame k is computed ahead, then published at its due wall time
-``epoch + k dt / time_scale``; the attachment carries the clock (``epoch_wall_ns``, ``time_scale``)
-and the publish time (``t_wall_ns``). If frames take longer than their period (an overloaded
+``epoch + k dt / time_scale``; every message carries the clock in its envelope (``epoch_wall_ns``,
+``time_scale``), the attachment a copy of it and the publish time (``t_wall_ns``). If frames take longer than their period (an overloaded
 machine) the world drops frames instead of falling behind: once a frame is due before it was even
 computed, it skips to the frame due next, as an overloaded sensor pipeline does, and its state turns
 degraded while it does (``skipped_frames``). Publishing ever staler frames instead would make every
@@ -169,8 +169,9 @@ def main(s: WorldSettings) -> int:
                 break
             c0 = time.perf_counter()
             tick = world.tick(k)
-            payloads = {vid: encode(f) for vid, f in tick.frames.items()}
-            truth = encode(tick.truth)
+            clock = {"epoch_wall_ns": epoch, "time_scale": s.time_scale}  # inside the messages: signed with them
+            payloads = {vid: encode(f.model_copy(update=clock)) for vid, f in tick.frames.items()}
+            truth = encode(tick.truth.model_copy(update=clock))
             fig["tick_ms"] = (time.perf_counter() - c0) * 1e3
             due = pacer.due_wall_ns(k)
             if svc.wait(max(0.0, (due - time.time_ns()) * 1e-9)):

@@ -35,10 +35,15 @@ REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.integration
 
 
-def moving_prior(fleet: str, sender: str, seq: int, t: float, y: float = 0.0, objects=None) -> VehiclePrior:
-    """A prior of a vehicle at (5 t, y) driving east at 5 m/s, with ``objects`` (ObjectObservations) if given."""
+def moving_prior(
+    fleet: str, sender: str, seq: int, t: float, y: float = 0.0, objects=None, epoch: int | None = None
+) -> VehiclePrior:
+    """A prior of a vehicle at (5 t, y) driving east at 5 m/s, with ``objects`` (ObjectObservations) if given,
+    carrying the world's clock ``epoch`` (Unix ns of t = 0, time scale 1) if given."""
     return VehiclePrior(
         fleet=fleet,
+        epoch_wall_ns=epoch,
+        time_scale=None if epoch is None else 1.0,
         sender=sender,
         seq=seq,
         t_meas=t,
@@ -214,7 +219,7 @@ def test_host_says_why_it_fuses_nothing_and_recovers(rendezvous, fleet_name, spa
     spawn("services.host", "--fleet", fleet_name, "--connect", endpoint, "--known-senders", "cv0")
     alive.wait_alive(topic("alive").key(fleet=fleet_name, role="host", id="host"), timeout=90)
     pub = session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src="cv0"))
-    epoch = time.time_ns()  # the scenario clock the attachments carry: t = wall seconds since epoch
+    epoch = time.time_ns()  # the scenario clock the priors carry: t = wall seconds since epoch
     attachment = make_attachment(epoch_wall_ns=epoch, time_scale=1.0)
     seq = 0
 
@@ -228,6 +233,7 @@ def test_host_says_why_it_fuses_nothing_and_recovers(rendezvous, fleet_name, spa
             seq,
             t,
             objects=ObjectObservations.from_metres(p, np.diag([0.2, 0.15, 0.05])[None] ** 2, [2]),
+            epoch=epoch,
         )
         seq += 1
         pub.put(encode(msg), attachment=attachment)
@@ -378,7 +384,7 @@ def test_a_flooding_sender_costs_only_itself_and_the_host_says_so(
 
     def prior(sender: str, t: float) -> bytes:
         seqs[sender] += 1
-        return encode(moving_prior(fleet_name, sender, seqs[sender], t, y=3.0 * (sender == "cv1")))
+        return encode(moving_prior(fleet_name, sender, seqs[sender], t, y=3.0 * (sender == "cv1"), epoch=epoch))
 
     def now() -> float:
         return (time.time_ns() - epoch) * 1e-9
@@ -433,7 +439,7 @@ def test_a_signing_host_fuses_signed_priors_and_refuses_the_rest(
     sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
 
     def prior(sender: str, seq: int, t: float) -> bytes:
-        return encode(moving_prior(fleet_name, sender, seq, t))
+        return encode(moving_prior(fleet_name, sender, seq, t, epoch=epoch))
 
     last = b""
     for k in range(20):

@@ -1,0 +1,73 @@
+"""The probe's attacks on a signed fleet, re-run: an attacker on the bus with the project's code and none
+of its keys (forged clock fields, a flood on a vehicle's receive key, an oversized payload).
+
+Each test has its own rendezvous on a free port and its own fleet name (fixtures in conftest.py).
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from schemas import FusedState, decode, encode
+from schemas.topics import topic
+from services.health import fleet_health
+from services.runtime import make_attachment
+
+from .test_services import moving_prior
+
+pytestmark = pytest.mark.integration
+
+
+def _status(session, fleet: str, role: str):
+    return next(v.status for v in fleet_health(session, fleet, timeout_s=2.0) if v.role == role)
+
+
+def test_forged_clock_fields_have_no_effect(tmp_path, rendezvous, fleet_name, spawn, wait_for, watch_liveliness):
+    """The probe: copies of genuine priors whose attachment says ``epoch_wall_ns = 1``, offered to the
+    channel right after each original (the relay kept the last attachment of a payload) and put on the
+    host's receive key, and unsigned priors whose envelope says so, made the host take the forged clock
+    and refuse the genuine priors as stale. The clock now comes from the signed message only: every
+    genuine prior is fused, nothing is refused as stale, and the copies are refused as replays."""
+    from mapcontainer.security import Signer, load_credentials, write_fleet_keys
+
+    keys = tmp_path / "keys"
+    write_fleet_keys(keys, ["cv0"], validity_s=3600.0)
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    common = ("--fleet", fleet_name, "--connect", endpoint, "--keys", str(keys))
+    spawn("services.host", *common, "--known-senders", "cv0")
+    spawn("services.channel", *common, "--network", "ideal", "--receiver", "host")
+    for role, sid in (("host", "host"), ("channel", "channel")):
+        alive.wait_alive(topic("alive").key(fleet=fleet_name, role=role, id=sid), timeout=90)
+    tx = session.declare_publisher(topic("prior_tx").key(fleet=fleet_name, src="cv0"))
+    rx = session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src="cv0"))
+    cv0 = Signer(load_credentials(keys, "cv0"))
+    epoch = time.time_ns()
+    genuine = make_attachment(epoch_wall_ns=epoch, time_scale=1.0)
+    forged = make_attachment(epoch_wall_ns=1, time_scale=1.0)
+    fused: list = []
+    sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
+    wait_for(lambda: tx.matching_status.matching, timeout=10, what="the channel's subscription")
+    n = 40
+    for k in range(n):
+        t = round((time.time_ns() - epoch) * 1e-9, 1)
+        signed = cv0.sign(encode(moving_prior(fleet_name, "cv0", k, t, epoch=epoch)), time.time())
+        tx.put(signed, attachment=genuine)
+        tx.put(signed, attachment=forged)  # a copy with the forged clock, to the relay
+        rx.put(signed, attachment=forged)  # and straight to the host
+        rx.put(encode(moving_prior(fleet_name, "cv0", 1000 + k, t, epoch=1)), attachment=forged)  # unsigned
+        time.sleep(0.1)
+    wait_for(lambda: len(fused) >= n // 2, timeout=30, what="fused output")
+    time.sleep(0.5)
+    sub.undeclare()
+    host = _status(session, fleet_name, "host")
+    assert host.rejects.get("stale", 0) == 0, host.rejects
+    assert host.rejects.get("unsigned", 0) == n, host.rejects
+    assert host.rejects.get("replayed", 0) >= n, host.rejects  # its own copy, and the relay's
+    channel = _status(session, fleet_name, "channel")
+    assert channel.rejects.get("replayed", 0) == n and channel.rejects.get("flood", 0) == 0, channel.rejects
+    states = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused) if f]
+    assert len(states) >= n - 5 and all(f.vehicle_ids == ["cv0"] for f in states)
+    assert all(f.epoch_wall_ns == epoch for f in states)  # the host passes the genuine clock on
