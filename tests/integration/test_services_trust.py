@@ -13,7 +13,7 @@ import pytest
 from schemas import FusedState, decode, encode
 from schemas.topics import topic
 from services.health import fleet_health
-from services.runtime import make_attachment
+from services.runtime import make_attachment, read_attachment
 
 from .test_services import moving_prior
 
@@ -71,3 +71,72 @@ def test_forged_clock_fields_have_no_effect(tmp_path, rendezvous, fleet_name, sp
     states = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused) if f]
     assert len(states) >= n - 5 and all(f.vehicle_ids == ["cv0"] for f in states)
     assert all(f.epoch_wall_ns == epoch for f in states)  # the host passes the genuine clock on
+
+
+def _signed_host(tmp_path, rendezvous, fleet_name, spawn, watch_liveliness, vehicles):
+    """A host verifying the fleet's signatures (keys for ``vehicles`` in tmp_path/keys): (session, signers)."""
+    from mapcontainer.security import Signer, load_credentials, write_fleet_keys
+
+    keys = tmp_path / "keys"
+    write_fleet_keys(keys, vehicles, validity_s=3600.0)
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    spawn(
+        "services.host", "--fleet", fleet_name, "--connect", endpoint, "--keys", str(keys),
+        "--known-senders", ",".join(vehicles),
+    )
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="host", id="host"), timeout=90)
+    return session, {v: Signer(load_credentials(keys, v)) for v in vehicles}
+
+
+@pytest.mark.slow
+def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
+    tmp_path, rendezvous, fleet_name, spawn, wait_for, watch_liveliness
+):
+    """The probe: 1,000 junk messages a second on cv1's receive key for 5 s (skipping the channel) left cv1
+    in 29-45 % of the fused states: the junk spent cv1's budget. Junk now fails verification and is charged
+    to its own budget: a prior of each of cv0 and cv1 went into at least 95 % of the fused states of the
+    flood (the ``inputs`` of the fused state's attachment: what the host ingested since its previous one;
+    before, cv1's were in 58 % and cv0's in 88 %, the frames waiting for cv1)."""
+    vehicles = ["cv0", "cv1"]
+    session, signers = _signed_host(tmp_path, rendezvous, fleet_name, spawn, watch_liveliness, vehicles)
+    pubs = {v: session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src=v)) for v in vehicles}
+    epoch = time.time_ns()
+    fused: list = []
+    sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
+
+    def tick(k: int) -> None:
+        t = round((time.time_ns() - epoch) * 1e-9, 1)
+        for i, v in enumerate(vehicles):
+            prior = moving_prior(fleet_name, v, k, t, y=3.0 * i, epoch=epoch)
+            pubs[v].put(signers[v].sign(encode(prior), time.time()))
+
+    k = 0
+    for _ in range(20):  # 2 s of genuine traffic first
+        tick(k := k + 1)
+        time.sleep(0.1)
+    wait_for(lambda: fused, timeout=20, what="fused output")
+    n_before = len(fused)
+    t_end = time.monotonic() + 5.0
+    junk = 0
+    next_tick = time.monotonic()
+    while time.monotonic() < t_end:  # 1,000 junk messages a second on cv1's key, cv0 and cv1 at 10 Hz
+        if time.monotonic() >= next_tick:
+            tick(k := k + 1)
+            next_tick += 0.1
+        for _ in range(10):
+            pubs["cv1"].put(b"\x92junk" + junk.to_bytes(4, "big"))
+            junk += 1
+        time.sleep(0.01)
+    time.sleep(0.5)
+    sub.undeclare()
+    states = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused[n_before:]) if f]
+    inputs = [{i[0] for i in read_attachment(x).get("inputs", [])} for x in fused[n_before:]]
+    host = _status(session, fleet_name, "host")
+    assert junk >= 3000 and host.rejects.get("unsigned", 0) >= junk * 0.9, (junk, host.rejects)
+    assert host.rejects.get("flood", 0) == 0, host.rejects  # no genuine message lost its budget
+    assert len(states) >= 40 and len(inputs) == len(states), len(states)
+    for v in vehicles:
+        share = sum(v in i for i in inputs) / len(inputs)
+        assert share >= 0.95, (v, share, len(inputs))
+        assert all(v in f.vehicle_ids for f in states)
