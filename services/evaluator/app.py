@@ -7,7 +7,9 @@ registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). On stop it writes
 ``eval_summary.json``, ``eval_frames.csv`` (one row per scored fused state,
 :func:`mapcontainer.evaluation.frame_row`), ``birdseye.png`` (truth vs fused, covariance ellipses)
 and ``errors.png`` (error over scenario time) to ``--out`` (:mod:`services.evaluator.plot`).
-Callbacks only enqueue; one worker thread decodes and evaluates.
+Callbacks only enqueue; one worker thread decodes and evaluates. With ``--keys`` (a signed fleet) it
+believes only ground truth signed by the world and fused states signed by their host (or its standby),
+counting what it refuses by reason in its health, and signs its metrics.
 """
 
 from __future__ import annotations
@@ -20,10 +22,20 @@ from pathlib import Path
 
 from pydantic import Field
 
-from mapcontainer.security import inner_payload
+from mapcontainer.security import (
+    CA_NAME,
+    VERIFY_WINDOW_S,
+    Signer,
+    Verifier,
+    fused_signers,
+    inner_payload,
+    load_certificate,
+    load_credentials,
+    unwrap,
+)
 from mapcontainer.sim.config import load_scenario
 from schemas import FusedState, GroundTruth, encode
-from schemas.codec import peek
+from schemas.codec import Rejection, peek
 from schemas.topics import topic
 
 from ..channel.app import parse_receivers
@@ -49,6 +61,9 @@ class EvaluatorSettings(ServiceSettings):
     window_s: float = 5.0
     burnin_s: float = Field(5.0, ge=0, description="scenario seconds left out of the steady-state figures")
     stale_input_s: float | None = None
+    keys: str | None = Field(
+        None, description="the fleet's keys directory: believe signed truth and fused states only, sign the metrics"
+    )
 
 
 def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
@@ -58,6 +73,9 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
     p.add_argument("--receiver", action="append", default=None, help="as for the channel: host=cv0")
     p.add_argument("--window", type=float, default=5.0, help="seconds of the sliding window")
     p.add_argument("--burnin", type=float, default=5.0, help="scenario seconds not in the steady-state figures")
+    p.add_argument(
+        "--keys", default=None, help="the fleet's keys directory: verify truth and fused states, sign the metrics"
+    )
     add_service_args(p, "evaluator", default_id="evaluator")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
@@ -69,6 +87,7 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
         receivers=parse_receivers(a.receiver),
         window_s=a.window,
         burnin_s=a.burnin,
+        keys=a.keys,
     )
 
 
@@ -100,6 +119,9 @@ def main(s: EvaluatorSettings) -> int:
     onboard = {k: set(v) for k, v in s.receivers.items()}
     ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard=onboard, burnin_s=s.burnin_s)
     clock = SimClock()
+    # signed fleets: truth from the world, fused states from their host (or its standby), each verified
+    verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+    signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None
     work: queue.Queue[tuple[str, Received]] = queue.Queue(maxsize=10_000)
     latest: dict = {"figures": {}}  # replaced whole, never mutated: the health thread reads it
 
@@ -121,15 +143,24 @@ def main(s: EvaluatorSettings) -> int:
             svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), enqueue(f"{kind}_tx"))
             svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet), enqueue(f"{kind}_rx"))
 
+        def believed(msg: Received, model, senders):
+            """The message, verified (signed fleets) and decoded; None, counted, if it is refused."""
+            inner = unwrap(msg.payload, verifier, time.time(), senders)
+            if isinstance(inner, Rejection):
+                svc.metrics.reject(inner.reason, f"{model.__name__} on {msg.key}: {inner.detail}", log)
+                return None
+            return svc.decode_or_reject(inner, model)
+
         def process(kind: str, msg: Received) -> None:
             now = time.time()
             if kind == "truth":
-                truth = svc.decode_or_reject(msg.payload, GroundTruth)
+                truth = believed(msg, GroundTruth, "world")
                 if truth is not None:
                     clock.update(truth)  # the world's clock, from the message
                     ev.on_truth(truth)
             elif kind == "fused":
-                fused = svc.decode_or_reject(msg.payload, FusedState)
+                where = topic("fused").parse(msg.key)
+                fused = believed(msg, FusedState, fused_signers(where["hid"])) if where else None
                 if fused is not None:
                     clock.update(fused)
                     pub_ns = msg.attachment.get("t_wall_ns")
@@ -169,7 +200,7 @@ def main(s: EvaluatorSettings) -> int:
                         for k, v in m.model_dump().items()
                         if isinstance(v, int | float) and k not in ("seq", "t_wall")
                     }
-                    pub.put(encode(m))
+                    pub.put(encode(m) if signer is None else signer.sign(encode(m), time.time()))
 
         svc.spawn(loop, "evaluate")
         svc.wait()

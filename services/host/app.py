@@ -32,7 +32,7 @@ from pydantic import Field
 
 from mapcontainer.admission import Gate
 from mapcontainer.config import read_yaml, validate_model
-from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate
+from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Signer, Verifier, load_certificate, load_credentials
 from schemas import FusedState
 from schemas.codec import Rejection, peek, with_fields
 from schemas.topics import topic
@@ -196,13 +196,15 @@ def main(s: HostSettings) -> int:
         "seed": s.seed,  # with the scenario: the map the host carries, mapcontainer.sim.published_map
         "mode": s.mode,
         "fleet": s.fleet,
-        "host_id": s.id,
+        "host_id": s.id,  # the fused state's sender (a standby's own id: consumers accept either, signed)
         "known_senders": s.known_senders,
         "max_wait_s": s.max_wait_s,
         "reference": s.local[0] if s.local else None,  # the frame gate solves at the on-board vehicle's clock
         "params": s.params,
     }
+    hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
     verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+    signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # the fused state is signed too
     gate_lock = threading.Lock()  # the verifier is shared by the topics' gates
     # The worker starts before the Zenoh session exists (never fork after opening one; spawn anyway).
     if s.inline:
@@ -281,7 +283,6 @@ def main(s: HostSettings) -> int:
             return ("degraded", why) if why else ("ok", None)
 
         svc.health_check = check
-        hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
         fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=hid))
         primary = None  # a standby: set while the host it stands in for is alive
         if s.standby_for:
@@ -351,6 +352,8 @@ def main(s: HostSettings) -> int:
                     active = primary is None or not primary.is_set()
                     if active:
                         payload = with_fields(payload, FusedState, **clock.fields())  # the clock, under the signature
+                        if signer is not None:
+                            payload = signer.sign(payload, time.time())
                         fused_pub.put(
                             payload,
                             attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **solved, **clock.fields()),

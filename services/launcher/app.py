@@ -33,12 +33,21 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapcontainer.config import ConfigError, validate_model
+from mapcontainer.security import (
+    CA_NAME,
+    STANDBY_SUFFIX,
+    VERIFY_WINDOW_S,
+    Verifier,
+    load_certificate,
+    unwrap,
+    write_fleet_keys,
+)
 from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
 from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
-from .manifest import FleetParams, ProcessSpec, load_manifest, manifest_path, resolve, vehicle_ids
+from .manifest import FleetParams, ProcessSpec, keys_dir, load_manifest, manifest_path, resolve, vehicle_ids
 from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
 from .supervisor import Supervisor, is_ours
 
@@ -264,6 +273,8 @@ class _Run:
         self.endpoints: list[str] = []
         self.status = "starting"
         self.sup: Supervisor | None = None
+        self.verifier: Verifier | None = None  # signed fleets: the metrics believed are the evaluator's, verified
+        self.metrics_refused: dict[str, int] = {}
 
     def event(self, event: str, name: str, details: dict) -> None:
         rec = {
@@ -285,8 +296,11 @@ class _Run:
             print(f"{rec['t_run']:6.1f}s {said}", flush=True)
 
     def on_metrics(self, sample) -> None:
-        msg = decode(sample.payload.to_bytes(), EvalMetrics)
+        inner = unwrap(sample.payload.to_bytes(), self.verifier, time.time(), "evaluator")
+        msg = inner if isinstance(inner, Rejection) else decode(inner, EvalMetrics)
         if isinstance(msg, Rejection):
+            with self.lock:
+                self.metrics_refused[msg.reason] = self.metrics_refused.get(msg.reason, 0) + 1
             return
         m = msg.model_dump(mode="json")
         with self.lock:
@@ -358,10 +372,13 @@ def run(s: LauncherSettings) -> int:
             raise RuntimeError("could not read the rendezvous endpoint from the Zenoh admin space")
         connect = next((e for e in r.endpoints if "127.0.0.1" in e), r.endpoints[0])
         specs = plan(s, run_dir, connect)
-        if s.params.signing and s.params.keys is None:  # a test CA and the vehicles' credentials for this run
-            from mapcontainer.security import write_fleet_keys
-
-            write_fleet_keys(run_dir / "keys", vehicle_ids(s.params), validity_s=7 * 86400.0)
+        if s.params.signing and s.params.keys is None:  # a test CA and the fleet's credentials for this run
+            hid = s.params.host_id
+            signers = ["world", "evaluator", hid, hid + STANDBY_SUFFIX]
+            write_fleet_keys(run_dir / "keys", vehicle_ids(s.params), validity_s=7 * 86400.0, services=signers)
+        if s.params.signing:
+            ca = load_certificate(keys_dir(s.params, run_dir), CA_NAME)
+            r.verifier = Verifier(ca, window_s=VERIFY_WINDOW_S)
         write_json(
             run_dir / "config.json",
             {
@@ -516,6 +533,7 @@ def write_report(r: _Run) -> dict:
         "endpoints": r.endpoints,
         "processes": procs,
         "last_metrics": r.latest_metrics,
+        "metrics_refused": r.metrics_refused,
         "evaluation": ev,
     }
     write_json(r.run_dir / "report.json", report)

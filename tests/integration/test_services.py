@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapcontainer.security import inner_payload
 from schemas import (
     FusedState,
     HealthStatus,
@@ -457,7 +458,7 @@ def test_a_signing_host_fuses_signed_priors_and_refuses_the_rest(
     status = next(v.status for v in fleet_health(session, fleet_name, timeout_s=2.0) if v.role == "host")
     refused = {r: status.rejects.get(r) for r in ("unsigned", "unknown_certificate", "sender_mismatch", "replayed")}
     assert refused == {"unsigned": 1, "unknown_certificate": 1, "sender_mismatch": 1, "replayed": 1}, status.rejects
-    states = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused) if f]
+    states = [f for f in (decode(inner_payload(x.payload.to_bytes()), FusedState) for x in fused) if f]
     assert states and all(f.vehicle_ids == ["cv0"] for f in states)
 
 

@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 import pytest
 
+from mapcontainer.security import inner_payload
 from schemas import FusedState, decode, encode
 from schemas.topics import topic
 from services.health import fleet_health
@@ -68,7 +71,7 @@ def test_forged_clock_fields_have_no_effect(tmp_path, rendezvous, fleet_name, sp
     assert host.rejects.get("replayed", 0) >= n, host.rejects  # its own copy, and the relay's
     channel = _status(session, fleet_name, "channel")
     assert channel.rejects.get("replayed", 0) == n and channel.rejects.get("flood", 0) == 0, channel.rejects
-    states = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused) if f]
+    states = [f for f in (decode(inner_payload(x.payload.to_bytes()), FusedState) for x in fused) if f]
     assert len(states) >= n - 5 and all(f.vehicle_ids == ["cv0"] for f in states)
     assert all(f.epoch_wall_ns == epoch for f in states)  # the host passes the genuine clock on
 
@@ -130,7 +133,7 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
         time.sleep(0.01)
     time.sleep(0.5)
     sub.undeclare()
-    states = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused[n_before:]) if f]
+    states = [f for f in (decode(inner_payload(x.payload.to_bytes()), FusedState) for x in fused[n_before:]) if f]
     inputs = [{i[0] for i in read_attachment(x).get("inputs", [])} for x in fused[n_before:]]
     host = _status(session, fleet_name, "host")
     assert junk >= 3000 and host.rejects.get("unsigned", 0) >= junk * 0.9, (junk, host.rejects)
@@ -140,3 +143,68 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
         share = sum(v in i for i in inputs) / len(inputs)
         assert share >= 0.95, (v, share, len(inputs))
         assert all(v in f.vehicle_ids for f in states)
+
+
+def test_a_fake_fused_state_is_refused_and_counted_by_every_consumer(
+    tmp_path, rendezvous, fleet_name, spawn, wait_for, watch_liveliness
+):
+    """The probe: a fake fused state (+20 m) on the host's own key made the evaluator's live RMSE 22.9 m and
+    nothing was counted. On a signed fleet (the Zenoh mesh open) the evaluator believes fused states signed by
+    their host and truth signed by the world only: the fakes (unsigned, or signed by a vehicle) are refused
+    and counted in its health, its RMSE is the genuine one, and its metrics are signed; the recorder keeps
+    every message but draws only the genuine states, counting the others."""
+    from mapcontainer.fusion.container import fused_state
+    from mapcontainer.security import CA_NAME, Signer, Verifier, load_certificate, load_credentials, unwrap
+    from mapcontainer.security import write_fleet_keys
+    from schemas import EvalMetrics, GroundTruth
+
+    keys = tmp_path / "keys"
+    write_fleet_keys(keys, ["cv0"], validity_s=3600.0)
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    common = ("--fleet", fleet_name, "--connect", endpoint, "--keys", str(keys))
+    spawn("services.evaluator", *common, "--scenario", "overlap", "--burnin", "0")
+    spawn("services.recorder", *common, "--out", str(tmp_path / "rec.mcap"), "--flush", "0.2")
+    for role in ("evaluator", "recorder"):
+        alive.wait_alive(topic("alive").key(fleet=fleet_name, role=role, id=role), timeout=90)
+    signer = {n: Signer(load_credentials(keys, n)) for n in ("world", "host", "cv0")}
+    truth_pub = session.declare_publisher(topic("truth").key(fleet=fleet_name))
+    fused_pub = session.declare_publisher(topic("fused").key(fleet=fleet_name, hid="host"))
+    verifier = Verifier(load_certificate(keys, CA_NAME), window_s=5.0)
+    metrics: list = []
+
+    def on_metrics(sample) -> None:
+        inner = unwrap(sample.payload.to_bytes(), verifier, time.time(), "evaluator")
+        metrics.append(decode(inner, EvalMetrics) if isinstance(inner, bytes) else inner)
+
+    sub = session.declare_subscriber(topic("metrics").key(fleet=fleet_name), on_metrics)
+    wait_for(lambda: fused_pub.matching_status.matching, timeout=10, what="the evaluator's subscription")
+    epoch = time.time_ns()
+    cov = np.diag([0.04, 0.04, 0.01, 0.001, 0.001, 0.001])
+    n = 30
+    for k in range(n):
+        t = round(0.1 * k, 1)
+        pose = np.array([[5.0 * t, 0.0, 0.0, 0.0, 0.0, 0.0]])
+        env = dict(fleet=fleet_name, seq=k, t_meas=t, t_sent=t, epoch_wall_ns=epoch, time_scale=1.0)
+        truth = GroundTruth(**env, sender="world", vehicle_ids=["cv0"], vehicle_pose=pose, vehicle_v_map=np.zeros((1, 3)))
+        truth_pub.put(signer["world"].sign(encode(truth), time.time()))
+        states = {
+            who: fused_state(fleet_name, who, k + 1, t, ["cv0"], pose + [dx, 0, 0, 0, 0, 0], [cov], [], [], [], [], [],
+                             5, [])  # fmt: skip
+            for who, dx in (("host", 0.1), ("cv0", 20.0))
+        }
+        fused_pub.put(signer["host"].sign(encode(states["host"]), time.time()))
+        fused_pub.put(encode(states["host"].model_copy(update={"vehicle_pose": pose + [20.0, 0, 0, 0, 0, 0]})))
+        fused_pub.put(signer["cv0"].sign(encode(states["cv0"]), time.time()))  # a vehicle's key is not the host's
+        time.sleep(0.1)
+    wait_for(lambda: any(isinstance(m, EvalMetrics) and m.evaluated >= n - 2 for m in metrics), timeout=20,
+             what="metrics over the genuine states")  # fmt: skip
+    sub.undeclare()
+    evaluator = _status(session, fleet_name, "evaluator")
+    assert evaluator.rejects.get("unsigned") == n and evaluator.rejects.get("sender_mismatch") == n, evaluator.rejects
+    last = [m for m in metrics if isinstance(m, EvalMetrics)][-1]
+    assert all(isinstance(m, EvalMetrics) for m in metrics)  # the evaluator signs its metrics
+    assert last.vehicle_rmse_total_m == pytest.approx(0.1, abs=0.02) and last.evaluated >= n - 2, last
+    recorder = _status(session, fleet_name, "recorder")
+    refused = {k: v for k, v in recorder.figures.items() if k.startswith("viz_refused.")}
+    assert refused == {"viz_refused.unsigned": n, "viz_refused.sender_mismatch": n}, recorder.figures
