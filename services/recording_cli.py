@@ -111,7 +111,12 @@ def _print_info(doc: dict, as_json: bool) -> None:
     if as_json:
         print(json.dumps(doc))
         return
-    state = "complete" if doc["complete"] else f"INCOMPLETE (read up to the last whole chunk: {doc['stopped']})"
+    if doc["complete"]:
+        state = "complete"
+    elif doc.get("trailing_bytes"):
+        state = f"FINISHED, THEN APPENDED TO: {doc['stopped']}"
+    else:
+        state = f"INCOMPLETE (read up to the last whole chunk: {doc['stopped']})"
     rate = f", {doc['mb_per_min']:.2f} MB/min" if doc["mb_per_min"] else ""
     print(
         f"{doc['file']}: {state}; {doc['duration_s']:.1f} s, {doc['keys']} keys, {doc['messages']} messages, "

@@ -3,10 +3,10 @@
 Subscribes ground truth, every host's fused state, the vehicles' ``v2x/tx`` (bytes each vehicle
 sends) and the channel's ``v2x/rx`` (what arrived); the figures are defined in
 :mod:`services.evaluator.core`. Once a second it publishes :class:`schemas.EvalMetrics` on the
-registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). On stop it writes
-``eval_summary.json``, ``eval_frames.csv`` (one row per scored fused state,
-:func:`mapcontainer.evaluation.frame_row`), ``birdseye.png`` (truth vs fused, covariance ellipses)
-and ``errors.png`` (error over scenario time) to ``--out`` (:mod:`services.evaluator.plot`).
+registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). It streams ``eval_frames.csv`` (one row
+per scored fused state, :func:`mapcontainer.evaluation.frame_row`) to ``--out`` as it goes, and on stop
+writes ``eval_summary.json``, ``birdseye.png`` (truth vs fused, covariance ellipses) and ``errors.png``
+(error over scenario time) there (:mod:`services.evaluator.plot`).
 Callbacks only enqueue; one worker thread decodes and evaluates. With ``--keys`` (a signed fleet) it
 believes only ground truth signed by the world and fused states signed by their host (or its standby),
 counting what it refuses by reason in its health, and signs its metrics.
@@ -51,7 +51,7 @@ from ..runtime import (
 )
 from .core import Evaluator
 
-__all__ = ["EvaluatorSettings", "main", "parse_args", "write_frames"]
+__all__ = ["EvaluatorSettings", "frames_writer", "main", "parse_args"]
 
 
 class EvaluatorSettings(ServiceSettings):
@@ -91,14 +91,15 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
     )
 
 
-def write_frames(path: Path, rows) -> None:
-    """The per-frame rows as CSV (a header only when there are none)."""
+def frames_writer(path: Path):
+    """``(file, writerow)``: the per-frame rows' CSV, its header written; rows go to the file as they come
+    (a run of any length keeps none of them in memory)."""
     from mapcontainer.evaluation import frame_row_fields
 
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=frame_row_fields())
-        w.writeheader()
-        w.writerows(rows)
+    f = path.open("w", newline="")  # noqa: SIM115 - closed by main after the run
+    w = csv.DictWriter(f, fieldnames=frame_row_fields())
+    w.writeheader()
+    return f, w.writerow
 
 
 def _seq(payload: bytes) -> int | None:
@@ -117,7 +118,13 @@ def main(s: EvaluatorSettings) -> int:
 
         hdmap = world_map(scenario)
     onboard = {k: set(v) for k, v in s.receivers.items()}
-    ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard=onboard, burnin_s=s.burnin_s)
+    frames_f, sink = None, None
+    if s.out:
+        Path(s.out).mkdir(parents=True, exist_ok=True)
+        frames_f, sink = frames_writer(Path(s.out) / "eval_frames.csv")
+    ev = Evaluator(
+        s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard=onboard, burnin_s=s.burnin_s, frame_sink=sink
+    )
     clock = SimClock()
     # signed fleets: truth from the world, fused states from their host (or its standby), each verified
     verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
@@ -189,6 +196,8 @@ def main(s: EvaluatorSettings) -> int:
                     svc.metrics.reject("unscorable", f"{kind} on {msg.key}: {type(exc).__name__}: {exc}", log)
                 if time.monotonic() >= next_pub:
                     next_pub += 1.0
+                    if frames_f is not None:
+                        frames_f.flush()
                     try:
                         m = ev.snapshot(time.time())
                     except Exception as exc:  # figures that do not validate: report, keep evaluating
@@ -209,7 +218,7 @@ def main(s: EvaluatorSettings) -> int:
         out = Path(s.out)
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "eval_summary.json", ev.summary())
-        write_frames(out / "eval_frames.csv", ev.frames)
+        frames_f.close()
         try:
             from .plot import render_birdseye, render_errors
 

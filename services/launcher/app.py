@@ -49,6 +49,7 @@ from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
 from .manifest import FleetParams, ProcessSpec, keys_dir, load_manifest, manifest_path, resolve, vehicle_ids
 from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
+from . import shm
 from .supervisor import Supervisor, is_ours
 
 __all__ = [
@@ -275,6 +276,7 @@ class _Run:
         self.sup: Supervisor | None = None
         self.verifier: Verifier | None = None  # signed fleets: the metrics believed are the evaluator's, verified
         self.metrics_refused: dict[str, int] = {}
+        self.shm: set[str] = set()  # shared-memory segments the fleet's processes mapped (removed at the end)
 
     def event(self, event: str, name: str, details: dict) -> None:
         rec = {
@@ -319,9 +321,12 @@ class _Run:
             "updated_wall": time.time(),
             "params": self.s.params.model_dump(),
             "processes": [p.to_json() for p in self.sup.procs.values()] if self.sup else [],
+            "shm": sorted(self.shm),
         }
 
     def write_state(self) -> None:
+        if self.sup is not None:
+            self.shm |= shm.mapped([p.pid for p in self.sup.procs.values() if p.pid], [os.getpid()])
         write_json(self.run_dir / "state.json", self.state())
 
 
@@ -491,6 +496,8 @@ def run(s: LauncherSettings) -> int:
         r.status = "stopped"
         if session is not None:
             session.close()
+        if r.shm:  # what killed processes left in /dev/shm (a clean exit removes its own)
+            r.event("shm_released", "launcher", {"removed": len(shm.release(r.shm))})
         if r.sup is not None:
             summary = write_report(r)["summary"]
             r.write_state()

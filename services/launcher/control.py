@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from .app import LauncherSettings, already_running, log_tail, make_run_dir, registry_dir
+from . import shm
 from .supervisor import is_ours, kill_group, pid_alive
 
 __all__ = ["active_fleets", "detach", "down", "launcher_argv", "to_stop"]
@@ -226,7 +227,8 @@ def down(fleets: list[dict[str, Any]], timeout_s: float = 90.0) -> tuple[int, li
         left = [p.get("name") for p in procs if p.get("pid") and is_ours(int(p["pid"]))]
         if pid and is_ours(int(pid)):
             left.append("launcher")
-        res.update(swept=swept, left=left, status=state.get("status"))
+        removed = shm.release(state.get("shm") or []) if not left else []  # what killed processes left
+        res.update(swept=swept, left=left, status=state.get("status"), shm_removed=len(removed))
         if left:
             rc = 1
         else:

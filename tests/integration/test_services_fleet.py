@@ -227,6 +227,7 @@ def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, m
     """mapc fleet up --standby: a second host fuses the same input and publishes the fused state on the
     host's key only while the host's liveliness token is gone (SIGKILL to its process group here), so the
     fused output goes on while the launcher restarts the host, and stops doubling once it is back."""
+    from mapcontainer.security import inner_payload
     from schemas import FusedState, decode
 
     runs = tmp_path / "runs"
@@ -246,7 +247,7 @@ def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, m
         got: list[tuple[float, str]] = []  # (monotonic arrival, the fusing host's id)
 
         def on_fused(sample) -> None:
-            msg = decode(sample.payload.to_bytes(), FusedState)
+            msg = decode(inner_payload(sample.payload.to_bytes()), FusedState)  # signed by the host or its standby
             if msg:
                 got.append((time.monotonic(), msg.sender))
 
@@ -278,3 +279,31 @@ def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, m
     arrivals = [t for t, _ in got if t_kill - 1 < t < t_back]
     gap = max(b - a for a, b in zip(arrivals, arrivals[1:], strict=False))
     print(f"fused output gap after SIGKILL of the host: {gap:.2f} s; host back after {t_back - t_kill:.1f} s")
+
+
+def test_fleet_down_removes_the_shared_memory_of_killed_processes(tmp_path, fleet_name, mapc, wait_for):
+    """The probe: fleets whose processes were killed left their ``*.zenoh`` segments (and the host's
+    multiprocessing semaphores) in /dev/shm. The launcher notes what its processes map; after a SIGKILL of
+    the host (which cannot clean up) and ``fleet down``, none of it is left."""
+    import os
+    import signal
+
+    up = mapc(
+        *("fleet", "up", "--detach", "--json", "--fleet", fleet_name, "--vehicles", "1", "--network", "ideal"),
+        *("--runs-dir", str(tmp_path / "runs")),
+        timeout=240,
+    )
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_dir = Path(json.loads(up.stdout)["run_dir"])
+    try:
+        host = next(p for p in _state(run_dir)["processes"] if p["name"] == "host")
+        segments = wait_for(
+            lambda: [s for s in _state(run_dir).get("shm", []) if Path(s).exists()], timeout=30, what="noted segments"
+        )
+        os.killpg(host["pgid"], signal.SIGKILL)  # the host and its fusion worker: no chance to clean up
+    finally:
+        down = mapc("fleet", "down", "--fleet", fleet_name, timeout=180)
+    assert down.returncode == 0, down.stdout + down.stderr
+    noted = set(_state(run_dir).get("shm", []))
+    assert set(segments) <= noted and any(s.endswith(".zenoh") for s in noted), noted
+    assert [s for s in noted if Path(s).exists()] == []

@@ -144,6 +144,21 @@ def test_a_file_cut_short_is_read_up_to_its_last_whole_chunk(tmp_path: Path) -> 
     assert recs[-1].attachment in (None, att(k=len(recs) - 1))
 
 
+def test_bytes_after_the_footer_are_named_not_called_complete(tmp_path: Path) -> None:
+    """The probe: 2 KB of junk appended to a finished recording, and `record info` called it complete."""
+    path = tmp_path / "grown.mcap"
+    write(path, [("mc/f/sim/truth", encode(truth(1.0)), None, 10**18)])
+    assert info(path)["complete"] and info(path)["trailing_bytes"] == 0
+    with open(path, "ab") as f:
+        f.write(bytes(range(256)) * 8)
+    doc = info(path)
+    assert not doc["complete"] and doc["trailing_bytes"] == 2048 and "2048 bytes follow the footer" in doc["stopped"]
+    assert len(list(read_records(path))) == 1  # what the recorder wrote still reads
+    out = subprocess.run([sys.executable, "-m", "services.cli", "record", "info", str(path)], capture_output=True,
+                         text=True, cwd=REPO, timeout=60)  # fmt: skip
+    assert out.returncode == 0 and "APPENDED TO: 2048 bytes follow the footer" in out.stdout, out.stdout + out.stderr
+
+
 @pytest.mark.parametrize("content", [b"", b"hello, not a recording\n", b"PK\x03\x04" + bytes(100)])
 def test_not_an_mcap_file_is_one_line_and_exit_2(tmp_path: Path, content: bytes) -> None:
     path = tmp_path / "x.mcap"
