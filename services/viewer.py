@@ -51,7 +51,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
     if args.file is not None and not Path(args.file).is_file():
         return _fail(f"{args.file}: no such file")
     try:
-        records, scenario, source, verifier = None, args.scenario, None, None
+        records, scenario, source, verifier, entry = None, args.scenario, None, None, None
         if args.file is not None:
             from mapcontainer.recording import read_records, recording_files
             from mapcontainer.recording.mcapio import read_scan
@@ -99,7 +99,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
         else:
             t0 = time.monotonic()
             try:
-                _live(view, fleet, connect, args.exit_after)
+                _live(view, fleet, connect, args.exit_after, entry)
             finally:
                 dt = time.monotonic() - t0
                 rate = view.drawn["fused"] / dt if dt > 0 else 0.0
@@ -140,10 +140,11 @@ def _wait(seconds: float | None) -> None:
         time.sleep(0.2)
 
 
-def _live(view, fleet: str, connect: list[str], seconds: float | None) -> None:
+def _live(view, fleet: str, connect: list[str], seconds: float | None, entry: dict | None = None) -> None:
     import zenoh
 
-    from .runtime import ZenohSettings, zenoh_config
+    from .recording_cli import _login_settings
+    from .runtime import zenoh_config
 
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
 
@@ -154,7 +155,7 @@ def _live(view, fleet: str, connect: list[str], seconds: float | None) -> None:
             pass
 
     stop = threading.Event()
-    with zenoh.open(zenoh_config(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000))) as session:
+    with zenoh.open(zenoh_config(_login_settings(connect, entry))) as session:
         sub = session.declare_subscriber(f"mc/{fleet}/**", on_sample)
         deadline = None if seconds is None else time.monotonic() + seconds
         try:

@@ -49,7 +49,7 @@ from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
 from .manifest import FleetParams, ProcessSpec, keys_dir, load_manifest, manifest_path, resolve, vehicle_ids
 from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
-from . import shm
+from . import mesh, shm
 from .supervisor import Supervisor, is_ours
 
 __all__ = [
@@ -147,6 +147,12 @@ def new_run_dir(runs_dir: str | Path, fleet: str) -> Path:
     return d
 
 
+def secure_mesh(s: LauncherSettings) -> bool:
+    """Whether the launcher makes the fleet's authenticated, least-privilege mesh (services.launcher.mesh):
+    unless ``--insecure``, or the mesh is the user's (``--join`` a router, ``--zenoh-config`` a file)."""
+    return not (s.params.insecure or s.join or s.params.zenoh_config)
+
+
 def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[ProcessSpec]:
     """The processes to run; ConfigError (before anything starts) for an unknown scenario or network."""
     from mapcontainer.channel import load_profile
@@ -162,7 +168,8 @@ def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[Process
         zenoh_config(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
     else:
         zenoh_config(ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc))
-    return resolve(load_manifest(s.manifest), s.params, run_dir, connect)
+    logins = Path(run_dir) / "zenoh" if secure_mesh(s) else None
+    return resolve(load_manifest(s.manifest), s.params, run_dir, connect, logins=logins)
 
 
 def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = None) -> None:
@@ -214,6 +221,12 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         default=None,
         help="Zenoh JSON5 file for the launcher and every service ({zenoh_config} in the manifest)",
     )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        default=None,
+        help="the open Zenoh mesh of old: no login, no access control (debugging; health and status say so)",
+    )
     p.add_argument("--no-summary", action="store_true", help="no live line (start, ready and final lines stay)")
 
 
@@ -233,6 +246,7 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "signing": True if a.keys is not None and a.signing is None else a.signing,  # keys given: signed
         "keys": a.keys,
         "zenoh_config": a.zenoh_config,
+        "insecure": a.insecure,
     }
     params = manifest.defaults.model_copy(update={k: v for k, v in over.items() if v is not None})
     params = validate_model(FleetParams, params.model_dump(), "the command line")  # ConfigError, not a traceback
@@ -276,6 +290,7 @@ class _Run:
         self.sup: Supervisor | None = None
         self.verifier: Verifier | None = None  # signed fleets: the metrics believed are the evaluator's, verified
         self.metrics_refused: dict[str, int] = {}
+        self.login: str | None = None  # the operator's Zenoh login (a secure mesh): mapc health etc. use it
         self.shm: set[str] = set()  # shared-memory segments the fleet's processes mapped (removed at the end)
 
     def event(self, event: str, name: str, details: dict) -> None:
@@ -317,6 +332,8 @@ class _Run:
             "launcher_pid": os.getpid(),
             "run_dir": str(self.run_dir),
             "endpoints": self.endpoints,
+            "zenoh_login": self.login,
+            "insecure": self.s.params.insecure,
             "started_wall": self.started_wall,
             "updated_wall": time.time(),
             "params": self.s.params.model_dump(),
@@ -370,6 +387,11 @@ def run(s: LauncherSettings) -> int:
         if s.join:  # multi-host: this host's router is the meeting point
             session = open_session(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
             r.endpoints = [s.join]
+        elif secure_mesh(s):  # the fleet's router: every process logs in, each may use its own keys only
+            router = mesh.write_mesh(run_dir, plan(s, run_dir, "<connect>"), s.params, s.listen)
+            session = open_session(ZenohSettings(listen=[s.listen], adminspace=True, config_file=str(router)))
+            r.endpoints = listening_locators(session)
+            r.login = str(mesh.login_path(run_dir, mesh.OPS))
         else:
             session = open_session(ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc))
             r.endpoints = listening_locators(session)
@@ -404,6 +426,8 @@ def run(s: LauncherSettings) -> int:
                 "launcher_pid": os.getpid(),
                 "endpoints": r.endpoints,
                 "cwd": os.getcwd(),
+                "zenoh_login": r.login,
+                "insecure": s.params.insecure,
             },
         )
         r.write_state()

@@ -56,6 +56,8 @@ def active_fleets() -> list[dict[str, Any]]:
                 "launcher_pid": pid,
                 "launcher_alive": launcher_alive,
                 "endpoints": state.get("endpoints") or p.get("endpoints") or [],
+                "zenoh_login": p.get("zenoh_login"),  # the operator's login to a secure mesh (mesh.py)
+                "insecure": bool(p.get("insecure")),
                 "status": state.get("status"),
                 "processes": procs,
                 "params": state.get("params", {}),
@@ -145,6 +147,8 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
         argv += ["--join", s.join]
     if p.zenoh_config:
         argv += ["--zenoh-config", p.zenoh_config]
+    if p.insecure:
+        argv.append("--insecure")
     return argv
 
 

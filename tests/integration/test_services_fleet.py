@@ -88,7 +88,7 @@ def test_fleet_up_health_kill_restart_and_down(
 
         # SIGKILL a vehicle: its token disappears within 2 s and the launcher restarts it
         endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
-        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        session = open_session(ZenohSettings(connect=[endpoint], config_file=state["zenoh_login"]))  # the operator
         try:
             alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
             key = topic("alive").key(fleet=fleet_name, role="vehicle", id="cv1")
@@ -243,7 +243,7 @@ def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, m
         state = _state(run_dir)
         assert {p["name"] for p in state["processes"]} >= {"host", "host-standby"}
         endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
-        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        session = open_session(ZenohSettings(connect=[endpoint], config_file=state["zenoh_login"]))  # the operator
         got: list[tuple[float, str]] = []  # (monotonic arrival, the fusing host's id)
 
         def on_fused(sample) -> None:
@@ -307,3 +307,61 @@ def test_fleet_down_removes_the_shared_memory_of_killed_processes(tmp_path, flee
     noted = set(_state(run_dir).get("shm", []))
     assert set(segments) <= noted and any(s.endswith(".zenoh") for s in noted), noted
     assert [s for s in noted if Path(s).exists()] == []
+
+
+def test_the_default_fleet_admits_only_its_own_processes_each_to_its_own_keys(tmp_path, fleet_name, mapc, wait_for):
+    """The probe: the default mesh had no authentication. Now a client without the run's login cannot join
+    (so it can neither publish nor subscribe); a vehicle's login cannot put on another vehicle's key or the
+    host's fused key; the operator's login (what mapc health uses) sees the fleet."""
+    import zenoh
+
+    from services.launcher.mesh import login_path
+
+    up = mapc(
+        *("fleet", "up", "--detach", "--json", "--fleet", fleet_name, "--vehicles", "2", "--network", "ideal"),
+        *("--runs-dir", str(tmp_path / "runs")),
+        timeout=240,
+    )
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_dir = Path(json.loads(up.stdout)["run_dir"])
+    endpoint = next(e for e in _state(run_dir)["endpoints"] if "127.0.0.1" in e)
+    try:
+        assert _state(run_dir)["insecure"] is False and oct(login_path(run_dir, "ops").stat().st_mode)[-3:] == "600"
+        anonymous = ZenohSettings(mode="client", connect=[endpoint], connect_timeout_ms=1000)
+        with pytest.raises(Exception):  # noqa: B017 - Zenoh's error for a refused login
+            open_session(anonymous).close()
+        wrong = json.loads(login_path(run_dir, "vehicle-cv0").read_text())
+        wrong["transport"]["auth"]["usrpwd"]["password"] = "guessed"
+        (tmp_path / "wrong.json5").write_text(json.dumps(wrong))
+        with pytest.raises(Exception):  # noqa: B017
+            open_session(ZenohSettings(connect=[endpoint], config_file=str(tmp_path / "wrong.json5"))).close()
+
+        def login(user: str):
+            return open_session(ZenohSettings(connect=[endpoint], config_file=str(login_path(run_dir, user))))
+
+        ops, cv0 = login("ops"), login("vehicle-cv0")
+        try:
+            got: list[tuple[str, bytes]] = []
+            sub = ops.declare_subscriber(
+                f"mc/{fleet_name}/**", lambda s: got.append((str(s.key_expr), s.payload.to_bytes()))
+            )
+            mine = topic("prior_tx").key(fleet=fleet_name, src="cv0")
+            theirs = [topic("prior_tx").key(fleet=fleet_name, src="cv1"), topic("fused").key(fleet=fleet_name, hid="host")]
+            wait_for(lambda: any(k == mine for k, _ in got), timeout=30, what="cv0's priors at the operator")
+            for _ in range(20):
+                for key in theirs:
+                    cv0.put(key, b"\x92forged")
+                time.sleep(0.05)
+            time.sleep(1.0)
+            assert [k for k, p in got if p == b"\x92forged"] == []  # nothing of cv0 reached those keys
+            assert any(k == theirs[1] for k, _ in got)  # while the host's own fused states did
+            sub.undeclare()
+        finally:
+            ops.close()
+            cv0.close()
+        health = mapc("health", "--fleet", fleet_name, "--json")
+        assert health.returncode in (0, 1) and len(json.loads(health.stdout)) == 6, health.stdout + health.stderr
+        host = next(v for v in json.loads(health.stdout) if v["role"] == "host")
+        assert host["rejects"].get("unsigned", 0) == 0  # the forged puts never reached the host
+    finally:
+        mapc("fleet", "down", "--fleet", fleet_name, timeout=180)
