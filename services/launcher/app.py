@@ -195,7 +195,13 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         "--standby",
         action="store_true",
         default=None,
-        help="also run a warm standby host that publishes the fused state while the host is gone",
+        help="run a warm standby host that publishes the fused state while the host is gone (the local default)",
+    )
+    p.add_argument(
+        "--no-standby",
+        dest="standby",
+        action="store_false",
+        help="no warm standby: after a crash of the host, no fused output until it is restarted (seconds)",
     )
     p.add_argument(
         "--record",

@@ -131,8 +131,7 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
     ]
     if p.vehicles is not None:
         argv += ["--vehicles", str(p.vehicles)]
-    if p.standby:
-        argv.append("--standby")
+    argv.append("--standby" if p.standby else "--no-standby")
     if p.record:
         argv.append("--record")
     if not p.signing:

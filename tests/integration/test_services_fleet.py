@@ -54,7 +54,7 @@ def test_fleet_up_health_kill_restart_and_down(
         state = _state(run_dir)
         assert state["status"] == "running"
         names = {p["name"] for p in state["processes"]}
-        assert names == {"evaluator", "host", "channel", "vehicle-cv0", "vehicle-cv1", "world"}
+        assert names == {"evaluator", "host", "host-standby", "channel", "vehicle-cv0", "vehicle-cv1", "world"}
         pgids = {p["pgid"] for p in state["processes"]} | {info["launcher_pid"]}
 
         elsewhere = tmp_path / "elsewhere"
@@ -181,7 +181,7 @@ def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, m
     ):
         assert (run_dir / name).stat().st_size > 0, name
     config = json.loads((run_dir / "config.json").read_text())
-    assert config["params"]["fleet"] == fleet_name and len(config["processes"]) == 6
+    assert config["params"]["fleet"] == fleet_name and len(config["processes"]) == 7  # with the warm standby
     assert config["params"]["mode"] == mode
     ev = json.loads((run_dir / "eval_summary.json").read_text())
     assert ev["evaluated"] > 10
@@ -360,7 +360,7 @@ def test_the_default_fleet_admits_only_its_own_processes_each_to_its_own_keys(tm
             ops.close()
             cv0.close()
         health = mapc("health", "--fleet", fleet_name, "--json")
-        assert health.returncode in (0, 1) and len(json.loads(health.stdout)) == 6, health.stdout + health.stderr
+        assert health.returncode in (0, 1) and len(json.loads(health.stdout)) == 7, health.stdout + health.stderr
         host = next(v for v in json.loads(health.stdout) if v["role"] == "host")
         assert host["rejects"].get("unsigned", 0) == 0  # the forged puts never reached the host
     finally:
