@@ -140,8 +140,7 @@ def fusion_stall(
     (Input that stops altogether is the generic "input stalled" of every service.)"""
     if stall_s is None or since_fused_s <= stall_s or input_idle_s is None or input_idle_s > stall_s:
         return None
-    new = {r: n - rejects_at_fused.get(r, 0) for r, n in rejects.items() if n > rejects_at_fused.get(r, 0)}
-    why = ", ".join(f"{n} {r}" for r, n in sorted(new.items(), key=lambda kv: -kv[1])) or "none"
+    why = _refused_since(rejects, rejects_at_fused) or "none"
     return f"input is flowing but nothing was fused for {since_fused_s:.1f} s (rejected since then: {why})"
 
 
@@ -180,12 +179,16 @@ def lag_causes(
     if clock_changes:
         by = f", last in a message of {clock_changed_by}" if clock_changed_by else ""
         out.append(f"the world's clock changed {clock_changes} times{by}")
-    new = {r: n - rejects_at_fused.get(r, 0) for r, n in rejects.items() if n > rejects_at_fused.get(r, 0)}
-    if new:
-        out.append("refused since the last fused state: " + ", ".join(
-            f"{n} {r}" for r, n in sorted(new.items(), key=lambda kv: -kv[1])
-        ))
+    counts = _refused_since(rejects, rejects_at_fused)
+    if counts:
+        out.append(f"refused since the last fused state: {counts}")
     return out
+
+
+def _refused_since(rejects: dict[str, int], then: dict[str, int]) -> str:
+    """The rejections counted since ``then``, most first ("272 stale, 3 flood"); empty if none."""
+    new = {r: n - then.get(r, 0) for r, n in rejects.items() if n > then.get(r, 0)}
+    return ", ".join(f"{n} {r}" for r, n in sorted(new.items(), key=lambda kv: -kv[1]))
 
 
 def main(s: HostSettings) -> int:

@@ -53,7 +53,6 @@ from .service import (
     CountingPublisher,
     Received,
     Service,
-    sender_admission,
     topic_gate,
     write_json,
 )
@@ -79,7 +78,6 @@ __all__ = [
     "make_attachment",
     "open_session",
     "read_attachment",
-    "sender_admission",
     "topic_gate",
     "service_main",
     "service_settings_from_args",

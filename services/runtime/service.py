@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from mapcontainer import jsonout
-from mapcontainer.admission import Admission, Gate
+from mapcontainer.admission import Gate
 from mapcontainer.security import Verifier
 from schemas import HealthStatus, decode, encode
 from schemas.topics import max_bytes, topic
@@ -64,18 +64,12 @@ class CountingPublisher:
         self._pub.undeclare()
 
 
-def sender_admission(topic_name: str, time_scale: float = 1.0, max_senders: int = 256) -> Admission:
-    """Per-sender admission for a topic: twice its nominal rate in wall time (``time_scale`` scenario seconds
-    per wall second), with one second of that as the burst."""
-    rate = 2.0 * (topic(topic_name).rate_hz or 10.0) * max(time_scale, 1.0)
-    return Admission(rate_hz=rate, burst=rate, max_senders=max_senders)
-
-
 def topic_gate(topic_name: str, verifier: Verifier | None, time_scale: float = 1.0, max_senders: int = 256) -> Gate:
     """:class:`~mapcontainer.admission.Gate` for a topic: each verified sender (the key's sender on an
-    unsigned fleet) and each source of unverifiable traffic has :func:`sender_admission`'s budget."""
-    a = sender_admission(topic_name, time_scale, max_senders)
-    return Gate(verifier, a.rate_hz, a.burst, max_senders)
+    unsigned fleet), and each source of traffic that fails verification, may send twice the topic's nominal
+    rate in wall time (``time_scale`` scenario seconds per wall second), one second of that as a burst."""
+    rate = 2.0 * (topic(topic_name).rate_hz or 10.0) * max(time_scale, 1.0)
+    return Gate(verifier, rate, rate, max_senders)
 
 
 class Service:
@@ -117,7 +111,6 @@ class Service:
         self._state_note: str | None = None
         self._threads: list[threading.Thread] = []
         self.thread_died: str | None = None  # the first worker thread that died, and why
-        self._admission_lock = threading.Lock()
         self._declared: list[Any] = []
         self._old_handlers: dict[int, Any] = {}
         self._parent = os.getppid()
@@ -403,15 +396,6 @@ class Service:
 
         self._declared.append(self.session.liveliness().declare_subscriber(key, on_token, history=True))
         return alive
-
-    def admit(self, admission: Admission, sender: str, what: str) -> bool:
-        """Whether ``sender``'s message (``what``, for the log) passes its per-sender admission; a refusal
-        (``flood``, ``too_many_senders``) is counted. Thread-safe: Zenoh runs callbacks on several threads."""
-        with self._admission_lock:
-            reason = admission.admit(sender, time.monotonic())
-        if reason is not None:
-            self.metrics.reject(reason, f"{what} from {sender}", self.log)
-        return reason is None
 
     def subscribe_queued(
         self,

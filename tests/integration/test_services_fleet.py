@@ -73,12 +73,13 @@ def test_fleet_up_health_kill_restart_and_down(
         def healthy():
             h = mapc("health", "--fleet", fleet_name, "--json", cwd=elsewhere)
             rows = json.loads(h.stdout) if h.stdout.strip() else []
-            return rows if h.returncode == 0 and len(rows) == 6 else None
+            return rows if h.returncode == 0 and len(rows) == 7 else None
 
-        rows = wait_for(healthy, timeout=60, what="all six services healthy", every=0.5)
+        rows = wait_for(healthy, timeout=60, what="all seven services healthy", every=0.5)
         assert {(r["role"], r["id"]) for r in rows} == {
             ("evaluator", "evaluator"),
             ("host", "host"),
+            ("host", "host-standby"),
             ("channel", "channel"),
             ("vehicle", "cv0"),
             ("vehicle", "cv1"),
