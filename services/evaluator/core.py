@@ -47,7 +47,8 @@ MAX_SOURCES = 256  # distinct V2X sources counted; more are a flood of names (co
 MAX_E2E_LATENCY_MS = 60_000.0  # a longer (or negative) end-to-end latency is a forged or broken clock
 TRACE_RECENT = 1_200  # newest points of a picture trace kept at full rate (10 Hz: two minutes)
 TRACE_OLDER = 4_000  # older points, thinned to stay spread over the whole run (Trace)
-MAX_TRACES = 1_024  # obstacle traces kept; the oldest one goes when a new obstacle comes
+MAX_TRACES = 1_024  # traces of one kind kept; the oldest one goes when a new obstacle comes
+OBSTACLE_GONE_S = 120.0  # an obstacle not in the truth for this long (scenario s) loses its trace
 OBJECTS_RECENT = 20_000  # fused objects kept for the picture (it draws the last seconds only)
 FRAMES_KEPT = 10_000  # frame rows kept in memory when nobody streams them (Evaluator.frame_sink)
 SCORE_KEYS = (  # of mapcontainer.evaluation.Totals.summary, in the whole-run summary
@@ -197,6 +198,9 @@ class Evaluator:
                 _trace(self.truth_vehicles, vid).append((t, float(pose[0]), float(pose[1])))
             for oid, p in zip(truth.obstacle_id, truth.obstacle_p_map, strict=True):
                 _trace(self.truth_obstacles, int(oid)).append((t, float(p[0]), float(p[1])))
+            gone = [oid for oid, tr in self.truth_obstacles.items() if tr[-1][0] < t - OBSTACLE_GONE_S]
+            for oid in gone:  # obstacles that left the scene: their trails go, the picture keeps the present
+                del self.truth_obstacles[oid]
 
     def _find_truth(self, t: float) -> GroundTruth | None:
         k = self._k(t)

@@ -416,3 +416,23 @@ def test_a_lagging_host_names_the_cause() -> None:
     why = fused_lag(10.0, 7.9, 1.0, 1.0, causes)
     assert why.startswith("the fused output trails the world by 2.1 s") and "272 stale" in why
     assert lag_causes(50.0, 100.0, 0, 0, None, {"stale": 3}, {"stale": 3}) == []
+
+
+def test_the_evaluators_traces_stay_bounded_over_any_run_length() -> None:
+    """The evaluator grew 2.5 MB a minute: a trace keeps its newest points at full rate and thins the older
+    ones, still spread over the whole run; an obstacle gone for OBSTACLE_GONE_S loses its trace."""
+    from services.evaluator.core import OBSTACLE_GONE_S, Trace
+
+    tr = Trace(recent=100, older=400)
+    for k in range(100_000):
+        tr.append((k,))
+    pts = [p[0] for p in tr]
+    assert len(tr) <= 500 and pts == sorted(pts) and pts[-100:] == list(range(99_900, 100_000))
+    assert pts[0] < 1_000 and tr[-1] == (99_999,)  # the run's start is still drawn
+    ev = Evaluator("f", plot_every_s=0.1)
+    ev.on_truth(_truth(0.0, [0.0, 0.0], [[5.0, 0.0]]))
+    assert list(ev.truth_obstacles) == [1]
+    later = _truth(OBSTACLE_GONE_S + 1.0, [0.0, 0.0], [[5.0, 0.0]])
+    later = later.model_copy(update={"obstacle_id": np.array([2], np.uint32)})
+    ev.on_truth(later)
+    assert list(ev.truth_obstacles) == [2]
