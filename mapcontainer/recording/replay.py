@@ -403,12 +403,14 @@ def refuse(
     live: list[tuple[Record, FusedState]] = []
     truth: dict[int, GroundTruth] = {}
     refused = 0
+    # its own replay table: these are read to the end first, and the inputs' verifier must not see them
+    state_verifier = _verifier(path)
 
     def believed(r: Record, model, senders):
         """A recorded fused state or truth: signed by its host (or standby) or the world when the recording
         has the CA, else refused and counted (a fake fused state on the host's key scores nothing)."""
         nonlocal refused
-        inner = unwrap(r.payload, verifier, r.log_time_ns * 1e-9, senders)
+        inner = unwrap(r.payload, state_verifier, r.log_time_ns * 1e-9, senders)
         if isinstance(inner, Rejection):
             refused += 1
             return None
