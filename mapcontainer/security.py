@@ -63,11 +63,14 @@ __all__ = [
     "Verifier",
     "certificate_bytes",
     "certificate_digest",
+    "fused_signers",
     "issue",
     "load_certificate",
     "load_credentials",
     "make_ca",
     "save_credentials",
+    "unwrap",
+    "write_fleet_keys",
 ]
 
 REASONS = (
@@ -87,6 +90,7 @@ _CURVE = ec.SECP256R1()
 _ECDSA = ec.ECDSA(hashes.SHA256())
 _CERT_FIELDS = ("subject", "public_key", "valid_from", "valid_until", "issuer", "signature")  # tag order
 _CERT_TAGS = tuple(TAGS[f] for f in _CERT_FIELDS)
+_MAX_ITEMS = 16  # maps and arrays in a SecuredMessage: six fields, a certificate of six (and room for new ones)
 _NAME = re.compile(NAME_PATTERN)
 
 _repr = reprlib.Repr()
@@ -320,18 +324,30 @@ _T_VERSION, _T_PAYLOAD, _T_CERT, _T_DIGEST, _T_TGEN, _T_SIG = (
 )
 
 
+VERIFY_WINDOW_S = 5.0  # services: a signed message generated longer ago (or ahead) than this is refused as replayed
 KEYS_SKEW_S = 3600.0  # write_fleet_keys: certificates start this long before now (clocks of other machines)
 
 
-def write_fleet_keys(
-    out: Path, vehicles: list[str], validity_s: float, ca_name: str = "fleet-ca", *, force: bool = False
-) -> dict:
-    """A test CA and credentials for ``vehicles`` in ``out`` (``mapc keys init``, and a fleet run's own keys).
+SERVICE_SIGNERS = ("world", "evaluator", "host", "host-standby")  # they sign truth, metrics, fused state
 
-    Returns what was written (the CA's and each vehicle's certificate digest, the validity). A directory
-    that already holds credentials of these names is a ConfigError unless ``force``.
+
+def write_fleet_keys(
+    out: Path,
+    vehicles: list[str],
+    validity_s: float,
+    ca_name: str = "fleet-ca",
+    *,
+    force: bool = False,
+    services: tuple[str, ...] | list[str] = SERVICE_SIGNERS,
+) -> dict:
+    """A test CA and credentials for ``vehicles`` and ``services`` in ``out`` (``mapc keys init``, and a fleet
+    run's own keys): the world signs its truth, the evaluator its metrics, a host (by its id) its fused state.
+
+    Returns what was written (the CA's and each certificate's digest, the validity). A directory that
+    already holds credentials of these names is a ConfigError unless ``force``.
     """
-    names = [CA_NAME, *vehicles]
+    services = [x for x in dict.fromkeys(services) if x not in vehicles]
+    names = [CA_NAME, *vehicles, *services]
     existing = [p.name for n in names for p in _paths(Path(out), n) if p.exists()]
     if existing and not force:
         more = " ..." if len(existing) > 4 else ""
@@ -340,10 +356,11 @@ def write_fleet_keys(
     try:
         ca = make_ca(ca_name, now=now, validity_s=validity_s + KEYS_SKEW_S)
         vehicle_creds = [issue(ca, vid, validity_s + KEYS_SKEW_S, now) for vid in vehicles]
+        service_creds = [issue(ca, sid, validity_s + KEYS_SKEW_S, now) for sid in services]
     except ValueError as exc:  # a validity past 2106 (Unix seconds in 32 bits), a bad name
-        raise ConfigError(f"keys for {vehicles}: {exc}") from None
+        raise ConfigError(f"keys for {vehicles + services}: {exc}") from None
     save_credentials(ca, out, CA_NAME)
-    for creds in vehicle_creds:
+    for creds in vehicle_creds + service_creds:
         save_credentials(creds, out)
     cert = ca.certificate
     return {
@@ -352,7 +369,34 @@ def write_fleet_keys(
         "valid_from": cert.valid_from,
         "valid_until": cert.valid_until,
         "vehicles": {c.subject: c.digest.hex() for c in vehicle_creds},
+        "services": {c.subject: c.digest.hex() for c in service_creds},
     }
+
+
+STANDBY_SUFFIX = "-standby"  # a warm standby host's id: its host's id and this
+
+
+def fused_signers(host_id: str) -> frozenset[str]:
+    """Who may sign the fused state published on host ``host_id``'s key: the host, and its warm standby."""
+    return frozenset((host_id, host_id + STANDBY_SUFFIX))
+
+
+def unwrap(
+    data: bytes, verifier: Verifier | None, now: float, senders: str | frozenset[str] | None = None
+) -> bytes | Rejection:
+    """What a consumer reads of a message that may be signed: with a ``verifier`` (the fleet's CA), the
+    verified inner message, or the Rejection (an unsigned message is refused, and so is one whose verified
+    sender is not ``senders``: an id, or a set of ids); without one, the inner message unverified, or
+    ``data`` itself if it is not signed."""
+    if verifier is None:
+        return inner_payload(data)
+    one = senders if isinstance(senders, str) else None
+    out = verifier.verify(data, now, expected_sender=one)
+    if isinstance(out, Rejection):
+        return out
+    if senders is not None and one is None and out.sender not in senders:
+        return Rejection("sender_mismatch", f"signed by {out.sender}, not by one of {sorted(senders)}")
+    return out.payload
 
 
 def inner_payload(data: bytes) -> bytes:
@@ -432,12 +476,22 @@ class Verifier:
         self._expiry: list[tuple[int, str]] = []  # heap of the generation times in _seen
         self._floor_us: float = -math.inf  # generation times at or below it are refused
 
-    def verify(self, data: bytes, now: float, expected_sender: str | None = None) -> Verified | Rejection:
-        """``data`` checked at ``now`` (Unix s) against ``expected_sender`` (from the key, or None)."""
-        msg = decode(data, SecuredMessage)
+    def verify(
+        self, data: bytes, now: float, expected_sender: str | None = None, *, new_certificates: bool = True
+    ) -> Verified | Rejection:
+        """``data`` checked at ``now`` (Unix s) against ``expected_sender`` (from the key, or None).
+
+        Cheapest first: the outer message is parsed with every map and array bounded (its payload stays
+        bytes, decoded by nobody before the signature holds); the signer must be a known certificate or
+        a new one of our CA (``new_certificates=False``: a certificate not verified before is refused as
+        ``unknown_certificate`` without checking the CA's signature, for traffic under a flood); the
+        validity, the time window and the replay table are checked before the one ECDSA verification."""
+        msg = decode(data, SecuredMessage, max_items=_MAX_ITEMS)
         if isinstance(msg, Rejection):
             return self._reject("unsigned", f"not a SecuredMessage ({msg.reason}: {msg.detail})")
         if msg.certificate is not None:
+            if not new_certificates and certificate_digest(msg.certificate) not in self._known:
+                return self._reject("unknown_certificate", f"{msg.certificate.subject}: a new certificate under a flood")
             known = self._learn(msg.certificate)
             if isinstance(known, Rejection):
                 return known
@@ -457,6 +511,8 @@ class Verifier:
                 "replayed",
                 f"{known.subject}: generated {(t_us - now_us) / 1e6:+.3f} s from now (window +-{self.window_s:g} s)",
             )
+        if (known.subject, t_us) in self._seen or t_us <= self._floor_us:  # a replay costs no ECDSA
+            return self._reject("replayed", f"{known.subject}: generation time {t_us} us seen before")
         if not _valid(known.key, msg.signature, _message_tbs(msg.payload, t_us, known.digest)):
             return self._reject("forged", f"bad signature on a message signed as {known.subject}")
         inner = peek(msg.payload).get("sender")

@@ -23,7 +23,17 @@ from pydantic import BaseModel, ValidationError
 from .models import READABLE_VERSIONS, Envelope
 from .tags import NAMES, TAGS
 
-__all__ = ["MAX_MESSAGE_BYTES", "REASONS", "Rejection", "decode", "encode", "peek", "tag_map", "untag_map"]
+__all__ = [
+    "MAX_MESSAGE_BYTES",
+    "REASONS",
+    "Rejection",
+    "decode",
+    "encode",
+    "peek",
+    "tag_map",
+    "untag_map",
+    "with_fields",
+]
 
 MAX_MESSAGE_BYTES = 8 * 1024 * 1024
 
@@ -170,6 +180,14 @@ def encode(msg: Envelope) -> bytes:
     return msgpack.packb(tag_map(type(msg), fields), use_bin_type=True)
 
 
+def with_fields(data: bytes, model: type[BaseModel], **fields: Any) -> bytes:
+    """``data`` (an encoded ``model``, e.g. from :func:`encode`) with ``fields`` set (None values left out):
+    the top level is unpacked and packed again, its parts and arrays stay as they are."""
+    obj = msgpack.unpackb(data, raw=False, strict_map_key=False)
+    obj.update(tag_map(model, {k: v for k, v in fields.items() if v is not None}))
+    return msgpack.packb(obj, use_bin_type=True)
+
+
 def _reason(err: ValidationError) -> str:
     for e in err.errors():
         if e["type"] in ("array_finite", "finite_number"):
@@ -179,13 +197,14 @@ def _reason(err: ValidationError) -> str:
     return "invalid"
 
 
-def _unpack(data: Any) -> dict | Rejection:
+def _unpack(data: Any, max_items: int | None = None) -> dict | Rejection:
     if not isinstance(data, bytes | bytearray | memoryview):
         return Rejection("malformed", f"payload is {type(data).__name__}, not bytes")
     if len(data) > MAX_MESSAGE_BYTES:
         return Rejection("too_large", f"{len(data)} bytes > {MAX_MESSAGE_BYTES}")
+    limits = {} if max_items is None else {"max_array_len": max_items, "max_map_len": max_items}
     try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=False, use_list=True)
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=False, use_list=True, **limits)
     except Exception as exc:  # msgpack raises many types (ValueError, ExtraData, FormatError, ...)
         return Rejection("malformed", f"{type(exc).__name__}: {exc}"[:200])
     if not isinstance(obj, dict):
@@ -193,9 +212,13 @@ def _unpack(data: Any) -> dict | Rejection:
     return obj
 
 
-def decode(data: bytes, model: type[M]) -> M | Rejection:
-    """Decode and validate ``data`` as ``model``; a Rejection (never an exception) if it is bad."""
-    obj = _unpack(data)
+def decode(data: bytes, model: type[M], *, max_items: int | None = None) -> M | Rejection:
+    """Decode and validate ``data`` as ``model``; a Rejection (never an exception) if it is bad.
+
+    ``max_items`` bounds every map and array of the message (``malformed`` beyond it): for a model of
+    few fields such as a SecuredMessage, whose payload stays bytes, a hostile nested structure in a
+    field nobody reads is refused at the first long container instead of being built."""
+    obj = _unpack(data, max_items)
     if isinstance(obj, Rejection):
         return obj
     bad = next((k for k in obj if type(k) is not int), None)

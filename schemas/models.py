@@ -65,6 +65,7 @@ MAX_TIME_S = 1e10  # seconds, either sign: scenario time, or Unix time in Health
 MAX_COORD_M = 1e6  # map-frame coordinates, either sign (the map is a local frame)
 MAX_SPEED_MPS = 100.0  # any road user's speed, either sign
 MAX_YAW_RATE_RADPS = 10.0
+MIN_TIME_SCALE, MAX_TIME_SCALE = 1e-3, 100.0  # a live fleet's clock: scenario seconds per wall second
 
 # Signed messages (SecuredMessage, Certificate; mapcontainer/security.py signs and verifies them).
 DIGEST_BYTES = 8  # HashedId8 of IEEE 1609.2: the first 8 bytes of the SHA-256 of a certificate's encoding
@@ -123,6 +124,14 @@ class Envelope(_Model):
     t_meas: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description="scenario time the content is valid for (s)")
     t_sent: float = Field(
         ge=-MAX_TIME_S, le=MAX_TIME_S, description="scenario time the sender published the message (s)"
+    )
+    # The world's clock on a live fleet (a simulated run leaves them out): scenario time t happened at wall
+    # time epoch_wall_ns + t / time_scale * 1e9. Inside the message, so that a signature covers them.
+    epoch_wall_ns: int | None = Field(
+        None, gt=0, lt=2**63, description="live fleets: Unix time (ns) at which scenario time 0 happened"
+    )
+    time_scale: float | None = Field(
+        None, ge=MIN_TIME_SCALE, le=MAX_TIME_SCALE, description="live fleets: scenario seconds per wall second"
     )
 
 

@@ -133,7 +133,10 @@ TAGS: dict[str, int] = {
     # VehiclePrior (added in schema_version 4)
     "pose_filtered": 95,
     "pose_bias_sigma": 96,
-    # new fields: next tag 97
+    # Envelope (added): the world's clock of a live fleet
+    "epoch_wall_ns": 97,
+    "time_scale": 98,
+    # new fields: next tag 99
 }
 
 

@@ -13,7 +13,9 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
+from .codec import MAX_MESSAGE_BYTES
 from .models import (
+    MAX_MASK_BYTES,
     EvalMetrics,
     FusedState,
     GroundTruth,
@@ -23,7 +25,7 @@ from .models import (
     VehiclePrior,
 )
 
-__all__ = ["TOPICS", "Topic", "is_chunk", "topic"]
+__all__ = ["TOPICS", "Topic", "is_chunk", "max_bytes", "topic"]
 
 _CHUNK = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
@@ -35,6 +37,9 @@ class Topic:
     model: type[BaseModel] | None  # None: a liveliness token, no payload
     rate_hz: float | None  # nominal publish rate per key; None: on demand
     description: str
+    # Payloads larger than this are refused before anything reads them (subscribers check the size Zenoh
+    # reports before copying the bytes out): about four times the largest message the topic can carry.
+    max_bytes: int = MAX_MESSAGE_BYTES
 
     @property
     def fields(self) -> tuple[str, ...]:
@@ -76,24 +81,32 @@ class Topic:
         return out
 
 
+_KIB = 1024
+_OBSERVATIONS_BYTES = MAX_MASK_BYTES + 512 * _KIB  # a lane mask at its limit, the detections and a signature
+_STATE_BYTES = 1024 * _KIB  # up to MAX_OBJECTS vehicles and objects with their covariances
+
 TOPICS: tuple[Topic, ...] = (
     Topic("sensors", "mc/{fleet}/sim/{vid}/sensors", SensorFrame, 10.0,
-          "world -> vehicle: one camera frame with GNSS, odometry and object detections (on-board bus)"),
-    Topic("truth", "mc/{fleet}/sim/truth", GroundTruth, 10.0, "world -> evaluator: ground truth"),
+          "world -> vehicle: one camera frame with GNSS, odometry and object detections (on-board bus)",
+          _OBSERVATIONS_BYTES),
+    Topic("truth", "mc/{fleet}/sim/truth", GroundTruth, 10.0, "world -> evaluator: ground truth", _STATE_BYTES),
     Topic("prior_tx", "mc/{fleet}/v2x/tx/{src}/prior", VehiclePrior, 10.0,
-          "vehicle -> channel emulator: distributed-mode prior"),
+          "vehicle -> channel emulator: distributed-mode prior", 256 * _KIB),
     Topic("raw_tx", "mc/{fleet}/v2x/tx/{src}/raw", RawObservations, 10.0,
-          "vehicle -> channel emulator: centralized-mode raw observations"),
+          "vehicle -> channel emulator: centralized-mode raw observations", _OBSERVATIONS_BYTES),
     Topic("prior_rx", "mc/{fleet}/v2x/rx/{dst}/{src}/prior", VehiclePrior, 10.0,
-          "channel emulator -> receiver {dst}: a prior from {src} after the link model"),
+          "channel emulator -> receiver {dst}: a prior from {src} after the link model", 256 * _KIB),
     Topic("raw_rx", "mc/{fleet}/v2x/rx/{dst}/{src}/raw", RawObservations, 10.0,
-          "channel emulator -> receiver {dst}: raw observations from {src} after the link model"),
-    Topic("fused", "mc/{fleet}/host/{hid}/fused", FusedState, 10.0, "host -> anyone: the fused environment"),
+          "channel emulator -> receiver {dst}: raw observations from {src} after the link model",
+          _OBSERVATIONS_BYTES),
+    Topic("fused", "mc/{fleet}/host/{hid}/fused", FusedState, 10.0, "host -> anyone: the fused environment",
+          _STATE_BYTES),
     Topic("metrics", "mc/{fleet}/eval/metrics", EvalMetrics, 1.0,
-          "evaluator -> anyone: live RMSE, end-to-end latency, bytes/s per vehicle, delivered fraction"),
+          "evaluator -> anyone: live RMSE, end-to-end latency, bytes/s per vehicle, delivered fraction",
+          64 * _KIB),
     Topic("health", "mc/{fleet}/health/{role}/{id}", HealthStatus, 1.0,
-          "every service: periodic status put, and a queryable on the same key"),
-    Topic("alive", "mc/{fleet}/alive/{role}/{id}", None, None, "every service: liveliness token"),
+          "every service: periodic status put, and a queryable on the same key", 64 * _KIB),
+    Topic("alive", "mc/{fleet}/alive/{role}/{id}", None, None, "every service: liveliness token", 0),
 )
 
 _BY_NAME = {t.name: t for t in TOPICS}
@@ -102,6 +115,19 @@ _BY_NAME = {t.name: t for t in TOPICS}
 def is_chunk(value: str) -> bool:
     """``value`` can fill a placeholder (a fleet, vehicle or host id): letters, digits, '_' or '-'."""
     return bool(_CHUNK.fullmatch(str(value)))
+
+
+def max_bytes(key: str) -> int:
+    """The size bound of the topic whose template ``key`` (a key or a subscriber's pattern, ``*`` chunks
+    allowed) belongs to; the codec's MAX_MESSAGE_BYTES for a key of no topic."""
+    parts = str(key).split("/")
+    for t in TOPICS:
+        want = t.template.split("/")
+        if len(want) == len(parts) and all(
+            w == p or (w.startswith("{") and (p == "*" or is_chunk(p))) for w, p in zip(want, parts, strict=True)
+        ):
+            return t.max_bytes
+    return MAX_MESSAGE_BYTES
 
 
 def topic(name: str) -> Topic:

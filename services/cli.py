@@ -174,8 +174,12 @@ def _cmd_health(args: argparse.Namespace) -> int:
         print(f"mapc: {why}; or give --connect ENDPOINT", file=sys.stderr)
         return 2
     fleet = fleet or "local"  # --connect without --fleet
+    login = args.zenoh_config or (own[0].get("zenoh_login") if own else None)  # the run's operator login
+    if own and own[0].get("insecure") and not args.json:
+        print(f"fleet {fleet}: open Zenoh mesh (--insecure): anyone on this machine can publish and subscribe")
     # --connect is laid over --zenoh-config (its login, TLS, timeouts) as for the services
-    settings = ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000, config_file=args.zenoh_config)
+    settings = ZenohSettings(mode=None if login else "client", connect=connect, connect_timeout_ms=2000,
+                             config_file=login)  # fmt: skip
     conf = zenoh_config(settings)  # a configuration Zenoh refuses: ConfigError, exit 2
     try:
         import zenoh

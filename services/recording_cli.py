@@ -43,6 +43,14 @@ def _fleet_endpoints(fleet: str | None, connect: list[str] | None) -> tuple[str,
     return fleet or "local", connect, own[0] if own else None
 
 
+def _login_settings(connect: list[str], entry: dict | None):
+    """A client's ZenohSettings for a fleet: with the run's operator login when its mesh asks for one."""
+    from .runtime import ZenohSettings
+
+    login = entry.get("zenoh_login") if entry else None
+    return ZenohSettings(mode=None if login else "client", connect=connect, connect_timeout_ms=2000, config_file=login)
+
+
 # ------------------------------------------------------------------------------ record
 
 
@@ -56,7 +64,6 @@ def _cmd_record(args: argparse.Namespace) -> int:
         return _fail(found)
     fleet, connect, entry = found
     from .recorder.app import RecorderSettings, main
-    from .runtime import ZenohSettings
 
     run_dir = Path(entry["run_dir"]) if entry and entry.get("run_dir") else None
     scenario, seed = None, 0
@@ -69,7 +76,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     s = RecorderSettings(
         fleet=fleet,
         id=f"record-{os.getpid()}",
-        zenoh=ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000),
+        zenoh=_login_settings(connect, entry),
         out=args.out,
         max_mb=args.max_mb,
         scenario=scenario,
@@ -111,7 +118,12 @@ def _print_info(doc: dict, as_json: bool) -> None:
     if as_json:
         print(json.dumps(doc))
         return
-    state = "complete" if doc["complete"] else f"INCOMPLETE (read up to the last whole chunk: {doc['stopped']})"
+    if doc["complete"]:
+        state = "complete"
+    elif doc.get("trailing_bytes"):
+        state = f"FINISHED, THEN APPENDED TO: {doc['stopped']}"
+    else:
+        state = f"INCOMPLETE (read up to the last whole chunk: {doc['stopped']})"
     rate = f", {doc['mb_per_min']:.2f} MB/min" if doc["mb_per_min"] else ""
     print(
         f"{doc['file']}: {state}; {doc['duration_s']:.1f} s, {doc['keys']} keys, {doc['messages']} messages, "
@@ -193,14 +205,14 @@ def _live_replay(args: argparse.Namespace, path: Path) -> int:
 
     from mapcontainer.recording.replay import DEFAULT_TOPICS, replay_plan
 
-    from .runtime import ZenohSettings, zenoh_config, zenoh_error_text
+    from .runtime import zenoh_config, zenoh_error_text
 
     if args.fleet is None and not args.connect:
         return _fail("replay: give --fleet NAME (a running fleet, e.g. `mapc fleet up --manifest replay`) or --refuse")
     found = _fleet_endpoints(args.fleet, args.connect)
     if isinstance(found, str):
         return _fail(found)
-    fleet, connect, _ = found
+    fleet, connect, entry = found
     topics = [t.strip() for t in args.topics.split(",") if t.strip()] if args.topics else list(DEFAULT_TOPICS)
     from schemas.topics import TOPICS
 
@@ -211,7 +223,7 @@ def _live_replay(args: argparse.Namespace, path: Path) -> int:
     import zenoh
 
     try:
-        session = zenoh.open(zenoh_config(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000)))
+        session = zenoh.open(zenoh_config(_login_settings(connect, entry)))
     except Exception as e:  # ZError: nothing listens there
         return _fail(f"cannot reach {', '.join(connect)}: {zenoh_error_text(e)}")
     try:

@@ -39,6 +39,7 @@ def _scenario_map(scenario: str | None):
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
+    from mapcontainer.config import ConfigError
     from mapcontainer.recording import RecordingError
 
     if (args.file is None) == (args.fleet is None and not args.connect):
@@ -50,16 +51,18 @@ def _cmd_view(args: argparse.Namespace) -> int:
     if args.file is not None and not Path(args.file).is_file():
         return _fail(f"{args.file}: no such file")
     try:
-        records, scenario, source = None, args.scenario, None
+        records, scenario, source, verifier, entry = None, args.scenario, None, None, None
         if args.file is not None:
             from mapcontainer.recording import read_records, recording_files
             from mapcontainer.recording.mcapio import read_scan
+            from mapcontainer.recording.replay import _verifier
 
             path = Path(args.file)
             meta = read_scan(path).metadata.get("recording", {})
             scenario = scenario or meta.get("scenario") or None
             records = [r for p in recording_files(path) for r in read_records(p)]
             source = str(path)
+            verifier = _verifier(path)  # the recording's CA: None for an unsigned fleet's
         else:
             from .recording_cli import _fleet_endpoints
 
@@ -67,12 +70,13 @@ def _cmd_view(args: argparse.Namespace) -> int:
             if isinstance(found, str):
                 return _fail(found)
             fleet, connect, entry = found
-            if not scenario and entry and entry.get("run_dir"):
+            if entry and entry.get("run_dir"):
                 conf = Path(entry["run_dir"]) / "config.json"
-                if conf.exists():
-                    scenario = json.loads(conf.read_text()).get("params", {}).get("scenario")
+                params = json.loads(conf.read_text()).get("params", {}) if conf.exists() else {}
+                scenario = scenario or params.get("scenario")
+                verifier = _fleet_verifier(Path(entry["run_dir"]), params)
             source = f"fleet {fleet}"
-    except RecordingError as exc:
+    except (RecordingError, ConfigError) as exc:
         return _fail(str(exc))
 
     from mapcontainer.recording.view import RerunView
@@ -80,7 +84,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
     rec = rr.RecordingStream("mapcontainer", recording_id=f"mapc-view-{time.time_ns()}")
     uri = rr.serve_grpc(grpc_port=args.grpc_port, recording=rec)
     rr.serve_web_viewer(web_port=args.web_port, open_browser=False, connect_to=uri)
-    view = RerunView(rec)
+    view = RerunView(rec, verifier)
     view.layout()
     hdmap = _scenario_map(scenario)
     if hdmap is not None:
@@ -90,19 +94,34 @@ def _cmd_view(args: argparse.Namespace) -> int:
     try:
         if records is not None:
             _play(view, records, args.paced, args.speed)
-            print(f"drawn: {json.dumps(view.drawn)}", flush=True)
+            print(f"drawn: {json.dumps(view.drawn)} refused: {json.dumps(view.refused)}", flush=True)
             _wait(args.exit_after)
         else:
             t0 = time.monotonic()
             try:
-                _live(view, fleet, connect, args.exit_after)
+                _live(view, fleet, connect, args.exit_after, entry)
             finally:
                 dt = time.monotonic() - t0
                 rate = view.drawn["fused"] / dt if dt > 0 else 0.0
-                print(f"drawn: {json.dumps(view.drawn)} in {dt:.1f} s ({rate:.1f} fused states/s)", flush=True)
+                print(
+                    f"drawn: {json.dumps(view.drawn)} in {dt:.1f} s ({rate:.1f} fused states/s) "
+                    f"refused: {json.dumps(view.refused)}",
+                    flush=True,
+                )
     except KeyboardInterrupt:
         pass
     return 0
+
+
+def _fleet_verifier(run_dir: Path, params: dict):
+    """A Verifier of a running fleet's CA (its run's keys, or the ``--keys`` it was given); None when the
+    fleet does not sign."""
+    from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate
+
+    from .launcher.manifest import FleetParams, keys_dir
+
+    where = keys_dir(FleetParams(**params), run_dir)
+    return None if where is None else Verifier(load_certificate(where, CA_NAME), window_s=VERIFY_WINDOW_S)
 
 
 def _play(view, records, paced: bool, speed: float) -> None:
@@ -121,10 +140,11 @@ def _wait(seconds: float | None) -> None:
         time.sleep(0.2)
 
 
-def _live(view, fleet: str, connect: list[str], seconds: float | None) -> None:
+def _live(view, fleet: str, connect: list[str], seconds: float | None, entry: dict | None = None) -> None:
     import zenoh
 
-    from .runtime import ZenohSettings, zenoh_config
+    from .recording_cli import _login_settings
+    from .runtime import zenoh_config
 
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
 
@@ -135,7 +155,7 @@ def _live(view, fleet: str, connect: list[str], seconds: float | None) -> None:
             pass
 
     stop = threading.Event()
-    with zenoh.open(zenoh_config(ZenohSettings(mode="client", connect=connect, connect_timeout_ms=2000))) as session:
+    with zenoh.open(zenoh_config(_login_settings(connect, entry))) as session:
         sub = session.declare_subscriber(f"mc/{fleet}/**", on_sample)
         deadline = None if seconds is None else time.monotonic() + seconds
         try:

@@ -31,7 +31,7 @@ from collections.abc import Callable
 import numpy as np
 
 from schemas.arrays import cov_from_upper as sym_from_upper
-from schemas.codec import decode, peek
+from schemas.codec import Rejection, decode
 from schemas.models import FusedState, GroundTruth
 from schemas.topics import topic
 
@@ -344,15 +344,28 @@ def _state_points(vehicles, objects, v_color, o_color, ns: int) -> bytes:
     return point_cloud(np.concatenate([v, o]), [v_color] * len(v) + [o_color] * len(o), ns)
 
 
-def visualizer() -> Callable[[str, bytes, int], list[tuple[str, str, bytes, bytes]]]:
+def visualizer(verifier=None, refused: dict[str, int] | None = None) -> Callable[[str, bytes, int], list]:
     """The ``viz`` callable of :class:`~.mcapio.RecordingWriter`: truth and fused states to Foxglove
-    channels (other keys give nothing; a message that does not decode gives nothing)."""
+    channels (other keys give nothing; a message that does not decode gives nothing). With ``verifier``
+    (the fleet's CA) only truth signed by the world and fused states signed by their host (or standby) are
+    drawn; what does not verify is counted by reason in ``refused``."""
+    from ..security import fused_signers, unwrap
+
     truth_t, fused_t = topic("truth"), topic("fused")
     su, pf, pc = SCENE_UPDATE, POSES_IN_FRAME, point_cloud_schema()
+    refused = {} if refused is None else refused
+
+    def believed(payload: bytes, ns: int, senders) -> bytes | None:
+        inner = unwrap(payload, verifier, ns * 1e-9, senders)
+        if isinstance(inner, Rejection):
+            refused[inner.reason] = refused.get(inner.reason, 0) + 1
+            return None
+        return inner
 
     def viz(key: str, payload: bytes, ns: int) -> list[tuple[str, str, bytes, bytes]]:
         if truth_t.parse(key) is not None:
-            msg = decode(payload, GroundTruth)
+            inner = believed(payload, ns, "world")
+            msg = None if inner is None else decode(inner, GroundTruth)
             if not msg:
                 return []
             scene, poses = truth_scene(msg, ns)
@@ -363,8 +376,9 @@ def visualizer() -> Callable[[str, bytes, int], list[tuple[str, str, bytes, byte
                 ("/viz/points/truth", *pc, points),
             ]
         where = fused_t.parse(key)
-        if where is not None and isinstance(peek(payload).get("vehicle_ids", []), list):
-            msg = decode(payload, FusedState)
+        if where is not None:
+            inner = believed(payload, ns, fused_signers(where["hid"]))
+            msg = None if inner is None else decode(inner, FusedState)
             if not msg:
                 return []
             scene, poses = fused_scene(msg, ns)

@@ -273,8 +273,9 @@ class Scan:
     attachments: list[Attachment] = field(default_factory=list)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     profile: str = ""
-    complete: bool = False  # a footer was read: the writer finished the file
+    complete: bool = False  # a footer was read and nothing follows it: the writer finished the file
     stopped: str | None = None  # why reading stopped early (a killed writer's last, incomplete chunk)
+    trailing_bytes: int = 0  # bytes after the footer's closing magic (appended by something else)
 
 
 def _stream(path: Path, scan: Scan, on_message: Callable[[Channel, Message], None]) -> None:
@@ -308,6 +309,10 @@ def _stream(path: Path, scan: Scan, on_message: Callable[[Channel, Message], Non
                     pass
                 elif type(rec).__name__ == "Header":
                     scan.profile = rec.profile
+            if scan.complete and f.tell() < size:  # a finished file does not grow: someone appended to it
+                scan.trailing_bytes = size - f.tell()
+                scan.complete = False
+                scan.stopped = f"{scan.trailing_bytes} bytes follow the footer (not written by the recorder)"
         except Exception as exc:  # mcap, struct, zlib, zstandard and lz4 errors alike: where, decides what it is
             what = f"{type(exc).__name__}: {exc}".strip(": ")[:160]
             if f.tell() < size:
@@ -393,6 +398,7 @@ def info(path: str | Path) -> dict[str, Any]:
         "profile": scan.profile,
         "complete": scan.complete,
         "stopped": scan.stopped,
+        "trailing_bytes": scan.trailing_bytes,
         "file_bytes": size,
         "start_ns": t[0],
         "end_ns": t[1],

@@ -67,7 +67,7 @@ __all__ = [
     "shift_attachment",
 ]
 
-VERIFY_WINDOW_S = 5.0  # the live host's (services.host.app.VERIFY_WINDOW_S)
+_NO_CLOCK = {"epoch_wall_ns": None, "time_scale": None}  # encode leaves None out
 TRUTH_TOL_S = 0.02  # the evaluator's t_tol_s: a fused state is scored against the truth this close in time
 BURNIN_S = 5.0  # the evaluator's steady state
 _FLEET_TAG = TAGS["fleet"]
@@ -118,7 +118,7 @@ def _verifier(path: Path, ca=None):
 
     from schemas.models import Certificate
 
-    from ..security import Verifier
+    from ..security import VERIFY_WINDOW_S, Verifier
 
     if ca is not None:
         return Verifier(ca, window_s=VERIFY_WINDOW_S)
@@ -371,6 +371,7 @@ def refuse(
     (FusionParams fields) and ``mode`` replace the recorded host's."""
     from ..fusion import FusionParams, limit_blas_threads
     from ..fusion.gate import FrameGate
+    from ..security import fused_signers, unwrap
     from ..host import make_host
     from ..sim.config import load_scenario
     from ..sim.errors import published_map
@@ -401,6 +402,21 @@ def refuse(
     inputs: list[tuple[Record, str]] = []  # (record, source) the host subscribed to, in recorded order
     live: list[tuple[Record, FusedState]] = []
     truth: dict[int, GroundTruth] = {}
+    refused = 0
+    # its own replay table: these are read to the end first, and the inputs' verifier must not see them
+    state_verifier = _verifier(path)
+
+    def believed(r: Record, model, senders):
+        """A recorded fused state or truth: signed by its host (or standby) or the world when the recording
+        has the CA, else refused and counted (a fake fused state on the host's key scores nothing)."""
+        nonlocal refused
+        inner = unwrap(r.payload, state_verifier, r.log_time_ns * 1e-9, senders)
+        if isinstance(inner, Rejection):
+            refused += 1
+            return None
+        m = decode(inner, model)
+        return m if m else None
+
     for r in records:
         w = rx.parse(r.key)
         if w is not None and w["fleet"] == setup.fleet and w["dst"] == setup.host_id:
@@ -412,16 +428,14 @@ def refuse(
             continue
         w = fused_t.parse(r.key)
         if w is not None and w["hid"] == setup.host_id:
-            m = decode(r.payload, FusedState)
+            m = believed(r, FusedState, fused_signers(setup.host_id))
             if m:
                 live.append((r, m))
             continue
         if truth_t.parse(r.key) is not None:
-            m = decode(r.payload, GroundTruth)
+            m = believed(r, GroundTruth, "world")
             if m:
                 truth[int(round(float(m.t_meas) * 1000))] = m
-
-    refused = 0
 
     def inner(r: Record, src: str) -> bytes | None:
         nonlocal refused
@@ -506,7 +520,7 @@ def refuse(
     if schedule == "host":
         for (r, m), p, f in zip(live, payloads, fused, strict=True):
             compared += 1
-            identical += p == r.payload
+            identical += p == encode(m.model_copy(update=_NO_CLOCK))  # the container's bytes: the service adds the clock
             d = _state_diff(f, m)
             max_diff = max(max_diff, math.inf if d is None else d)
     scores = {

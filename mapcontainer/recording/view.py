@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from schemas.arrays import cov_from_upper
-from schemas.codec import decode
+from schemas.codec import Rejection, decode
 from schemas.models import EvalMetrics, FusedState, GroundTruth, HealthStatus
 from schemas.topics import topic
 
@@ -63,11 +63,13 @@ def _axes(C: np.ndarray) -> tuple[np.ndarray, list[float]]:
 class RerunView:
     """Draws messages on ``rec`` (a ``rerun.RecordingStream``); :meth:`handle` takes a key and its payload."""
 
-    def __init__(self, rec: Any):
+    def __init__(self, rec: Any, verifier: Any = None):
         import rerun as rr
 
         self.rr = rr
         self.rec = rec
+        self.verifier = verifier  # the fleet's CA (a Verifier): draw only truth, fused states and metrics it signed
+        self.refused: dict[str, int] = {}  # what did not verify, by reason
         self.health: dict[str, tuple[str, str, dict]] = {}
         self._truth, self._fused, self._health, self._metrics = (
             topic("truth"),
@@ -178,19 +180,30 @@ class RerunView:
         self.drawn["metrics"] += 1
 
     def handle(self, key: str, payload: bytes, wall_ns: int) -> bool:
-        """Draw one message of ``key``; False if it is not one drawn or does not decode."""
-        from ..security import inner_payload
+        """Draw one message of ``key``; False if it is not one drawn, does not verify (counted in
+        ``refused``; with a verifier: truth signed by the world, a fused state by its host or standby,
+        metrics by the evaluator) or does not decode."""
+        from ..security import fused_signers, inner_payload
 
         if self._truth.parse(key) is not None:
-            m = decode(payload, GroundTruth)
+            m = self._believed(payload, wall_ns, GroundTruth, "world")
             return bool(m) and (self.truth(m) is None)
-        if self._fused.parse(key) is not None:
-            m = decode(payload, FusedState)
+        if (where := self._fused.parse(key)) is not None:
+            m = self._believed(payload, wall_ns, FusedState, fused_signers(where["hid"]))
             return bool(m) and (self.fused(m) is None)
         if self._health.parse(key) is not None:
             m = decode(inner_payload(payload), HealthStatus)
             return bool(m) and (self.health_table(m, wall_ns) is None)
         if self._metrics.parse(key) is not None:
-            m = decode(payload, EvalMetrics)
+            m = self._believed(payload, wall_ns, EvalMetrics, "evaluator")
             return bool(m) and (self.metrics(m, wall_ns) is None)
         return False
+
+    def _believed(self, payload: bytes, wall_ns: int, model, senders):
+        from ..security import unwrap
+
+        inner = unwrap(payload, self.verifier, wall_ns * 1e-9, senders)
+        if isinstance(inner, Rejection):
+            self.refused[inner.reason] = self.refused.get(inner.reason, 0) + 1
+            return None
+        return decode(inner, model)

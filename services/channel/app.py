@@ -29,7 +29,9 @@ from collections import OrderedDict
 
 from pydantic import Field
 
+from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate, unwrap
 from schemas import GroundTruth
+from schemas.codec import Rejection
 from schemas.topics import topic
 
 from ..runtime import (
@@ -40,9 +42,9 @@ from ..runtime import (
     SimClock,
     add_service_args,
     make_attachment,
-    sender_admission,
     service_settings_from_args,
     setup_logging,
+    topic_gate,
 )
 
 __all__ = ["ChannelSettings", "Relay", "main", "parse_args", "parse_receivers"]
@@ -61,6 +63,7 @@ class ChannelSettings(ServiceSettings):
     time_scale: float = Field(
         1.0, ge=SimClock.TIME_SCALE_MIN, le=SimClock.TIME_SCALE_MAX, description="the world's: senders' rates scale"
     )
+    keys: str | None = Field(None, description="the fleet's keys directory: relay only verified messages")
 
 
 def parse_receivers(specs: list[str] | None) -> dict[str, list[str]]:
@@ -88,6 +91,7 @@ def parse_args(argv: list[str] | None = None) -> ChannelSettings:
     p.add_argument(
         "--scenario", default=None, help="the world's scenario: its map's buildings block a geometric radio profile"
     )
+    p.add_argument("--keys", default=None, help="the fleet's keys directory (its CA): relay verified messages only")
     add_service_args(p, "channel", default_id="channel")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
@@ -99,6 +103,7 @@ def parse_args(argv: list[str] | None = None) -> ChannelSettings:
         receivers=parse_receivers(a.receiver),
         time_scale=a.time_scale,
         scenario=a.scenario,
+        keys=a.keys,
     )
 
 
@@ -106,7 +111,9 @@ class Relay:
     """Thread-safe glue between Zenoh callbacks and the Channel core, with a wall clock.
 
     ``offer`` is called from callbacks (short: a lock, ``send`` per receiver, a notify);
-    ``run`` is the scheduler loop. Attachments are kept by (src, payload hash) until delivery.
+    ``run`` is the scheduler loop. Attachments are kept by (src, payload hash) until delivery, the first
+    one offered for a payload: a copy of a message offered later with another attachment changes nothing
+    (the probe's copies of genuine priors with ``epoch_wall_ns = 1`` rewrote the clock of the originals).
     """
 
     MAX_PENDING = 4096
@@ -132,7 +139,7 @@ class Relay:
     def offer(self, kind: str, src: str, payload: bytes, attachment: dict) -> None:
         with self._cond:
             now = self.now()
-            self._meta[(src, hash(payload))] = (kind, attachment)
+            self._meta.setdefault((src, hash(payload)), (kind, attachment))
             while len(self._meta) > self.MAX_PENDING:
                 self._meta.popitem(last=False)
             if self.radio:
@@ -188,6 +195,9 @@ def main(s: ChannelSettings) -> int:
 
         hdmap = world_map(load_scenario(s.scenario))  # the world's own map: buildings are physics, not the HD map
     relay = Relay(make_channel(profile, s.seed, hdmap), s.receivers)
+    # signed fleets: a message is verified before it costs its sender's budget (mapcontainer.admission.Gate)
+    verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+    gate_lock = threading.Lock()
     log.info("profile %s: %s", profile.name, profile.description)
 
     with Service("channel", s, figures=relay.stats) as svc:
@@ -201,14 +211,18 @@ def main(s: ChannelSettings) -> int:
 
         def on_tx(kind: str):
             tx = topic(f"{kind}_tx")
-            admission = sender_admission(tx.name, s.time_scale)  # a flooding source loses its own excess only
+            gate = topic_gate(tx.name, verifier, s.time_scale)  # a flooding source loses its own excess only
 
             def cb(msg: Received) -> None:
                 where = tx.parse(msg.key)
                 if where is None:  # Zenoh's * also matches chunks such as cv1.x that no rx key can hold
                     svc.metrics.reject("bad_key", f"{msg.key} is not a {tx.name} key of ours", log)
                     return
-                if svc.admit(admission, where["src"], tx.name):
+                with gate_lock:
+                    out = gate.admit(msg.payload, where["src"], time.monotonic(), time.time())
+                if isinstance(out, Rejection):
+                    svc.metrics.reject(out.reason, f"{tx.name} from {where['src']}: {out.detail}", log)
+                else:  # relayed as it came: the receiver verifies the signature again, end to end
                     relay.offer(kind, where["src"], msg.payload, msg.attachment)
 
             return cb
@@ -218,8 +232,16 @@ def main(s: ChannelSettings) -> int:
 
         if relay.radio:
 
+            # the world's truth places the radios: believed only when the world signed it (signed fleets);
+            # a verifier of its own, since Zenoh calls this from another thread than the relay's gate
+            truth_verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+
             def on_truth(msg: Received) -> None:
-                truth = svc.decode_or_reject(msg.payload, GroundTruth)
+                inner = unwrap(msg.payload, truth_verifier, time.time(), "world")
+                if isinstance(inner, Rejection):
+                    svc.metrics.reject(inner.reason, f"truth on {msg.key}: {inner.detail}", log)
+                    return
+                truth = svc.decode_or_reject(inner, GroundTruth)
                 if truth is not None:
                     relay.observe(truth)
 

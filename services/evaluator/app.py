@@ -3,11 +3,13 @@
 Subscribes ground truth, every host's fused state, the vehicles' ``v2x/tx`` (bytes each vehicle
 sends) and the channel's ``v2x/rx`` (what arrived); the figures are defined in
 :mod:`services.evaluator.core`. Once a second it publishes :class:`schemas.EvalMetrics` on the
-registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). On stop it writes
-``eval_summary.json``, ``eval_frames.csv`` (one row per scored fused state,
-:func:`mapcontainer.evaluation.frame_row`), ``birdseye.png`` (truth vs fused, covariance ellipses)
-and ``errors.png`` (error over scenario time) to ``--out`` (:mod:`services.evaluator.plot`).
-Callbacks only enqueue; one worker thread decodes and evaluates.
+registry's ``metrics`` topic (``mc/{fleet}/eval/metrics``). It streams ``eval_frames.csv`` (one row
+per scored fused state, :func:`mapcontainer.evaluation.frame_row`) to ``--out`` as it goes, and on stop
+writes ``eval_summary.json``, ``birdseye.png`` (truth vs fused, covariance ellipses) and ``errors.png``
+(error over scenario time) there (:mod:`services.evaluator.plot`).
+Callbacks only enqueue; one worker thread decodes and evaluates. With ``--keys`` (a signed fleet) it
+believes only ground truth signed by the world and fused states signed by their host (or its standby),
+counting what it refuses by reason in its health, and signs its metrics.
 """
 
 from __future__ import annotations
@@ -20,10 +22,20 @@ from pathlib import Path
 
 from pydantic import Field
 
-from mapcontainer.security import inner_payload
+from mapcontainer.security import (
+    CA_NAME,
+    VERIFY_WINDOW_S,
+    Signer,
+    Verifier,
+    fused_signers,
+    inner_payload,
+    load_certificate,
+    load_credentials,
+    unwrap,
+)
 from mapcontainer.sim.config import load_scenario
 from schemas import FusedState, GroundTruth, encode
-from schemas.codec import peek
+from schemas.codec import Rejection, peek
 from schemas.topics import topic
 
 from ..channel.app import parse_receivers
@@ -39,7 +51,7 @@ from ..runtime import (
 )
 from .core import Evaluator
 
-__all__ = ["EvaluatorSettings", "main", "parse_args", "write_frames"]
+__all__ = ["EvaluatorSettings", "frames_writer", "main", "parse_args"]
 
 
 class EvaluatorSettings(ServiceSettings):
@@ -49,6 +61,9 @@ class EvaluatorSettings(ServiceSettings):
     window_s: float = 5.0
     burnin_s: float = Field(5.0, ge=0, description="scenario seconds left out of the steady-state figures")
     stale_input_s: float | None = None
+    keys: str | None = Field(
+        None, description="the fleet's keys directory: believe signed truth and fused states only, sign the metrics"
+    )
 
 
 def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
@@ -58,6 +73,9 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
     p.add_argument("--receiver", action="append", default=None, help="as for the channel: host=cv0")
     p.add_argument("--window", type=float, default=5.0, help="seconds of the sliding window")
     p.add_argument("--burnin", type=float, default=5.0, help="scenario seconds not in the steady-state figures")
+    p.add_argument(
+        "--keys", default=None, help="the fleet's keys directory: verify truth and fused states, sign the metrics"
+    )
     add_service_args(p, "evaluator", default_id="evaluator")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
@@ -69,17 +87,19 @@ def parse_args(argv: list[str] | None = None) -> EvaluatorSettings:
         receivers=parse_receivers(a.receiver),
         window_s=a.window,
         burnin_s=a.burnin,
+        keys=a.keys,
     )
 
 
-def write_frames(path: Path, rows) -> None:
-    """The per-frame rows as CSV (a header only when there are none)."""
+def frames_writer(path: Path):
+    """``(file, writerow)``: the per-frame rows' CSV, its header written; rows go to the file as they come
+    (a run of any length keeps none of them in memory)."""
     from mapcontainer.evaluation import frame_row_fields
 
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=frame_row_fields())
-        w.writeheader()
-        w.writerows(rows)
+    f = path.open("w", newline="")  # noqa: SIM115 - closed by main after the run
+    w = csv.DictWriter(f, fieldnames=frame_row_fields())
+    w.writeheader()
+    return f, w.writerow
 
 
 def _seq(payload: bytes) -> int | None:
@@ -98,8 +118,17 @@ def main(s: EvaluatorSettings) -> int:
 
         hdmap = world_map(scenario)
     onboard = {k: set(v) for k, v in s.receivers.items()}
-    ev = Evaluator(s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard=onboard, burnin_s=s.burnin_s)
+    frames_f, sink = None, None
+    if s.out:
+        Path(s.out).mkdir(parents=True, exist_ok=True)
+        frames_f, sink = frames_writer(Path(s.out) / "eval_frames.csv")
+    ev = Evaluator(
+        s.fleet, evaluator_id=s.id, window_s=s.window_s, onboard=onboard, burnin_s=s.burnin_s, frame_sink=sink
+    )
     clock = SimClock()
+    # signed fleets: truth from the world, fused states from their host (or its standby), each verified
+    verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+    signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None
     work: queue.Queue[tuple[str, Received]] = queue.Queue(maxsize=10_000)
     latest: dict = {"figures": {}}  # replaced whole, never mutated: the health thread reads it
 
@@ -121,17 +150,26 @@ def main(s: EvaluatorSettings) -> int:
             svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), enqueue(f"{kind}_tx"))
             svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet), enqueue(f"{kind}_rx"))
 
+        def believed(msg: Received, model, senders):
+            """The message, verified (signed fleets) and decoded; None, counted, if it is refused."""
+            inner = unwrap(msg.payload, verifier, time.time(), senders)
+            if isinstance(inner, Rejection):
+                svc.metrics.reject(inner.reason, f"{model.__name__} on {msg.key}: {inner.detail}", log)
+                return None
+            return svc.decode_or_reject(inner, model)
+
         def process(kind: str, msg: Received) -> None:
             now = time.time()
             if kind == "truth":
-                truth = svc.decode_or_reject(msg.payload, GroundTruth)
+                truth = believed(msg, GroundTruth, "world")
                 if truth is not None:
-                    clock.update(msg.attachment)
+                    clock.update(truth)  # the world's clock, from the message
                     ev.on_truth(truth)
             elif kind == "fused":
-                fused = svc.decode_or_reject(msg.payload, FusedState)
+                where = topic("fused").parse(msg.key)
+                fused = believed(msg, FusedState, fused_signers(where["hid"])) if where else None
                 if fused is not None:
-                    clock.update(msg.attachment)
+                    clock.update(fused)
                     pub_ns = msg.attachment.get("t_wall_ns")
                     pub_ns = pub_ns if isinstance(pub_ns, int) and pub_ns > 0 else msg.t_recv_wall_ns
                     ev.on_fused(fused, pub_ns, clock.wall_ns(fused.t_meas), now)
@@ -158,6 +196,8 @@ def main(s: EvaluatorSettings) -> int:
                     svc.metrics.reject("unscorable", f"{kind} on {msg.key}: {type(exc).__name__}: {exc}", log)
                 if time.monotonic() >= next_pub:
                     next_pub += 1.0
+                    if frames_f is not None:
+                        frames_f.flush()
                     try:
                         m = ev.snapshot(time.time())
                     except Exception as exc:  # figures that do not validate: report, keep evaluating
@@ -169,7 +209,7 @@ def main(s: EvaluatorSettings) -> int:
                         for k, v in m.model_dump().items()
                         if isinstance(v, int | float) and k not in ("seq", "t_wall")
                     }
-                    pub.put(encode(m))
+                    pub.put(encode(m) if signer is None else signer.sign(encode(m), time.time()))
 
         svc.spawn(loop, "evaluate")
         svc.wait()
@@ -178,7 +218,7 @@ def main(s: EvaluatorSettings) -> int:
         out = Path(s.out)
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "eval_summary.json", ev.summary())
-        write_frames(out / "eval_frames.csv", ev.frames)
+        frames_f.close()
         try:
             from .plot import render_birdseye, render_errors
 

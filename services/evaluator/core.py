@@ -13,7 +13,9 @@ RMSE the coverage (matched obstacles / obstacles), false tracks (per frame and a
 fused objects), GOSPA in its localization, missed and false parts, and the consistency of the
 6-DoF vehicle poses and 3-D object positions (ANEES with its band, fraction of cells inside their
 own 95 % band). Every scored state also leaves a row of :func:`mapcontainer.evaluation.frame_row`
-in :attr:`Evaluator.frames` (the service writes them to ``eval_frames.csv``).
+in :attr:`Evaluator.frames`, or goes to ``frame_sink`` (the service streams them to ``eval_frames.csv``).
+Everything else it keeps is bounded, so a run of any length has a flat memory: sums for the figures,
+the pictures' traces thinned (:class:`Trace`).
 
 Latency. End to end = wall time the fused state was published (``t_wall_ns`` in the host's
 attachment) minus the wall time its ``t_meas`` happened on the world's clock
@@ -30,6 +32,7 @@ message counted once it is ``settle_s`` old (later arrivals count as lost).
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,7 +45,12 @@ __all__ = ["SCORE_KEYS", "Evaluator", "match_objects", "steady_name"]
 
 MAX_SOURCES = 256  # distinct V2X sources counted; more are a flood of names (counted in sources_refused)
 MAX_E2E_LATENCY_MS = 60_000.0  # a longer (or negative) end-to-end latency is a forged or broken clock
-TRACE_MAX = 100_000  # entries kept per picture trace (10 Hz: almost 3 hours)
+TRACE_RECENT = 1_200  # newest points of a picture trace kept at full rate (10 Hz: two minutes)
+TRACE_OLDER = 4_000  # older points, thinned to stay spread over the whole run (Trace)
+MAX_TRACES = 1_024  # traces of one kind kept; the oldest one goes when a new obstacle comes
+OBSTACLE_GONE_S = 120.0  # an obstacle not in the truth for this long (scenario s) loses its trace
+OBJECTS_RECENT = 20_000  # fused objects kept for the picture (it draws the last seconds only)
+FRAMES_KEPT = 10_000  # frame rows kept in memory when nobody streams them (Evaluator.frame_sink)
 SCORE_KEYS = (  # of mapcontainer.evaluation.Totals.summary, in the whole-run summary
     "frames",
     "vehicle_rmse_m",
@@ -70,10 +78,47 @@ def steady_name(key: str) -> str:
     return key + "_steady"
 
 
-def _trace(traces: dict, key) -> deque:
-    """The bounded trace of ``key`` (made on first use)."""
+class Trace:
+    """Points of a picture in bounded memory over a run of any length: the newest ``recent`` at full rate,
+    the older ones thinned (when ``older`` of them are kept, every other one goes and from then on only
+    every other one is kept, and so on), so that they stay spread over the whole run. Iterates oldest first."""
+
+    def __init__(self, recent: int = TRACE_RECENT, older: int = TRACE_OLDER) -> None:
+        self._recent: deque = deque()
+        self._older: list = []
+        self._max_recent, self._max_older = recent, older
+        self._stride, self._aged = 1, 0
+
+    def append(self, item) -> None:
+        self._recent.append(item)
+        if len(self._recent) > self._max_recent:
+            old = self._recent.popleft()
+            if self._aged % self._stride == 0:
+                self._older.append(old)
+                if len(self._older) > self._max_older:
+                    self._older = self._older[::2]
+                    self._stride *= 2
+            self._aged += 1
+
+    def __iter__(self):
+        yield from self._older
+        yield from self._recent
+
+    def __len__(self) -> int:
+        return len(self._older) + len(self._recent)
+
+    def __getitem__(self, i: int):
+        if i == -1 and self._recent:
+            return self._recent[-1]
+        return list(self)[i]
+
+
+def _trace(traces: dict, key) -> Trace:
+    """The trace of ``key`` (made on first use; past MAX_TRACES keys the oldest trace goes)."""
     if key not in traces:
-        traces[key] = deque(maxlen=TRACE_MAX)
+        if len(traces) >= MAX_TRACES:
+            del traces[next(iter(traces))]
+        traces[key] = Trace()
     return traces[key]
 
 
@@ -98,6 +143,7 @@ class Evaluator:
     delivery_window_s: float = 30.0
     plot_every_s: float = 0.5
     burnin_s: float = 5.0  # scenario seconds left out of the steady-state figures
+    frame_sink: Callable[[dict], None] | None = None  # gets each frame row (e.g. a CSV writer's writerow)
 
     def __post_init__(self) -> None:
         self._truth: dict[int, GroundTruth] = {}
@@ -105,7 +151,9 @@ class Evaluator:
         self._samples: deque[_Sample] = deque()
         self.totals = Totals()  # every scored state
         self.totals_steady = Totals()  # those with t_meas >= burnin_s
-        self.frames: deque[dict] = deque(maxlen=TRACE_MAX)  # frame_row of every scored state
+        # frame_row of every scored state: to frame_sink (the service streams them to eval_frames.csv), else the
+        # last FRAMES_KEPT kept here
+        self.frames: deque[dict] = deque(maxlen=FRAMES_KEPT)
         self.evaluated = 0
         self.no_truth = 0
         self.latency_refused = 0
@@ -124,12 +172,12 @@ class Evaluator:
         self._lat_all: list[float] = []
         self._seq = 0
         # picture material, in scenario time (bounded): truth every plot_every_s, every fused state
-        self.truth_vehicles: dict[str, deque[tuple[float, float, float]]] = {}  # vid -> (t, x, y)
-        self.truth_obstacles: dict[int, deque[tuple[float, float, float]]] = {}  # obstacle id -> (t, x, y)
-        self.tracks_fused: dict[str, deque[tuple[float, float, float]]] = {}  # vid -> (t, x, y), NaN at gaps
-        self.fused_objects: deque[tuple[float, int, int, float, float]] = deque(maxlen=TRACE_MAX)  # t, id, cls, x, y
+        self.truth_vehicles: dict[str, Trace] = {}  # vid -> (t, x, y)
+        self.truth_obstacles: dict[int, Trace] = {}  # obstacle id -> (t, x, y)
+        self.tracks_fused: dict[str, Trace] = {}  # vid -> (t, x, y), NaN at gaps
+        self.fused_objects: deque[tuple[float, int, int, float, float]] = deque(maxlen=OBJECTS_RECENT)  # t, id, cls, x, y
         # per fused state: (t_meas, {vid: horizontal error m}, object RMSE m or None, coverage or None)
-        self.errors: deque[tuple[float, dict[str, float], float | None, float | None]] = deque(maxlen=TRACE_MAX)
+        self.errors = Trace()
         self.last_fused: FusedState | None = None
         self.last_truth: GroundTruth | None = None
         self._last_plot_t = -np.inf
@@ -150,6 +198,9 @@ class Evaluator:
                 _trace(self.truth_vehicles, vid).append((t, float(pose[0]), float(pose[1])))
             for oid, p in zip(truth.obstacle_id, truth.obstacle_p_map, strict=True):
                 _trace(self.truth_obstacles, int(oid)).append((t, float(p[0]), float(p[1])))
+            gone = [oid for oid, tr in self.truth_obstacles.items() if tr[-1][0] < t - OBSTACLE_GONE_S]
+            for oid in gone:  # obstacles that left the scene: their trails go, the picture keeps the present
+                del self.truth_obstacles[oid]
 
     def _find_truth(self, t: float) -> GroundTruth | None:
         k = self._k(t)
@@ -184,7 +235,8 @@ class Evaluator:
         self.totals.add(score)
         if fused.t_meas >= self.burnin_s:
             self.totals_steady.add(score)
-        self.frames.append(frame_row(score))
+        row = frame_row(score)
+        (self.frames.append if self.frame_sink is None else self.frame_sink)(row)
         v_sq = [float(x) for x in score.vehicle_sq]
         v_err = {vid: float(np.sqrt(x)) for vid, x in zip(score.vehicle_ids, v_sq, strict=True)}
         o_sq = [float(x) for x in score.object_sq]

@@ -30,10 +30,11 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from mapcontainer.admission import Admission
+from mapcontainer.admission import Gate
 from mapcontainer.config import read_yaml, validate_model
-from mapcontainer.security import CA_NAME, Verifier, load_certificate
-from schemas.codec import Rejection, peek
+from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Signer, Verifier, load_certificate, load_credentials
+from schemas import FusedState
+from schemas.codec import Rejection, peek, with_fields
 from schemas.topics import topic
 
 from ..runtime import (
@@ -43,15 +44,15 @@ from ..runtime import (
     SimClock,
     add_service_args,
     make_attachment,
-    sender_admission,
     service_settings_from_args,
     setup_logging,
+    topic_gate,
 )
 from .worker import fusion_loop, fusion_process
 
-__all__ = ["HostSettings", "fused_lag", "fusion_stall", "main", "parse_args"]
+__all__ = ["HostSettings", "fused_lag", "fusion_stall", "lag_causes", "main", "parse_args"]
 
-VERIFY_WINDOW_S = 5.0  # a signed message generated longer ago (or ahead) than this is refused as replayed
+FRAME_PERIOD_S = 0.1  # scenario seconds between camera frames: the host solves once per frame
 
 
 class HostSettings(ServiceSettings):
@@ -139,21 +140,55 @@ def fusion_stall(
     (Input that stops altogether is the generic "input stalled" of every service.)"""
     if stall_s is None or since_fused_s <= stall_s or input_idle_s is None or input_idle_s > stall_s:
         return None
-    new = {r: n - rejects_at_fused.get(r, 0) for r, n in rejects.items() if n > rejects_at_fused.get(r, 0)}
-    why = ", ".join(f"{n} {r}" for r, n in sorted(new.items(), key=lambda kv: -kv[1])) or "none"
+    why = _refused_since(rejects, rejects_at_fused) or "none"
     return f"input is flowing but nothing was fused for {since_fused_s:.1f} s (rejected since then: {why})"
 
 
-def fused_lag(t_now: float | None, t_fused: float | None, time_scale: float, max_lag_s: float) -> str | None:
+def fused_lag(
+    t_now: float | None, t_fused: float | None, time_scale: float, max_lag_s: float, causes: list[str] | None = None
+) -> str | None:
     """Why the host is degraded although it fuses, or None: its newest fused state (scenario time
-    ``t_fused``) trails the world's clock ``t_now`` by more than ``max_lag_s`` wall seconds, so it does not
-    keep up with its input (a solve slower than the frames, e.g. under a flood)."""
+    ``t_fused``) trails the world's clock ``t_now`` by more than ``max_lag_s`` wall seconds. The reason
+    names the ``causes`` seen (:func:`lag_causes`); with none, the host does not keep up with its input."""
     if t_now is None or t_fused is None:
         return None
     lag_s = (t_now - t_fused) / time_scale
     if lag_s <= max_lag_s:
         return None
-    return f"the fused output trails the world by {lag_s:.1f} s (more than {max_lag_s:g} s): not keeping up"
+    why = "; ".join(causes) if causes else "not keeping up"
+    return f"the fused output trails the world by {lag_s:.1f} s (more than {max_lag_s:g} s): {why}"
+
+
+def lag_causes(
+    solve_ms: float,
+    period_ms: float,
+    inbox: int,
+    clock_changes: int,
+    clock_changed_by: str | None,
+    rejects: dict[str, int],
+    rejects_at_fused: dict[str, int],
+) -> list[str]:
+    """What can make the fused output trail the world, as far as the host sees: solves slower than the
+    frames, a backlog for the fusion worker, a world clock that changed under it (a restarted world, or a
+    signed sender whose clock disagrees), and the inputs refused since its last fused state."""
+    out = []
+    if solve_ms > period_ms:
+        out.append(f"solves take {solve_ms:.0f} ms, frames come every {period_ms:.0f} ms")
+    if inbox > 0:
+        out.append(f"{inbox} messages wait for the fusion worker")
+    if clock_changes:
+        by = f", last in a message of {clock_changed_by}" if clock_changed_by else ""
+        out.append(f"the world's clock changed {clock_changes} times{by}")
+    counts = _refused_since(rejects, rejects_at_fused)
+    if counts:
+        out.append(f"refused since the last fused state: {counts}")
+    return out
+
+
+def _refused_since(rejects: dict[str, int], then: dict[str, int]) -> str:
+    """The rejections counted since ``then``, most first ("272 stale, 3 flood"); empty if none."""
+    new = {r: n - then.get(r, 0) for r, n in rejects.items() if n > then.get(r, 0)}
+    return ", ".join(f"{n} {r}" for r, n in sorted(new.items(), key=lambda kv: -kv[1]))
 
 
 def main(s: HostSettings) -> int:
@@ -164,14 +199,16 @@ def main(s: HostSettings) -> int:
         "seed": s.seed,  # with the scenario: the map the host carries, mapcontainer.sim.published_map
         "mode": s.mode,
         "fleet": s.fleet,
-        "host_id": s.id,
+        "host_id": s.id,  # the fused state's sender (a standby's own id: consumers accept either, signed)
         "known_senders": s.known_senders,
         "max_wait_s": s.max_wait_s,
         "reference": s.local[0] if s.local else None,  # the frame gate solves at the on-board vehicle's clock
         "params": s.params,
     }
+    hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
     verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
-    verify_lock = threading.Lock()
+    signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # the fused state is signed too
+    gate_lock = threading.Lock()  # the verifier is shared by the topics' gates
     # The worker starts before the Zenoh session exists (never fork after opening one; spawn anyway).
     if s.inline:
         inbox: Any = queue.Queue(maxsize=s.inbox)
@@ -231,7 +268,16 @@ def main(s: HostSettings) -> int:
                 s.stale_input_s,
             )
             if why is None and time.monotonic() - fused_at["t"] < 5.0:  # fusing: does it keep up?
-                why = fused_lag(clock.now(), fused_at.get("t_meas"), s.time_scale, s.max_fused_lag_s)
+                causes = lag_causes(
+                    fig["solve_ms"],
+                    FRAME_PERIOD_S / s.time_scale * 1e3,
+                    int(figures().get("inbox", 0)),
+                    clock.changes,
+                    clock.changed_by,
+                    dict(svc.metrics.rejects),
+                    fused_at["rejects"],
+                )
+                why = fused_lag(clock.now(), fused_at.get("t_meas"), s.time_scale, s.max_fused_lag_s, causes)
             flagged = core_stats["stats"].get("flagged_why") or {}
             if why is None and flagged:
                 why = "misbehaviour (detections not fused): " + "; ".join(
@@ -240,51 +286,45 @@ def main(s: HostSettings) -> int:
             return ("degraded", why) if why else ("ok", None)
 
         svc.health_check = check
-        hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
         fused_pub = svc.publisher(topic("fused").key(fleet=s.fleet, hid=hid))
         primary = None  # a standby: set while the host it stands in for is alive
         if s.standby_for:
             primary = svc.watch_alive(topic("alive").key(fleet=s.fleet, role="host", id=s.standby_for))
 
-        def on_msg(msg: Received, where: dict[str, str], admission: Admission, name: str) -> None:
-            src = where["src"]
-            if not svc.admit(admission, src, name):
+        def on_msg(msg: Received, where: dict[str, str], gate: Gate, name: str) -> None:
+            src = where["src"]  # the key's sender: anyone can publish on it, so it proves nothing
+            with gate_lock:  # signed: verified before any budget, the inner message undecoded until then
+                out = gate.admit(msg.payload, src, time.monotonic(), time.time())
+            if isinstance(out, Rejection):
+                svc.metrics.reject(out.reason, f"{name} from {src}: {out.detail}", log)
                 return
-            payload = msg.payload
-            if verifier is not None:  # signed: the certificate, the signature, freshness, and the sender
-                with verify_lock:
-                    out = verifier.verify(payload, time.time(), expected_sender=src)
-                if isinstance(out, Rejection):
-                    svc.metrics.reject(out.reason, f"{name} from {src}: {out.detail}", log)
-                    return
-                payload = out.payload
-            # signed: the verifier checked the sender against the key and the certificate already
-            sender = src if verifier is not None else peek(payload).get("sender")
-            if sender is not None and sender != src:  # the key names the radio source; so must the message
+            head = peek(out.payload)
+            sender = head.get("sender")
+            if verifier is None and sender is not None and sender != src:  # signed: the verifier checked it
                 svc.metrics.reject("sender_mismatch", f"a message of {sender!r} on {src}'s key", log)
                 return
-            clock.update(msg.attachment)
+            clock.update(head)  # the world's clock from the message (a verified one on a signed fleet)
             t_recv = clock.now(msg.t_recv_wall_ns)
             if t_recv is None:
                 if not warned.is_set():
                     warned.set()
-                    log.warning("no world clock in the attachments; receive times are seconds since start")
+                    log.warning("no world clock in the messages; receive times are seconds since start")
                 t_recv = time.monotonic() - t0_mono
             try:
-                inbox.put_nowait(("ingest", payload, t_recv))
+                inbox.put_nowait(("ingest", out.payload, t_recv))
             except queue.Full:
                 svc.metrics.reject("queue_full", f"fusion inbox full ({s.inbox})", log)
 
         def subscriber(name: str):
-            """on_msg for the keys of topic ``name``: the source from the key, one admission per topic."""
-            tp, admission = topic(name), sender_admission(name, s.time_scale)
+            """on_msg for the keys of topic ``name``: the source from the key, one gate per topic."""
+            tp, gate = topic(name), topic_gate(name, verifier, s.time_scale)
 
             def cb(msg: Received) -> None:
                 where = tp.parse(msg.key)
                 if where is None:
                     svc.metrics.reject("bad_key", f"{msg.key} is not a {name} key of ours", log)
                 else:
-                    on_msg(msg, where, admission, name)
+                    on_msg(msg, where, gate, name)
 
             return cb
 
@@ -314,6 +354,9 @@ def main(s: HostSettings) -> int:
                     _, payload, t, solve_s, stats, solved, results = item
                     active = primary is None or not primary.is_set()
                     if active:
+                        payload = with_fields(payload, FusedState, **clock.fields())  # the clock, under the signature
+                        if signer is not None:
+                            payload = signer.sign(payload, time.time())
                         fused_pub.put(
                             payload,
                             attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **solved, **clock.fields()),

@@ -33,13 +33,23 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapcontainer.config import ConfigError, validate_model
+from mapcontainer.security import (
+    CA_NAME,
+    STANDBY_SUFFIX,
+    VERIFY_WINDOW_S,
+    Verifier,
+    load_certificate,
+    unwrap,
+    write_fleet_keys,
+)
 from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
 from ..health import split_key
 from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
-from .manifest import FleetParams, ProcessSpec, load_manifest, manifest_path, resolve, vehicle_ids
+from .manifest import FleetParams, ProcessSpec, keys_dir, load_manifest, manifest_path, resolve, vehicle_ids
 from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
+from . import mesh, shm
 from .supervisor import Supervisor, is_ours
 
 __all__ = [
@@ -137,6 +147,12 @@ def new_run_dir(runs_dir: str | Path, fleet: str) -> Path:
     return d
 
 
+def secure_mesh(s: LauncherSettings) -> bool:
+    """Whether the launcher makes the fleet's authenticated, least-privilege mesh (services.launcher.mesh):
+    unless ``--insecure``, or the mesh is the user's (``--join`` a router, ``--zenoh-config`` a file)."""
+    return not (s.params.insecure or s.join or s.params.zenoh_config)
+
+
 def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[ProcessSpec]:
     """The processes to run; ConfigError (before anything starts) for an unknown scenario or network."""
     from mapcontainer.channel import load_profile
@@ -152,7 +168,8 @@ def plan(s: LauncherSettings, run_dir: str | Path, connect: str) -> list[Process
         zenoh_config(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
     else:
         zenoh_config(ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc))
-    return resolve(load_manifest(s.manifest), s.params, run_dir, connect)
+    logins = Path(run_dir) / "zenoh" if secure_mesh(s) else None
+    return resolve(load_manifest(s.manifest), s.params, run_dir, connect, logins=logins)
 
 
 def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = None) -> None:
@@ -178,7 +195,13 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         "--standby",
         action="store_true",
         default=None,
-        help="also run a warm standby host that publishes the fused state while the host is gone",
+        help="run a warm standby host that publishes the fused state while the host is gone (the local default)",
+    )
+    p.add_argument(
+        "--no-standby",
+        dest="standby",
+        action="store_false",
+        help="no warm standby: after a crash of the host, no fused output until it is restarted (seconds)",
     )
     p.add_argument(
         "--record",
@@ -204,6 +227,12 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         default=None,
         help="Zenoh JSON5 file for the launcher and every service ({zenoh_config} in the manifest)",
     )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        default=None,
+        help="the open Zenoh mesh of old: no login, no access control (debugging; health and status say so)",
+    )
     p.add_argument("--no-summary", action="store_true", help="no live line (start, ready and final lines stay)")
 
 
@@ -223,6 +252,7 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "signing": True if a.keys is not None and a.signing is None else a.signing,  # keys given: signed
         "keys": a.keys,
         "zenoh_config": a.zenoh_config,
+        "insecure": a.insecure,
     }
     params = manifest.defaults.model_copy(update={k: v for k, v in over.items() if v is not None})
     params = validate_model(FleetParams, params.model_dump(), "the command line")  # ConfigError, not a traceback
@@ -264,6 +294,10 @@ class _Run:
         self.endpoints: list[str] = []
         self.status = "starting"
         self.sup: Supervisor | None = None
+        self.verifier: Verifier | None = None  # signed fleets: the metrics believed are the evaluator's, verified
+        self.metrics_refused: dict[str, int] = {}
+        self.login: str | None = None  # the operator's Zenoh login (a secure mesh): mapc health etc. use it
+        self.shm: set[str] = set()  # shared-memory segments the fleet's processes mapped (removed at the end)
 
     def event(self, event: str, name: str, details: dict) -> None:
         rec = {
@@ -285,8 +319,11 @@ class _Run:
             print(f"{rec['t_run']:6.1f}s {said}", flush=True)
 
     def on_metrics(self, sample) -> None:
-        msg = decode(sample.payload.to_bytes(), EvalMetrics)
+        inner = unwrap(sample.payload.to_bytes(), self.verifier, time.time(), "evaluator")
+        msg = inner if isinstance(inner, Rejection) else decode(inner, EvalMetrics)
         if isinstance(msg, Rejection):
+            with self.lock:
+                self.metrics_refused[msg.reason] = self.metrics_refused.get(msg.reason, 0) + 1
             return
         m = msg.model_dump(mode="json")
         with self.lock:
@@ -301,13 +338,18 @@ class _Run:
             "launcher_pid": os.getpid(),
             "run_dir": str(self.run_dir),
             "endpoints": self.endpoints,
+            "zenoh_login": self.login,
+            "insecure": self.s.params.insecure,
             "started_wall": self.started_wall,
             "updated_wall": time.time(),
             "params": self.s.params.model_dump(),
             "processes": [p.to_json() for p in self.sup.procs.values()] if self.sup else [],
+            "shm": sorted(self.shm),
         }
 
     def write_state(self) -> None:
+        if self.sup is not None:
+            self.shm |= shm.mapped([p.pid for p in self.sup.procs.values() if p.pid], [os.getpid()])
         write_json(self.run_dir / "state.json", self.state())
 
 
@@ -351,6 +393,11 @@ def run(s: LauncherSettings) -> int:
         if s.join:  # multi-host: this host's router is the meeting point
             session = open_session(ZenohSettings(mode="client", connect=[s.join], config_file=zc))
             r.endpoints = [s.join]
+        elif secure_mesh(s):  # the fleet's router: every process logs in, each may use its own keys only
+            router = mesh.write_mesh(run_dir, plan(s, run_dir, "<connect>"), s.params, s.listen)
+            session = open_session(ZenohSettings(listen=[s.listen], adminspace=True, config_file=str(router)))
+            r.endpoints = listening_locators(session)
+            r.login = str(mesh.login_path(run_dir, mesh.OPS))
         else:
             session = open_session(ZenohSettings(mode="peer", listen=[s.listen], adminspace=True, config_file=zc))
             r.endpoints = listening_locators(session)
@@ -358,10 +405,13 @@ def run(s: LauncherSettings) -> int:
             raise RuntimeError("could not read the rendezvous endpoint from the Zenoh admin space")
         connect = next((e for e in r.endpoints if "127.0.0.1" in e), r.endpoints[0])
         specs = plan(s, run_dir, connect)
-        if s.params.signing and s.params.keys is None:  # a test CA and the vehicles' credentials for this run
-            from mapcontainer.security import write_fleet_keys
-
-            write_fleet_keys(run_dir / "keys", vehicle_ids(s.params), validity_s=7 * 86400.0)
+        if s.params.signing and s.params.keys is None:  # a test CA and the fleet's credentials for this run
+            hid = s.params.host_id
+            signers = ["world", "evaluator", hid, hid + STANDBY_SUFFIX]
+            write_fleet_keys(run_dir / "keys", vehicle_ids(s.params), validity_s=7 * 86400.0, services=signers)
+        if s.params.signing:
+            ca = load_certificate(keys_dir(s.params, run_dir), CA_NAME)
+            r.verifier = Verifier(ca, window_s=VERIFY_WINDOW_S)
         write_json(
             run_dir / "config.json",
             {
@@ -382,6 +432,8 @@ def run(s: LauncherSettings) -> int:
                 "launcher_pid": os.getpid(),
                 "endpoints": r.endpoints,
                 "cwd": os.getcwd(),
+                "zenoh_login": r.login,
+                "insecure": s.params.insecure,
             },
         )
         r.write_state()
@@ -474,6 +526,8 @@ def run(s: LauncherSettings) -> int:
         r.status = "stopped"
         if session is not None:
             session.close()
+        if r.shm:  # what killed processes left in /dev/shm (a clean exit removes its own)
+            r.event("shm_released", "launcher", {"removed": len(shm.release(r.shm))})
         if r.sup is not None:
             summary = write_report(r)["summary"]
             r.write_state()
@@ -516,6 +570,7 @@ def write_report(r: _Run) -> dict:
         "endpoints": r.endpoints,
         "processes": procs,
         "last_metrics": r.latest_metrics,
+        "metrics_refused": r.metrics_refused,
         "evaluation": ev,
     }
     write_json(r.run_dir / "report.json", report)

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from .app import LauncherSettings, already_running, log_tail, make_run_dir, registry_dir
+from . import shm
 from .supervisor import is_ours, kill_group, pid_alive
 
 __all__ = ["active_fleets", "detach", "down", "launcher_argv", "to_stop"]
@@ -55,6 +56,8 @@ def active_fleets() -> list[dict[str, Any]]:
                 "launcher_pid": pid,
                 "launcher_alive": launcher_alive,
                 "endpoints": state.get("endpoints") or p.get("endpoints") or [],
+                "zenoh_login": p.get("zenoh_login"),  # the operator's login to a secure mesh (mesh.py)
+                "insecure": bool(p.get("insecure")),
                 "status": state.get("status"),
                 "processes": procs,
                 "params": state.get("params", {}),
@@ -128,8 +131,7 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
     ]
     if p.vehicles is not None:
         argv += ["--vehicles", str(p.vehicles)]
-    if p.standby:
-        argv.append("--standby")
+    argv.append("--standby" if p.standby else "--no-standby")
     if p.record:
         argv.append("--record")
     if not p.signing:
@@ -144,6 +146,8 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
         argv += ["--join", s.join]
     if p.zenoh_config:
         argv += ["--zenoh-config", p.zenoh_config]
+    if p.insecure:
+        argv.append("--insecure")
     return argv
 
 
@@ -226,7 +230,8 @@ def down(fleets: list[dict[str, Any]], timeout_s: float = 90.0) -> tuple[int, li
         left = [p.get("name") for p in procs if p.get("pid") and is_ours(int(p["pid"]))]
         if pid and is_ours(int(pid)):
             left.append("launcher")
-        res.update(swept=swept, left=left, status=state.get("status"))
+        removed = shm.release(state.get("shm") or []) if not left else []  # what killed processes left
+        res.update(swept=swept, left=left, status=state.get("status"), shm_removed=len(removed))
         if left:
             rc = 1
         else:

@@ -92,6 +92,9 @@ class FleetParams(_Strict):
         None, description="the fleet's keys directory (mapc keys init); None: a test CA made for the run"
     )
     zenoh_config: str | None = Field(None, description="a Zenoh JSON5 file every process starts from")
+    insecure: bool = Field(
+        False, description="the open peer mesh: no Zenoh login, no access control (debugging; mesh.py)"
+    )
 
 
 class ProcessTemplate(_Strict):
@@ -226,8 +229,10 @@ def resolve(
     run_dir: str | Path,
     connect: str,
     python: str = sys.executable,
+    logins: str | Path | None = None,
 ) -> list[ProcessSpec]:
-    """Every process of the fleet, in start order (stable within an order)."""
+    """Every process of the fleet, in start order (stable within an order). ``logins``: the directory of
+    the processes' Zenoh logins (``NAME.json5``, services.launcher.mesh), each process's ``{zenoh_config}``."""
     vids = vehicle_ids(params)
     base = {
         **params.model_dump(),
@@ -250,6 +255,8 @@ def resolve(
             sid = _fill(tpl.id, values)
             values["id"] = sid
             name = _fill(tpl.name, values)
+            if logins is not None:
+                values["zenoh_config"] = str(Path(logins) / f"{name}.json5")
             argv = [python, "-m", tpl.module, *_args(tpl.args, values), *_args(manifest.common_args, values)]
             specs.append(
                 ProcessSpec(

@@ -22,6 +22,7 @@ from typing import Any
 from pydantic import Field
 
 from mapcontainer.recording import RecordingWriter
+from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate
 from mapcontainer.recording.foxglove import SCENE_UPDATE, map_points, map_scene, point_cloud_schema, visualizer
 
 from ..runtime import Service, ServiceSettings, add_service_args, service_settings_from_args, setup_logging
@@ -77,7 +78,6 @@ def free_path(path: Path) -> Path:
 
 def recorder_files(s: RecorderSettings) -> dict[str, bytes]:
     """The MCAP attachments of a recording: the CA certificate and the run's configuration, when known."""
-    from mapcontainer.security import CA_NAME
 
     files: dict[str, bytes] = {}
     if s.keys:
@@ -94,13 +94,16 @@ def main(s: RecorderSettings) -> int:
     log.info("settings: %s", s.model_dump_json())
     path = free_path(Path(s.out))
     path.parent.mkdir(parents=True, exist_ok=True)
+    # signed fleets: only truth and fused states that verify are drawn; the recording keeps every message
+    verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+    viz_refused: dict[str, int] = {}
     meta = {"fleet": s.fleet, "scenario": s.scenario or "", "seed": str(s.seed), "started_wall_ns": time.time_ns()}
     writer = RecordingWriter(
         path,
         max_bytes=int(s.max_mb * 1e6),
         metadata=meta,
         files=recorder_files(s),
-        viz=visualizer() if s.viz else None,
+        viz=visualizer(verifier, viz_refused) if s.viz else None,
     )
     if s.viz and s.scenario:
         from mapcontainer.hdmap.generator import generate_map
@@ -113,7 +116,7 @@ def main(s: RecorderSettings) -> int:
     inbox: queue.Queue[tuple[str, bytes, bytes | None, int]] = queue.Queue(maxsize=s.queue)
     fig: dict[str, Any] = {"recorded": 0, "dropped": 0, "file_bytes": 0, "full": 0}
 
-    with Service("recorder", s, figures=lambda: dict(fig)) as svc:
+    with Service("recorder", s, figures=lambda: {**fig, "viz_refused": dict(viz_refused)}) as svc:
 
         def on_sample(key: str, payload: bytes, att: bytes | None, t_ns: int) -> None:
             try:

@@ -15,12 +15,12 @@ the same key answers with the current status. HealthStatus's envelope times (``t
 ``t_sent``) are Unix wall-clock seconds for this message (a service may not know scenario time).
 
 Wall-clock instrumentation travels in the Zenoh *attachment* (a small msgpack map, see
-:func:`make_attachment`), not in the payload, so that payload byte counts are exactly what the V2X
-link carries. Fields: ``t_wall_ns`` (when this hop published), ``epoch_wall_ns`` and
-``time_scale`` (the world's clock: scenario time ``t`` happened at wall time
-``epoch_wall_ns + t / time_scale * 1e9``). Each service passes the world's clock on, so that any
-service can map scenario time to wall time (:class:`SimClock`) — the evaluator's end-to-end
-latency is ``t_wall_ns(fused published) - wall(t_meas)``.
+:func:`make_attachment`), not in the payload: ``t_wall_ns`` (when this hop published) and a copy of
+the world's clock. The clock itself (``epoch_wall_ns`` and ``time_scale``: scenario time ``t``
+happened at wall time ``epoch_wall_ns + t / time_scale * 1e9``) travels inside the messages'
+envelopes, where their signature covers it, and services take it only from there (:class:`SimClock`):
+nobody vouches for an attachment. The evaluator's end-to-end latency is
+``t_wall_ns(fused published) - wall(t_meas)``.
 """
 
 from __future__ import annotations
@@ -48,7 +48,14 @@ from .metrics import (
     build_health,
     flatten_figures,
 )
-from .service import EXIT_THREAD_DIED, CountingPublisher, Received, Service, sender_admission, write_json
+from .service import (
+    EXIT_THREAD_DIED,
+    CountingPublisher,
+    Received,
+    Service,
+    topic_gate,
+    write_json,
+)
 
 __all__ = [
     "CountingPublisher",
@@ -71,7 +78,7 @@ __all__ = [
     "make_attachment",
     "open_session",
     "read_attachment",
-    "sender_admission",
+    "topic_gate",
     "service_main",
     "service_settings_from_args",
     "setup_logging",

@@ -8,6 +8,8 @@ from typing import Any
 
 import msgpack
 
+from schemas.models import MAX_TIME_SCALE, MIN_TIME_SCALE
+
 # ------------------------------------------------------------------------------ attachments
 
 
@@ -34,27 +36,38 @@ def read_attachment(sample_or_bytes) -> dict[str, Any]:
 class SimClock:
     """The world's clock as seen from another service: scenario time <-> wall time.
 
-    The world puts ``epoch_wall_ns`` and ``time_scale`` into every attachment it sends; services
-    pass them on. ``t_scenario = (wall_ns - epoch_wall_ns) * 1e-9 * time_scale``. A clock outside
-    the world's own limits (``time_scale`` in [TIME_SCALE_MIN, TIME_SCALE_MAX], an epoch after 1970
-    that fits int64) is ignored: attachments are unauthenticated, and a time scale of 1e-300 made
-    every conversion overflow.
+    ``t_scenario = (wall_ns - epoch_wall_ns) * 1e-9 * time_scale``. The world puts ``epoch_wall_ns`` and
+    ``time_scale`` into the envelope of every message it sends (:class:`schemas.Envelope`'s optional
+    clock fields); the vehicles and the host copy them into theirs. A service takes the clock from a
+    message it decoded (from a verified one where messages are signed), never from a Zenoh attachment:
+    anyone can write those, and copies of genuine priors whose attachment said ``epoch_wall_ns = 1``
+    made a host refuse every genuine prior as stale. (Attachments still carry the clock as
+    instrumentation, for recordings.) A clock outside the world's own limits is ignored.
     """
 
-    TIME_SCALE_MIN, TIME_SCALE_MAX = 1e-3, 100.0
+    TIME_SCALE_MIN, TIME_SCALE_MAX = MIN_TIME_SCALE, MAX_TIME_SCALE
 
     def __init__(self) -> None:
         self.epoch_wall_ns: int | None = None
         self.time_scale: float | None = None
+        self.changes = 0  # how often a message changed a clock already known (a world restart, or a liar)
+        self.changed_by: str | None = None  # the sender of the message that changed it last
 
-    def update(self, att: Mapping[str, Any]) -> bool:
-        e, s = att.get("epoch_wall_ns"), att.get("time_scale")
+    def update(self, msg: Mapping[str, Any] | Any) -> bool:
+        """Take the clock of ``msg`` (a decoded message, or a mapping such as :func:`schemas.codec.peek`'s);
+        False when it carries none (or an impossible one)."""
+        get = msg.get if isinstance(msg, Mapping) else lambda k: getattr(msg, k, None)
+        e, s = get("epoch_wall_ns"), get("time_scale")
         if (
             type(e) is int  # not bool
             and 0 < e < 2**63
             and type(s) in (int, float)
             and self.TIME_SCALE_MIN <= s <= self.TIME_SCALE_MAX  # not inf, nan
         ):
+            if self.epoch_wall_ns is not None and (e, float(s)) != (self.epoch_wall_ns, self.time_scale):
+                self.changes += 1
+                sender = get("sender")
+                self.changed_by = sender if isinstance(sender, str) else None
             self.epoch_wall_ns, self.time_scale = e, float(s)
             return True
         return False
@@ -77,7 +90,9 @@ class SimClock:
         return self.epoch_wall_ns + int(round(t / self.time_scale * 1e9))
 
     def fields(self) -> dict[str, Any]:
-        """The clock fields to forward in an attachment."""
+        """The clock fields, for a message's envelope (or an attachment); None while unknown."""
         return {"epoch_wall_ns": self.epoch_wall_ns, "time_scale": self.time_scale}
 
-
+    def stamp(self, msg):
+        """``msg`` (a model) with this clock in its envelope (unchanged while the clock is unknown)."""
+        return msg if self.epoch_wall_ns is None else msg.model_copy(update=self.fields())

@@ -15,9 +15,10 @@ from pathlib import Path
 from typing import Any
 
 from mapcontainer import jsonout
-from mapcontainer.admission import Admission
+from mapcontainer.admission import Gate
+from mapcontainer.security import Verifier
 from schemas import HealthStatus, decode, encode
-from schemas.topics import topic
+from schemas.topics import max_bytes, topic
 
 from .clock import read_attachment
 from .config import ServiceSettings, ZenohSettings, open_session
@@ -63,11 +64,12 @@ class CountingPublisher:
         self._pub.undeclare()
 
 
-def sender_admission(topic_name: str, time_scale: float = 1.0, max_senders: int = 256) -> Admission:
-    """Per-sender admission for a topic: twice its nominal rate in wall time (``time_scale`` scenario seconds
-    per wall second), with one second of that as the burst."""
+def topic_gate(topic_name: str, verifier: Verifier | None, time_scale: float = 1.0, max_senders: int = 256) -> Gate:
+    """:class:`~mapcontainer.admission.Gate` for a topic: each verified sender (the key's sender on an
+    unsigned fleet), and each source of traffic that fails verification, may send twice the topic's nominal
+    rate in wall time (``time_scale`` scenario seconds per wall second), one second of that as a burst."""
     rate = 2.0 * (topic(topic_name).rate_hz or 10.0) * max(time_scale, 1.0)
-    return Admission(rate_hz=rate, burst=rate, max_senders=max_senders)
+    return Gate(verifier, rate, rate, max_senders)
 
 
 class Service:
@@ -109,7 +111,6 @@ class Service:
         self._state_note: str | None = None
         self._threads: list[threading.Thread] = []
         self.thread_died: str | None = None  # the first worker thread that died, and why
-        self._admission_lock = threading.Lock()
         self._declared: list[Any] = []
         self._old_handlers: dict[int, Any] = {}
         self._parent = os.getppid()
@@ -331,10 +332,14 @@ class Service:
         """A callback subscriber (runs on a Zenoh thread: keep ``callback`` short).
 
         Input is counted; an exception in ``callback`` is recorded as the last error, never raised
-        into Zenoh.
+        into Zenoh. A payload over its topic's size bound (:func:`schemas.topics.max_bytes`) is refused
+        as ``too_large`` before its bytes are copied out of Zenoh.
         """
+        bound = max_bytes(key)
 
         def on_sample(sample) -> None:
+            if not self._fits(sample, bound):
+                return
             payload = sample.payload.to_bytes()
             if count:
                 self.metrics.msgs_in.add(len(payload))
@@ -348,11 +353,24 @@ class Service:
         self._declared.append(sub)
         return sub
 
+    def _fits(self, sample, bound: int) -> bool:
+        """Whether ``sample``'s payload is within ``bound`` bytes (its length, read without copying it)."""
+        n = len(sample.payload)
+        if n <= bound:
+            return True
+        self.metrics.msgs_in.add(0)  # an arrival, not bytes we read
+        self.metrics.reject("too_large", f"{n} bytes on {sample.key_expr} (at most {bound})", self.log)
+        return False
+
     def subscribe_raw(self, key: str, callback: Callable[[str, bytes, bytes | None, int], None]):
         """A callback subscriber handed ``(key, payload, attachment bytes or None, receive wall ns)``: the
-        bytes as they travelled (the recorder keeps them). Input is counted; exceptions as in :meth:`subscribe`."""
+        bytes as they travelled (the recorder keeps them). Input is counted; exceptions and sizes as in
+        :meth:`subscribe`."""
+        bound = max_bytes(key)
 
         def on_sample(sample) -> None:
+            if not self._fits(sample, bound):
+                return
             payload = sample.payload.to_bytes()
             self.metrics.msgs_in.add(len(payload))
             att = sample.attachment
@@ -378,15 +396,6 @@ class Service:
 
         self._declared.append(self.session.liveliness().declare_subscriber(key, on_token, history=True))
         return alive
-
-    def admit(self, admission: Admission, sender: str, what: str) -> bool:
-        """Whether ``sender``'s message (``what``, for the log) passes its per-sender admission; a refusal
-        (``flood``, ``too_many_senders``) is counted. Thread-safe: Zenoh runs callbacks on several threads."""
-        with self._admission_lock:
-            reason = admission.admit(sender, time.monotonic())
-        if reason is not None:
-            self.metrics.reject(reason, f"{what} from {sender}", self.log)
-        return reason is None
 
     def subscribe_queued(
         self,

@@ -122,7 +122,7 @@ def main(s: VehicleSettings) -> int:
             if frame.sender != s.id:
                 svc.metrics.reject("wrong_sender", f"frame from {frame.sender} on {msg.key}", log)
                 return None
-            clock.update(msg.attachment)
+            clock.update(frame)  # the world's clock, from the frame itself (never from an attachment)
             t_now = clock.now()
             return frame, frame.t_meas if t_now is None else t_now
 
@@ -140,6 +140,7 @@ def main(s: VehicleSettings) -> int:
             if refused(out):
                 return
             for m in faults.apply(out) if faults and s.mode == "distributed" else [out]:
+                m = clock.stamp(m)  # the clock travels inside the message, under its signature
                 payload = encode(m) if signer is None else signer.sign(encode(m), time.time())
                 pub.put(
                     payload,

@@ -2,8 +2,8 @@
 
 Publishes each vehicle's SensorFrame on ``mc/{fleet}/sim/{vid}/sensors`` and GroundTruth on
 ``mc/{fleet}/sim/truth``. Frame k is computed ahead, then published at its due wall time
-``epoch + k dt / time_scale``; the attachment carries the clock (``epoch_wall_ns``, ``time_scale``)
-and the publish time (``t_wall_ns``). If frames take longer than their period (an overloaded
+``epoch + k dt / time_scale``; every message carries the clock in its envelope (``epoch_wall_ns``,
+``time_scale``), the attachment a copy of it and the publish time (``t_wall_ns``). If frames take longer than their period (an overloaded
 machine) the world drops frames instead of falling behind: once a frame is due before it was even
 computed, it skips to the frame due next, as an overloaded sensor pipeline does, and its state turns
 degraded while it does (``skipped_frames``). Publishing ever staler frames instead would make every
@@ -25,6 +25,7 @@ from pathlib import Path
 
 from pydantic import Field
 
+from mapcontainer.security import Signer, load_credentials
 from mapcontainer.sim.config import load_scenario
 from mapcontainer.sim.world import World
 from schemas import encode
@@ -58,6 +59,7 @@ class WorldSettings(ServiceSettings):
     max_lag_s: float = Field(0.5, gt=0, description="degraded when publishing this far behind the clock")
     state_file: str | None = None
     stale_input_s: float | None = None  # the world has no input
+    keys: str | None = Field(None, description="the fleet's keys directory: the ground truth is signed as world")
 
 
 def parse_args(argv: list[str] | None = None) -> WorldSettings:
@@ -69,6 +71,7 @@ def parse_args(argv: list[str] | None = None) -> WorldSettings:
     p.add_argument("--duration", type=float, default=None, help="scenario seconds; default: until stopped")
     p.add_argument("--wait-subscribers", type=float, default=10.0)
     p.add_argument("--state-file", default=None, help="keep the clock here; a restart resumes the timeline")
+    p.add_argument("--keys", default=None, help="the fleet's keys directory: sign the ground truth (as world)")
     add_service_args(p, "world", default_id="world")
     a = p.parse_args(argv)
     base = service_settings_from_args(a).model_dump()
@@ -82,6 +85,7 @@ def parse_args(argv: list[str] | None = None) -> WorldSettings:
         duration_s=a.duration,
         wait_subscribers_s=a.wait_subscribers,
         state_file=a.state_file,
+        keys=a.keys,
     )
 
 
@@ -107,6 +111,7 @@ def main(s: WorldSettings) -> int:
     log.info("settings: %s", s.model_dump_json())
     sc = scale_scenario(load_scenario(s.scenario), s.vehicles)
     world = World(sc, seed=s.seed, fleet=s.fleet)
+    signer = Signer(load_credentials(s.keys, "world")) if s.keys else None  # truth's sender is "world"
     fig: dict[str, float] = {
         "k": 0,
         "t": 0.0,
@@ -169,8 +174,11 @@ def main(s: WorldSettings) -> int:
                 break
             c0 = time.perf_counter()
             tick = world.tick(k)
-            payloads = {vid: encode(f) for vid, f in tick.frames.items()}
-            truth = encode(tick.truth)
+            clock = {"epoch_wall_ns": epoch, "time_scale": s.time_scale}  # inside the messages: signed with them
+            payloads = {vid: encode(f.model_copy(update=clock)) for vid, f in tick.frames.items()}
+            truth = encode(tick.truth.model_copy(update=clock))
+            if signer is not None:
+                truth = signer.sign(truth, time.time())
             fig["tick_ms"] = (time.perf_counter() - c0) * 1e3
             due = pacer.due_wall_ns(k)
             if svc.wait(max(0.0, (due - time.time_ns()) * 1e-9)):

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapcontainer.security import inner_payload
 from schemas import (
     FusedState,
     HealthStatus,
@@ -35,10 +36,15 @@ REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.integration
 
 
-def moving_prior(fleet: str, sender: str, seq: int, t: float, y: float = 0.0, objects=None) -> VehiclePrior:
-    """A prior of a vehicle at (5 t, y) driving east at 5 m/s, with ``objects`` (ObjectObservations) if given."""
+def moving_prior(
+    fleet: str, sender: str, seq: int, t: float, y: float = 0.0, objects=None, epoch: int | None = None
+) -> VehiclePrior:
+    """A prior of a vehicle at (5 t, y) driving east at 5 m/s, with ``objects`` (ObjectObservations) if given,
+    carrying the world's clock ``epoch`` (Unix ns of t = 0, time scale 1) if given."""
     return VehiclePrior(
         fleet=fleet,
+        epoch_wall_ns=epoch,
+        time_scale=None if epoch is None else 1.0,
         sender=sender,
         seq=seq,
         t_meas=t,
@@ -214,7 +220,7 @@ def test_host_says_why_it_fuses_nothing_and_recovers(rendezvous, fleet_name, spa
     spawn("services.host", "--fleet", fleet_name, "--connect", endpoint, "--known-senders", "cv0")
     alive.wait_alive(topic("alive").key(fleet=fleet_name, role="host", id="host"), timeout=90)
     pub = session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src="cv0"))
-    epoch = time.time_ns()  # the scenario clock the attachments carry: t = wall seconds since epoch
+    epoch = time.time_ns()  # the scenario clock the priors carry: t = wall seconds since epoch
     attachment = make_attachment(epoch_wall_ns=epoch, time_scale=1.0)
     seq = 0
 
@@ -228,6 +234,7 @@ def test_host_says_why_it_fuses_nothing_and_recovers(rendezvous, fleet_name, spa
             seq,
             t,
             objects=ObjectObservations.from_metres(p, np.diag([0.2, 0.15, 0.05])[None] ** 2, [2]),
+            epoch=epoch,
         )
         seq += 1
         pub.put(encode(msg), attachment=attachment)
@@ -378,7 +385,7 @@ def test_a_flooding_sender_costs_only_itself_and_the_host_says_so(
 
     def prior(sender: str, t: float) -> bytes:
         seqs[sender] += 1
-        return encode(moving_prior(fleet_name, sender, seqs[sender], t, y=3.0 * (sender == "cv1")))
+        return encode(moving_prior(fleet_name, sender, seqs[sender], t, y=3.0 * (sender == "cv1"), epoch=epoch))
 
     def now() -> float:
         return (time.time_ns() - epoch) * 1e-9
@@ -433,7 +440,7 @@ def test_a_signing_host_fuses_signed_priors_and_refuses_the_rest(
     sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
 
     def prior(sender: str, seq: int, t: float) -> bytes:
-        return encode(moving_prior(fleet_name, sender, seq, t))
+        return encode(moving_prior(fleet_name, sender, seq, t, epoch=epoch))
 
     last = b""
     for k in range(20):
@@ -451,7 +458,7 @@ def test_a_signing_host_fuses_signed_priors_and_refuses_the_rest(
     status = next(v.status for v in fleet_health(session, fleet_name, timeout_s=2.0) if v.role == "host")
     refused = {r: status.rejects.get(r) for r in ("unsigned", "unknown_certificate", "sender_mismatch", "replayed")}
     assert refused == {"unsigned": 1, "unknown_certificate": 1, "sender_mismatch": 1, "replayed": 1}, status.rejects
-    states = [f for f in (decode(x.payload.to_bytes(), FusedState) for x in fused) if f]
+    states = [f for f in (decode(inner_payload(x.payload.to_bytes()), FusedState) for x in fused) if f]
     assert states and all(f.vehicle_ids == ["cv0"] for f in states)
 
 

@@ -54,7 +54,7 @@ def test_fleet_up_health_kill_restart_and_down(
         state = _state(run_dir)
         assert state["status"] == "running"
         names = {p["name"] for p in state["processes"]}
-        assert names == {"evaluator", "host", "channel", "vehicle-cv0", "vehicle-cv1", "world"}
+        assert names == {"evaluator", "host", "host-standby", "channel", "vehicle-cv0", "vehicle-cv1", "world"}
         pgids = {p["pgid"] for p in state["processes"]} | {info["launcher_pid"]}
 
         elsewhere = tmp_path / "elsewhere"
@@ -73,12 +73,13 @@ def test_fleet_up_health_kill_restart_and_down(
         def healthy():
             h = mapc("health", "--fleet", fleet_name, "--json", cwd=elsewhere)
             rows = json.loads(h.stdout) if h.stdout.strip() else []
-            return rows if h.returncode == 0 and len(rows) == 6 else None
+            return rows if h.returncode == 0 and len(rows) == 7 else None
 
-        rows = wait_for(healthy, timeout=60, what="all six services healthy", every=0.5)
+        rows = wait_for(healthy, timeout=60, what="all seven services healthy", every=0.5)
         assert {(r["role"], r["id"]) for r in rows} == {
             ("evaluator", "evaluator"),
             ("host", "host"),
+            ("host", "host-standby"),
             ("channel", "channel"),
             ("vehicle", "cv0"),
             ("vehicle", "cv1"),
@@ -88,7 +89,7 @@ def test_fleet_up_health_kill_restart_and_down(
 
         # SIGKILL a vehicle: its token disappears within 2 s and the launcher restarts it
         endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
-        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        session = open_session(ZenohSettings(connect=[endpoint], config_file=state["zenoh_login"]))  # the operator
         try:
             alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
             key = topic("alive").key(fleet=fleet_name, role="vehicle", id="cv1")
@@ -160,7 +161,7 @@ def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, m
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     lines = proc.stdout.strip().splitlines()
-    assert any("up 6/6" in line for line in lines), lines[:5]
+    assert any("up 7/7" in line for line in lines), lines[:5]  # with the warm standby
     # the run ends with the table a person reads; its last line names the run directory
     assert lines[-1].strip().startswith("run dir"), lines[-12:]
     assert any(line.strip().startswith("objects") for line in lines[-12:]), lines[-12:]
@@ -181,7 +182,7 @@ def test_fleet_runs_for_a_duration_and_writes_its_report(tmp_path, fleet_name, m
     ):
         assert (run_dir / name).stat().st_size > 0, name
     config = json.loads((run_dir / "config.json").read_text())
-    assert config["params"]["fleet"] == fleet_name and len(config["processes"]) == 6
+    assert config["params"]["fleet"] == fleet_name and len(config["processes"]) == 7  # with the warm standby
     assert config["params"]["mode"] == mode
     ev = json.loads((run_dir / "eval_summary.json").read_text())
     assert ev["evaluated"] > 10
@@ -227,6 +228,7 @@ def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, m
     """mapc fleet up --standby: a second host fuses the same input and publishes the fused state on the
     host's key only while the host's liveliness token is gone (SIGKILL to its process group here), so the
     fused output goes on while the launcher restarts the host, and stops doubling once it is back."""
+    from mapcontainer.security import inner_payload
     from schemas import FusedState, decode
 
     runs = tmp_path / "runs"
@@ -242,11 +244,11 @@ def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, m
         state = _state(run_dir)
         assert {p["name"] for p in state["processes"]} >= {"host", "host-standby"}
         endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
-        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        session = open_session(ZenohSettings(connect=[endpoint], config_file=state["zenoh_login"]))  # the operator
         got: list[tuple[float, str]] = []  # (monotonic arrival, the fusing host's id)
 
         def on_fused(sample) -> None:
-            msg = decode(sample.payload.to_bytes(), FusedState)
+            msg = decode(inner_payload(sample.payload.to_bytes()), FusedState)  # signed by the host or its standby
             if msg:
                 got.append((time.monotonic(), msg.sender))
 
@@ -278,3 +280,89 @@ def test_a_standby_host_publishes_while_the_host_is_gone(tmp_path, fleet_name, m
     arrivals = [t for t, _ in got if t_kill - 1 < t < t_back]
     gap = max(b - a for a, b in zip(arrivals, arrivals[1:], strict=False))
     print(f"fused output gap after SIGKILL of the host: {gap:.2f} s; host back after {t_back - t_kill:.1f} s")
+
+
+def test_fleet_down_removes_the_shared_memory_of_killed_processes(tmp_path, fleet_name, mapc, wait_for):
+    """The probe: fleets whose processes were killed left their ``*.zenoh`` segments (and the host's
+    multiprocessing semaphores) in /dev/shm. The launcher notes what its processes map; after a SIGKILL of
+    the host (which cannot clean up) and ``fleet down``, none of it is left."""
+    import os
+    import signal
+
+    up = mapc(
+        *("fleet", "up", "--detach", "--json", "--fleet", fleet_name, "--vehicles", "1", "--network", "ideal"),
+        *("--runs-dir", str(tmp_path / "runs")),
+        timeout=240,
+    )
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_dir = Path(json.loads(up.stdout)["run_dir"])
+    try:
+        host = next(p for p in _state(run_dir)["processes"] if p["name"] == "host")
+        segments = wait_for(
+            lambda: [s for s in _state(run_dir).get("shm", []) if Path(s).exists()], timeout=30, what="noted segments"
+        )
+        os.killpg(host["pgid"], signal.SIGKILL)  # the host and its fusion worker: no chance to clean up
+    finally:
+        down = mapc("fleet", "down", "--fleet", fleet_name, timeout=180)
+    assert down.returncode == 0, down.stdout + down.stderr
+    noted = set(_state(run_dir).get("shm", []))
+    assert set(segments) <= noted and any(s.endswith(".zenoh") for s in noted), noted
+    assert [s for s in noted if Path(s).exists()] == []
+
+
+def test_the_default_fleet_admits_only_its_own_processes_each_to_its_own_keys(tmp_path, fleet_name, mapc, wait_for):
+    """The probe: the default mesh had no authentication. Now a client without the run's login cannot join
+    (so it can neither publish nor subscribe); a vehicle's login cannot put on another vehicle's key or the
+    host's fused key; the operator's login (what mapc health uses) sees the fleet."""
+    import zenoh
+
+    from services.launcher.mesh import login_path
+
+    up = mapc(
+        *("fleet", "up", "--detach", "--json", "--fleet", fleet_name, "--vehicles", "2", "--network", "ideal"),
+        *("--runs-dir", str(tmp_path / "runs")),
+        timeout=240,
+    )
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_dir = Path(json.loads(up.stdout)["run_dir"])
+    endpoint = next(e for e in _state(run_dir)["endpoints"] if "127.0.0.1" in e)
+    try:
+        assert _state(run_dir)["insecure"] is False and oct(login_path(run_dir, "ops").stat().st_mode)[-3:] == "600"
+        anonymous = ZenohSettings(mode="client", connect=[endpoint], connect_timeout_ms=1000)
+        with pytest.raises(Exception):  # noqa: B017 - Zenoh's error for a refused login
+            open_session(anonymous).close()
+        wrong = json.loads(login_path(run_dir, "vehicle-cv0").read_text())
+        wrong["transport"]["auth"]["usrpwd"]["password"] = "guessed"
+        (tmp_path / "wrong.json5").write_text(json.dumps(wrong))
+        with pytest.raises(Exception):  # noqa: B017
+            open_session(ZenohSettings(connect=[endpoint], config_file=str(tmp_path / "wrong.json5"))).close()
+
+        def login(user: str):
+            return open_session(ZenohSettings(connect=[endpoint], config_file=str(login_path(run_dir, user))))
+
+        ops, cv0 = login("ops"), login("vehicle-cv0")
+        try:
+            got: list[tuple[str, bytes]] = []
+            sub = ops.declare_subscriber(
+                f"mc/{fleet_name}/**", lambda s: got.append((str(s.key_expr), s.payload.to_bytes()))
+            )
+            mine = topic("prior_tx").key(fleet=fleet_name, src="cv0")
+            theirs = [topic("prior_tx").key(fleet=fleet_name, src="cv1"), topic("fused").key(fleet=fleet_name, hid="host")]
+            wait_for(lambda: any(k == mine for k, _ in got), timeout=30, what="cv0's priors at the operator")
+            for _ in range(20):
+                for key in theirs:
+                    cv0.put(key, b"\x92forged")
+                time.sleep(0.05)
+            time.sleep(1.0)
+            assert [k for k, p in got if p == b"\x92forged"] == []  # nothing of cv0 reached those keys
+            assert any(k == theirs[1] for k, _ in got)  # while the host's own fused states did
+            sub.undeclare()
+        finally:
+            ops.close()
+            cv0.close()
+        health = mapc("health", "--fleet", fleet_name, "--json")
+        assert health.returncode in (0, 1) and len(json.loads(health.stdout)) == 7, health.stdout + health.stderr
+        host = next(v for v in json.loads(health.stdout) if v["role"] == "host")
+        assert host["rejects"].get("unsigned", 0) == 0  # the forged puts never reached the host
+    finally:
+        mapc("fleet", "down", "--fleet", fleet_name, timeout=180)

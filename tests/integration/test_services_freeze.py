@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from mapcontainer.localization.health import PoseHealthParams
+from mapcontainer.security import inner_payload
 from schemas import GroundTruth, HealthStatus, VehiclePrior, decode
 from schemas.topics import topic
 
@@ -49,7 +50,7 @@ class Recorder:
         ]
 
     def _on_truth(self, sample) -> None:
-        g = decode(sample.payload.to_bytes(), GroundTruth)
+        g = decode(inner_payload(sample.payload.to_bytes()), GroundTruth)  # signed by the world
         if g and self.vid in g.vehicle_ids:
             with self.lock:
                 self.truth[round(g.t_meas * 10)] = np.asarray(g.vehicle_pose[g.vehicle_ids.index(self.vid)], float)

@@ -50,3 +50,84 @@ def test_a_clock_that_goes_back_gives_no_tokens() -> None:
 def test_bad_parameters_are_refused(kwargs) -> None:
     with pytest.raises(ValueError):
         Admission(**kwargs)
+
+
+# ------------------------------------------------------------------------------ the gate: verify, then admit
+
+
+def _signed_fleet():
+    from mapcontainer.security import Signer, Verifier, issue, make_ca
+    import msgpack
+
+    from schemas.tags import TAGS
+
+    now = 1.7e9
+    ca = make_ca("ca", now=now - 60)
+    signers = {v: Signer(issue(ca, v, 3600.0, now - 60)) for v in ("cv0", "cv1")}
+
+    def prior(v: str, k: int) -> bytes:  # what the verifier reads of a payload: its sender (the rest is the host's)
+        return msgpack.packb({TAGS["schema_version"]: 4, TAGS["sender"]: v, TAGS["seq"]: k})
+
+    return now, Verifier(ca.certificate, 5.0), signers, prior
+
+
+def test_a_flood_on_a_vehicles_key_costs_the_flooders_budget_not_the_vehicles() -> None:
+    """The probe: 1,000 junk messages a second on cv1's key for 5 s. Junk fails verification and is charged
+    to the key's unverified budget; cv1's genuine 10 Hz messages are verified and all admitted."""
+    from mapcontainer.admission import Gate
+    from mapcontainer.security import Verified
+
+    now, verifier, signers, prior = _signed_fleet()
+    gate = Gate(verifier, rate_hz=20.0, burst=20.0)
+    admitted, junk_refused = {"cv0": 0, "cv1": 0}, 0
+    for k in range(5000):
+        t = k * 0.001
+        out = gate.admit(b"\x93junk" + k.to_bytes(4, "big"), "cv1", t, now + t)
+        junk_refused += not isinstance(out, Verified)
+        if k % 100 == 0:
+            for v in ("cv0", "cv1"):
+                out = gate.admit(signers[v].sign(prior(v, k), now + t), v, t, now + t)
+                assert isinstance(out, Verified) and out.sender == v, out
+                admitted[v] += 1
+    assert admitted == {"cv0": 50, "cv1": 50} and junk_refused == 5000
+    assert gate.unverified_refused == 5000 and gate.verified.refused() == {}
+    assert gate.unverified.refused()["cv1"] > 4000  # the flooder ran out of its own budget
+
+
+def test_the_gate_admits_by_the_verified_sender() -> None:
+    """A genuine vehicle's own flood is its verified budget's; an unsigned fleet's gate goes by the key."""
+    from mapcontainer.admission import Gate
+    from mapcontainer.security import Verified
+
+    now, verifier, signers, prior = _signed_fleet()
+    gate = Gate(verifier, rate_hz=10.0, burst=10.0)
+    outs = [gate.admit(signers["cv0"].sign(prior("cv0", k), now), "cv0", 0.0, now) for k in range(12)]
+    assert [isinstance(o, Verified) for o in outs] == [True] * 10 + [False] * 2
+    assert outs[-1].reason == "flood" and gate.verified.refused() == {"cv0": 2}
+    # a genuine message of cv1 on cv0's key: refused as a mismatch, charged to the key's unverified budget
+    out = gate.admit(signers["cv1"].sign(prior("cv1", 0), now), "cv0", 0.0, now)
+    assert out.reason == "sender_mismatch" and gate.unverified_refused == 1
+    plain = Gate(None, rate_hz=10.0, burst=1.0)
+    first = plain.admit(b"anything", "cv3", 0.0, now)
+    assert isinstance(first, Verified) and (first.payload, first.sender) == (b"anything", "cv3")
+    assert plain.admit(b"anything", "cv3", 0.0, now).reason == "flood"
+
+
+def test_a_spent_unverified_budget_refuses_new_certificates_unchecked(monkeypatch) -> None:
+    """While a source's unverified budget is spent, certificates not seen before cost no CA signature check
+    (a stream of fresh fake certificates); known signers go on."""
+    import mapcontainer.security as sec
+    from mapcontainer.admission import Gate
+
+    now, verifier, signers, prior = _signed_fleet()
+    gate = Gate(verifier, rate_hz=10.0, burst=10.0, unverified_rate_hz=1.0)
+    assert isinstance(gate.admit(signers["cv0"].sign(prior("cv0", 0), now), "cv0", 0.0, now), sec.Verified)
+    assert gate.admit(b"junk", "cv1", 0.0, now).reason == "unsigned"  # cv1's one unverified token
+    checks = []
+    real = sec._valid
+    monkeypatch.setattr(sec, "_valid", lambda *a: checks.append(1) or real(*a))
+    out = gate.admit(signers["cv1"].sign(prior("cv1", 1), now), "cv1", 0.1, now)
+    assert out.reason == "unknown_certificate" and checks == []
+    assert isinstance(gate.admit(signers["cv0"].sign(prior("cv0", 2), now), "cv0", 0.1, now), sec.Verified)
+    out = gate.admit(signers["cv1"].sign(prior("cv1", 3), now + 1.5), "cv1", 1.5, now + 1.5)  # a token back
+    assert isinstance(out, sec.Verified), out

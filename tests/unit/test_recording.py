@@ -20,7 +20,7 @@ from mapcontainer.recording import RecordingError, RecordingWriter, info, read_r
 from mapcontainer.recording.foxglove import SCENE_UPDATE, ellipsoid, map_scene, visualizer
 from mapcontainer.recording.replay import HostSetup, refuse, replay_plan, retarget, shift_attachment
 from mapcontainer.security import Signer, issue, make_ca
-from schemas import GroundTruth, decode, encode
+from schemas import FusedState, GroundTruth, decode, encode
 from schemas.codec import peek
 from schemas.models import SecuredMessage, VehiclePrior
 from schemas.topics import topic
@@ -118,7 +118,7 @@ def test_a_file_at_its_size_bound_is_finished_and_takes_no_more(tmp_path: Path) 
     while w.add("mc/f/sim/truth", rng.bytes(3000), None, 1 + added):
         added += 1
     assert w.full and w.closed and not w.add("mc/f/sim/truth", b"x", None, 10**9)
-    assert path.stat().st_size <= 400_000 and 100 < added < 134
+    assert path.stat().st_size <= 400_000 and 95 < added < 134  # the rest: chunk indexes and the schemas
     doc = info(path)
     assert doc["complete"] and doc["messages"] == added
 
@@ -142,6 +142,21 @@ def test_a_file_cut_short_is_read_up_to_its_last_whole_chunk(tmp_path: Path) -> 
     # a chunk may end between a payload and its attachment: the last message read may lack it
     assert all(msgpack.unpackb(r.attachment)["k"] == i for i, r in enumerate(recs[:-1]))
     assert recs[-1].attachment in (None, att(k=len(recs) - 1))
+
+
+def test_bytes_after_the_footer_are_named_not_called_complete(tmp_path: Path) -> None:
+    """The probe: 2 KB of junk appended to a finished recording, and `record info` called it complete."""
+    path = tmp_path / "grown.mcap"
+    write(path, [("mc/f/sim/truth", encode(truth(1.0)), None, 10**18)])
+    assert info(path)["complete"] and info(path)["trailing_bytes"] == 0
+    with open(path, "ab") as f:
+        f.write(bytes(range(256)) * 8)
+    doc = info(path)
+    assert not doc["complete"] and doc["trailing_bytes"] == 2048 and "2048 bytes follow the footer" in doc["stopped"]
+    assert len(list(read_records(path))) == 1  # what the recorder wrote still reads
+    out = subprocess.run([sys.executable, "-m", "services.cli", "record", "info", str(path)], capture_output=True,
+                         text=True, cwd=REPO, timeout=60)  # fmt: skip
+    assert out.returncode == 0 and "APPENDED TO: 2048 bytes follow the footer" in out.stdout, out.stdout + out.stderr
 
 
 @pytest.mark.parametrize("content", [b"", b"hello, not a recording\n", b"PK\x03\x04" + bytes(100)])
@@ -197,16 +212,17 @@ def test_the_map_scene_holds_every_lane_line_and_landmark() -> None:
     assert json.loads(SCENE_UPDATE[1])["title"] == "foxglove.SceneUpdate"
 
 
-def _host_run(tmp_path: Path, frames: int = 25):
+def _host_run(tmp_path: Path, frames: int = 25, fakes: bool = False):
     """A host's fusion loop (services.host.worker, in a thread) fed signed priors of two vehicles; what it
     ingested and published written as a recorder would: the signed payloads on their rx keys, the fused
-    states with the attachment the host service gives them."""
+    states with the attachment the host service gives them, signed as the service signs them. ``fakes``:
+    an attacker's fused state (the real one 20 m off, unsigned) on the host's key after each."""
     from services.host.worker import fusion_loop
     from unit.test_fusion_container import prior
 
     now = time.time()
     ca = make_ca("ca", now=now - 60)
-    signers = {v: Signer(issue(ca, v, 3600, now - 60)) for v in ("cv0", "cv1")}
+    signers = {v: Signer(issue(ca, v, 3600, now - 60)) for v in ("cv0", "cv1", "host", "world")}
     (tmp_path / "ca.cert.json").write_text(ca.certificate.model_dump_json())
     spec = dict(scenario="overlap", mode="distributed", fleet="f", host_id="host", known_senders=["cv0", "cv1"])
     inbox, outbox = queue.Queue(), queue.Queue()
@@ -232,10 +248,13 @@ def _host_run(tmp_path: Path, frames: int = 25):
             if item[0] == "fused":
                 break
         _, payload, t_f, _, _, solved, _ = item
-        w.add(
-            "mc/f/host/host/fused", payload, att(t_wall_ns=t_ns + 60_000_000, t_fused=t_f, **solved), t_ns + 60_000_000
-        )
-        w.add("mc/f/sim/truth", encode(truth(t)), None, t_ns + 70_000_000)
+        signed = signers["host"].sign(payload, time.time())  # the host service signs its fused state
+        w.add("mc/f/host/host/fused", signed, att(t_wall_ns=t_ns + 60_000_000, t_fused=t_f, **solved), t_ns + 60_000_000)
+        w.add("mc/f/sim/truth", signers["world"].sign(encode(truth(t)), time.time()), None, t_ns + 70_000_000)
+        if fakes:
+            real = decode(payload, FusedState)
+            fake = real.model_copy(update={"vehicle_pose": real.vehicle_pose + np.float32(20.0), "seq": real.seq + 1000})
+            w.add("mc/f/host/host/fused", encode(fake), None, t_ns + 65_000_000)
         fused.append(payload)
     inbox.put(("stop",))
     th.join(timeout=10)
@@ -353,3 +372,38 @@ def test_the_point_clouds_are_foxglove_protobuf_with_their_descriptors(tmp_path:
     rec = np.frombuffer(pc.data, dtype=[("xyz", "<f4", 3), ("rgba", "u1", 4)])
     assert len(rec) == 3  # two vehicles, one obstacle
     assert rec["xyz"][2] == pytest.approx([21.0, 0.0, 0.0]) and rec["rgba"][0].tolist() == [26, 204, 51, 153]
+
+
+def test_a_fake_fused_state_on_the_hosts_key_is_refused_by_every_reader_of_the_recording(tmp_path: Path) -> None:
+    """The probe's fake fused state (+20 m) on the host's own key: the re-fusion check, the recorder's
+    Foxglove channels and the view refuse it (not signed by the host) and count it; the recorded host's
+    score is the genuine one."""
+    from mapcontainer.recording.replay import _verifier
+
+    frames = 8
+    path, fused = _host_run(tmp_path, frames=frames, fakes=True)
+    setup = HostSetup(fleet="f", scenario="overlap", known_senders=["cv0", "cv1"])
+    res = refuse(path, setup=setup)
+    assert res.signature_refused == frames and res.compared == frames and res.identical == frames
+    assert res.scores["recorded"] == res.scores["refused"]
+    records = list(read_records(path))
+    refused: dict[str, int] = {}
+    viz = visualizer(_verifier(path), refused)
+    drawn = [ch for r in records for ch, *_ in viz(r.key, r.payload, r.log_time_ns) if ch == "/viz/fused/host"]
+    assert len(drawn) == frames and refused == {"unsigned": frames}
+    unverified: dict[str, int] = {}
+    assert len([1 for r in records for ch, *_ in visualizer(None, unverified)(r.key, r.payload, r.log_time_ns)
+                if ch == "/viz/fused/host"]) == 2 * frames and unverified == {}  # fmt: skip
+
+
+def test_the_view_draws_only_what_the_fleet_signed(tmp_path: Path) -> None:
+    rr = pytest.importorskip("rerun", reason="mapc view needs the view extra (rerun-sdk)")
+    from mapcontainer.recording.replay import _verifier
+    from mapcontainer.recording.view import RerunView
+
+    frames = 5
+    path, _ = _host_run(tmp_path, frames=frames, fakes=True)
+    view = RerunView(rr.RecordingStream("test-view"), _verifier(path))
+    for r in read_records(path):
+        view.handle(r.key, r.payload, r.log_time_ns)
+    assert view.drawn["fused"] == frames and view.drawn["truth"] == frames and view.refused == {"unsigned": frames}

@@ -235,3 +235,53 @@ def test_attachment_round_trip_and_garbage() -> None:
         "t_wall_ns": 5,
         "link_latency_s": 0.02,
     }
+
+
+def test_a_payload_over_its_topics_bound_is_refused_before_its_bytes_are_copied() -> None:
+    """The probe's 8 MiB nested payload on a prior key: refused as too_large from the length Zenoh reports;
+    the bytes are never copied out and the callback never runs. A prior of normal size goes through."""
+    from types import SimpleNamespace
+
+    from schemas.topics import max_bytes, topic
+    from services.runtime import Service, ServiceSettings
+
+    class Payload:
+        def __init__(self, n: int) -> None:
+            self.n = n
+
+        def __len__(self) -> int:
+            return self.n
+
+        def to_bytes(self) -> bytes:
+            if self.n > 1_000_000:
+                raise AssertionError("an oversized payload was copied")
+            return bytes(self.n)
+
+    callbacks = {}
+    svc = Service("host", ServiceSettings(fleet="f", id="host"))
+    svc.session = SimpleNamespace(declare_subscriber=lambda key, cb: callbacks.setdefault(key, cb))
+    got = []
+    key = topic("prior_rx").pattern(fleet="f", dst="host")
+    svc.subscribe(key, got.append)
+    sample = SimpleNamespace(key_expr="mc/f/v2x/rx/host/cv1/prior", attachment=None, payload=Payload(8 * 2**20))
+    callbacks[key](sample)
+    assert got == [] and svc.metrics.rejects == {"too_large": 1}
+    callbacks[key](SimpleNamespace(key_expr=sample.key_expr, attachment=None, payload=Payload(600)))
+    assert len(got) == 1 and len(got[0].payload) == 600
+    assert max_bytes(key) == topic("prior_rx").max_bytes == 256 * 1024
+    assert max_bytes("mc/f/sim/cv0/sensors") > 4 * 2**20  # a lane mask at its limit still fits
+
+
+def test_the_clock_comes_from_a_message_and_its_changes_are_counted() -> None:
+    from schemas import VehiclePrior
+
+    c = SimClock()
+    fields = {"fleet": "f", "seq": 0, "t_meas": 0.0, "t_sent": 0.0, "pose": [0.0] * 6, "v_map": [0.0] * 3}
+    cov = {"pose_cov": [1.0, 0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 1.0, 0, 1.0]}
+    quality = {"quality": {"mode": "map_matching"}}
+    plain = VehiclePrior(sender="cv0", **fields, **cov, **quality)
+    assert not c.update(plain) and c.stamp(plain) is plain  # no clock in it, none to stamp
+    assert c.update(VehiclePrior(sender="cv0", epoch_wall_ns=10**18, time_scale=1.0, **fields, **cov, **quality))
+    assert c.changes == 0 and c.stamp(plain).epoch_wall_ns == 10**18
+    assert c.update({"sender": "cv1", "epoch_wall_ns": 1, "time_scale": 1.0})
+    assert (c.changes, c.changed_by) == (1, "cv1")

@@ -13,7 +13,7 @@ from schemas import FusedState, GroundTruth
 from services.channel.app import Relay, parse_receivers
 from services.evaluator.core import Evaluator, match_objects
 from services.evaluator.plot import ellipse_params
-from services.host.app import fused_lag, fusion_stall
+from services.host.app import fused_lag, fusion_stall, lag_causes
 from services.launcher.app import parse_args as launcher_parse_args
 from services.launcher.control import launcher_argv
 from services.launcher.manifest import FleetParams, Manifest, RestartPolicy, load_manifest, resolve
@@ -175,13 +175,14 @@ def test_relay_delivers_after_the_link_latency_and_keeps_attachments() -> None:
         Channel(NetworkProfile.custom(latency_ms=20.0), seed=1), {"host": ["cv0"]}, clock=lambda: clk[0]
     )
     relay.offer("prior", "cv1", b"payload-1", {"epoch_wall_ns": 5})
+    relay.offer("prior", "cv1", b"payload-1", {"epoch_wall_ns": 1})  # an attacker's copy: its attachment is ignored
     relay.offer("prior", "cv0", b"payload-0", {})  # on board the host: not relayed
     stop = threading.Event()
     clk[0] = 0.019
     assert relay.due(stop, max_wait_s=0.0) == []
     clk[0] = 0.021
     out = relay.due(stop, max_wait_s=0.0)
-    assert len(out) == 1
+    assert len(out) == 2 and out[0][2] == out[1][2]  # the copy is relayed (the receiver refuses it as a replay)
     d, kind, att, late = out[0]
     assert (d.src, d.dst, d.payload, kind, att) == (
         "cv1",
@@ -192,7 +193,7 @@ def test_relay_delivers_after_the_link_latency_and_keeps_attachments() -> None:
     )
     assert late == pytest.approx(0.001)
     st = relay.stats()
-    assert st["offered_msgs"] == 1 and st["delivered_fraction"] == 1.0
+    assert st["offered_msgs"] == 2 and st["delivered_fraction"] == 1.0
     assert parse_receivers(["host=cv0,cv9", "rsu"]) == {"host": ["cv0", "cv9"], "rsu": []}
     assert parse_receivers(None) == {"host": []}
 
@@ -401,3 +402,37 @@ def test_a_host_that_does_not_keep_up_says_so() -> None:
     assert why is not None and "2.1 s" in why and "not keeping up" in why
     assert fused_lag(10.0, 7.9, time_scale=4.0, max_lag_s=1.0) is None  # 2.1 scenario s are 0.5 wall s
     assert fused_lag(None, 7.9, 1.0, 1.0) is None and fused_lag(10.0, None, 1.0, 1.0) is None
+
+
+def test_a_lagging_host_names_the_cause() -> None:
+    """The probe's lag of 1.8 billion seconds named no cause: the reason lists what the host sees."""
+    causes = lag_causes(180.0, 100.0, 40, 2, "cv1", {"stale": 300, "flood": 5}, {"stale": 28, "flood": 5})
+    assert causes == [
+        "solves take 180 ms, frames come every 100 ms",
+        "40 messages wait for the fusion worker",
+        "the world's clock changed 2 times, last in a message of cv1",
+        "refused since the last fused state: 272 stale",
+    ]
+    why = fused_lag(10.0, 7.9, 1.0, 1.0, causes)
+    assert why.startswith("the fused output trails the world by 2.1 s") and "272 stale" in why
+    assert lag_causes(50.0, 100.0, 0, 0, None, {"stale": 3}, {"stale": 3}) == []
+
+
+def test_the_evaluators_traces_stay_bounded_over_any_run_length() -> None:
+    """The evaluator grew 2.5 MB a minute: a trace keeps its newest points at full rate and thins the older
+    ones, still spread over the whole run; an obstacle gone for OBSTACLE_GONE_S loses its trace."""
+    from services.evaluator.core import OBSTACLE_GONE_S, Trace
+
+    tr = Trace(recent=100, older=400)
+    for k in range(100_000):
+        tr.append((k,))
+    pts = [p[0] for p in tr]
+    assert len(tr) <= 500 and pts == sorted(pts) and pts[-100:] == list(range(99_900, 100_000))
+    assert pts[0] < 1_000 and tr[-1] == (99_999,)  # the run's start is still drawn
+    ev = Evaluator("f", plot_every_s=0.1)
+    ev.on_truth(_truth(0.0, [0.0, 0.0], [[5.0, 0.0]]))
+    assert list(ev.truth_obstacles) == [1]
+    later = _truth(OBSTACLE_GONE_S + 1.0, [0.0, 0.0], [[5.0, 0.0]])
+    later = later.model_copy(update={"obstacle_id": np.array([2], np.uint32)})
+    ev.on_truth(later)
+    assert list(ev.truth_obstacles) == [2]

@@ -237,6 +237,51 @@ def test_a_replay_is_refused(ca, creds) -> None:
     assert_rejected(v.verify(data, NOW + 10.0), "replayed")  # long after: outside the window
 
 
+def test_cheap_checks_come_before_the_signature_check(ca, creds, monkeypatch) -> None:
+    """A replay, a message outside the window, an unknown digest and nested junk cost no ECDSA check; the
+    inner message is not decoded before the signature holds."""
+    import msgpack
+
+    import mapcontainer.security as sec
+
+    signer, v = Signer(creds["cv0"]), verifier(ca)
+    data = signer.sign(prior("cv0"), NOW)
+    assert v.verify(data, NOW)
+    checks, peeked = [], []
+    real_valid, real_peek = sec._valid, sec.peek
+    monkeypatch.setattr(sec, "_valid", lambda *a: checks.append(1) or real_valid(*a))
+    monkeypatch.setattr(sec, "peek", lambda d: peeked.append(d) or real_peek(d))
+    assert_rejected(v.verify(data, NOW + 0.5), "replayed")
+    assert_rejected(v.verify(signer.sign(prior("cv0"), NOW + 10.0), NOW), "replayed")  # outside the window
+    other = Signer(creds["cv1"], full_cert_every_s=math.inf)
+    other.sign(prior("cv1"), NOW)  # its certificate went in a message this verifier never saw
+    assert_rejected(v.verify(other.sign(prior("cv1"), NOW + 0.1), NOW + 0.1), "unknown_certificate")
+    nested = msgpack.packb({0: 4, 200: [[[[0] * 17]]]})  # a long array in a field nobody reads: refused unbuilt
+    assert_rejected(v.verify(nested, NOW), "unsigned")
+    assert checks == [] and peeked == []
+    tampered = Signer(creds["cv0"], full_cert_every_s=math.inf).sign(prior("cv0"), NOW + 0.2)
+    tampered = tampered[:-1] + bytes([tampered[-1] ^ 1])
+    assert_rejected(v.verify(tampered, NOW + 0.2), "forged")
+    assert checks == [1] and peeked == []  # forged: the payload was never decoded
+
+
+def test_new_certificates_can_be_refused_unchecked(ca, creds, monkeypatch) -> None:
+    """Under a flood a verifier takes known certificates only: a new one costs no CA signature check."""
+    import mapcontainer.security as sec
+
+    v = verifier(ca)
+    checks = []
+    real = sec._valid
+    monkeypatch.setattr(sec, "_valid", lambda *a: checks.append(1) or real(*a))
+    first = Signer(creds["cv0"]).sign(prior("cv0"), NOW)
+    assert_rejected(v.verify(first, NOW, new_certificates=False), "unknown_certificate")
+    assert checks == []
+    assert v.verify(first, NOW)  # learnt when allowed: CA check and message check
+    again = Signer(creds["cv0"], full_cert_every_s=0.0)
+    assert v.verify(again.sign(prior("cv0"), NOW + 0.1), NOW + 0.1, new_certificates=False)  # known: fine
+    assert len(checks) == 3
+
+
 @pytest.mark.parametrize("offset_s", [-WINDOW_S - 0.01, WINDOW_S + 0.01, -1e6, 1e6])
 def test_a_generation_time_outside_the_window_is_replayed(ca, creds, offset_s: float) -> None:
     v = verifier(ca)
