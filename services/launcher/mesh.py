@@ -11,7 +11,8 @@ can publish or subscribe on the fleet's keys without the run directory's files.
 The access control (Zenoh's ``access_control``, default deny) gives each process only its own keys
 (:func:`acl`): a vehicle puts only its V2X messages and reads only its sensors; the host reads only its
 receive keys (and its on-board vehicle's transmit key) and puts only its own fused state; the channel
-reads the transmit keys and puts the receive keys; the world puts the simulation's keys; the evaluator
+reads the transmit keys and the world's truth (a geometric radio places its radios there) and puts the
+receive keys; the world puts the simulation's keys; the evaluator
 reads and puts its metrics; the recorder reads; every process answers health queries on its own key and
 holds its own liveliness token; the operator may do everything under the fleet's namespace.
 
@@ -72,7 +73,7 @@ def _grants(spec: ProcessSpec, params: FleetParams) -> list[tuple[tuple[tuple[st
     by_role = {
         "vehicle": [(_PUB, [f"{f}/v2x/tx/{spec.id}/**"]), (_SUB, [f"{f}/sim/{spec.id}/sensors"])],
         "world": [(_PUB, [f"{f}/sim/**"])],
-        "channel": [(_SUB, [f"{f}/v2x/tx/**"]), (_PUB, [f"{f}/v2x/rx/**"])],
+        "channel": [(_SUB, [f"{f}/v2x/tx/**", f"{f}/sim/truth"]), (_PUB, [f"{f}/v2x/rx/**"])],
         "host": [
             (_SUB, [f"{f}/v2x/rx/{hid}/**", f"{f}/v2x/tx/{ego}/**"]),
             (_PUB, [f"{f}/host/{hid}/fused"]),
