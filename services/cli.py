@@ -311,7 +311,7 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     dn.add_argument("--json", action="store_true")
     dn.set_defaults(func=_cmd_fleet_down)
 
-    h = sub.add_parser("health", help="every service's health (exit 0 all ok, 1 degraded/missing, 2 nothing answers)")
+    h = sub.add_parser("health", help="every service's health (exit 0 all ok, starting or finished; 1 degraded/missing; 2 nothing answers)")
     h.add_argument("--fleet", default=None, help="fleet name (default: the one running fleet)")
     h.add_argument("--connect", action="append", default=None, help="a Zenoh endpoint of the fleet")
     h.add_argument(

@@ -7,7 +7,7 @@ A role's ``main(settings)`` does::
         svc.subscribe_queued(topic("sensors").key(...), on_frame)  # counted, errors recorded
         svc.wait()  # declares the liveliness token; returns on SIGINT/SIGTERM/stop()/parent death
     # the session is closed here: a process with callback subscribers that exits without
-    # closing its session hangs (ZENOH.md)
+    # closing its session hangs (docs/architecture.md, "Processes and Zenoh")
 
 Health: every service holds the liveliness token ``mc/{fleet}/alive/{role}/{id}`` and puts a
 :class:`schemas.HealthStatus` on ``mc/{fleet}/health/{role}/{id}`` once a second; a queryable on
@@ -41,6 +41,7 @@ from .config import (
 )
 from .metrics import (
     DEGRADING_REJECTS,
+    HEALTHY_STATES,
     STATES,
     LatencySamples,
     RateCounter,
@@ -57,6 +58,7 @@ __all__ = [
     "LatencySamples",
     "RateCounter",
     "Received",
+    "HEALTHY_STATES",
     "STATES",
     "Service",
     "ServiceMetrics",

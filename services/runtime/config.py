@@ -19,7 +19,7 @@ from mapcontainer.config import ConfigError
 
 
 class ZenohSettings(BaseModel):
-    """How a process joins the Zenoh network (the verified recipes are in ZENOH.md).
+    """How a process joins the Zenoh network (the recipes: docs/operations.md, "Several machines").
 
     peer (default): listen on a loopback port (``tcp/127.0.0.1:0`` picks a free one), connect to a
     rendezvous endpoint with ``exit_on_failure`` so a missing rendezvous fails fast; gossip forms

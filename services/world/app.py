@@ -8,7 +8,9 @@ machine) the world drops frames instead of falling behind: once a frame is due b
 computed, it skips to the frame due next, as an overloaded sensor pipeline does, and its state turns
 degraded while it does (``skipped_frames``). Publishing ever staler frames instead would make every
 prior older than the host's window, and nothing would be fused. The lag behind the clock is a health
-figure too, degraded beyond ``--max-lag``.
+figure too, degraded beyond ``--max-lag``. Frames dropped in the first ``startup_s`` of scenario time
+after the world starts (or resumes) leave it *starting*, not degraded, while they count: every process of
+the fleet is starting then, and the vehicles' cold starts take the machine.
 
 With ``--state-file`` the clock is kept in a file: a restarted world resumes the same timeline
 (at the frame now due, with fresh sensor noise state) instead of starting again at t = 0.
@@ -56,6 +58,9 @@ class WorldSettings(ServiceSettings):
     wait_subscribers_s: float = Field(10.0, ge=0, description="wait this long for the vehicles' subscribers")
     start_delay_s: float = Field(0.2, ge=0, description="wall seconds between the clock's epoch and now")
     max_lag_s: float = Field(0.5, gt=0, description="degraded when publishing this far behind the clock")
+    startup_s: float = Field(
+        3.0, ge=0, description="frames dropped this soon (scenario s) after the start leave it starting, not degraded"
+    )
     state_file: str | None = None
     stale_input_s: float | None = None  # the world has no input
 
@@ -117,14 +122,14 @@ def main(s: WorldSettings) -> int:
         "tick_ms": 0.0,
     }
 
-    skipping = {"t": -math.inf}  # monotonic time of the last skip
+    skipping = {"t": -math.inf, "starting": False}  # monotonic time of the last skip; whether in the start
 
     def check() -> tuple[str, str | None]:
         if fig["lag_s"] > s.max_lag_s:
             return "degraded", f"{fig['lag_s']:.2f} s behind the clock (frames take {fig['tick_ms']:.0f} ms)"
         if time.monotonic() - skipping["t"] < s.rate_window_s:
             period_ms = world.dt / s.time_scale * 1e3
-            return "degraded", (
+            return "starting" if skipping["starting"] else "degraded", (
                 f"dropping frames to keep up ({fig['skipped_frames']:.0f} so far): frames take "
                 f"{fig['tick_ms']:.0f} ms, the period is {period_ms:.0f} ms"
             )
@@ -153,6 +158,7 @@ def main(s: WorldSettings) -> int:
                 )
         pacer = Pacer(epoch, world.dt, s.time_scale)
         k = pacer.first_k_at(time.time_ns())
+        t_start = pacer.t(k)
         if k:
             log.info("resuming the timeline at frame %d (t = %.1f s)", k, pacer.t(k))
         log.info(
@@ -189,6 +195,6 @@ def main(s: WorldSettings) -> int:
             due_next = pacer.first_k_at(time.time_ns())  # the first frame not due yet
             if due_next > k:  # frame k is due already, before it is computed: skip to the next one
                 fig["skipped_frames"] += due_next - k
-                skipping["t"] = time.monotonic()
+                skipping.update(t=time.monotonic(), starting=pacer.t(k) < t_start + s.startup_s)
                 k = due_next
     return 0
