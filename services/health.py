@@ -16,8 +16,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from schemas import HealthStatus, decode
-from services.runtime import HEALTHY_STATES
 from schemas.topics import topic
+from services.runtime import HEALTHY_STATES
 
 __all__ = ["ServiceView", "alive_services", "exit_code", "fleet_health", "format_table", "split_key"]
 
@@ -35,9 +35,7 @@ class ServiceView:
     def to_json(self) -> dict:
         d = {"role": self.role, "id": self.id, "alive": self.alive, "state": self.state}
         if self.status is not None:
-            st = self.status.model_dump(
-                mode="json", exclude={"schema_version", "fleet", "sender", "role", "state"}
-            )
+            st = self.status.model_dump(mode="json", exclude={"schema_version", "fleet", "sender", "role", "state"})
             d.update(st)
         return d
 
@@ -122,7 +120,10 @@ def _note(v: ServiceView) -> str:
 def format_table(views: list[ServiceView], fleet: str) -> str:
     """One line per service, at most :data:`TABLE_WIDTH` columns (the note is cut; ``--json`` has it all)."""
     head = f"{'service':<16} {'state':<9} {'up':>5} {'in/s':>6} {'out/s':>6} {'kB/s':>6} {'p99 ms':>7}  note"
-    lines = [f"fleet {fleet}: {len(views)} services at {time.strftime('%H:%M:%S')} (mapc health --json: all figures)", head]
+    lines = [
+        f"fleet {fleet}: {len(views)} services at {time.strftime('%H:%M:%S')} (mapc health --json: all figures)",
+        head,
+    ]
     for v in views:
         s = v.status
         name = f"{v.role}/{v.id}" if v.id != v.role else v.role

@@ -12,9 +12,9 @@ import os
 import sys
 from pathlib import Path
 
-from mapcontainer.cli import _bounded
+from mapcontainer.cliargs import bounded
 
-positive_float = _bounded(float, 0, strict=True)
+positive_float = bounded(float, 0, strict=True)
 
 __all__ = ["add_recording_commands"]
 
