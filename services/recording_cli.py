@@ -113,13 +113,19 @@ def _print_info(doc: dict, as_json: bool) -> None:
         return
     state = "complete" if doc["complete"] else f"INCOMPLETE (read up to the last whole chunk: {doc['stopped']})"
     rate = f", {doc['mb_per_min']:.2f} MB/min" if doc["mb_per_min"] else ""
+    kinds = doc["channels_by_kind"]
     print(
-        f"{doc['file']}: {state}; {doc['duration_s']:.1f} s, {doc['keys']} keys, {doc['messages']} messages, "
-        f"{doc['payload_bytes'] / 1e6:.2f} MB of payload, file {doc['file_bytes'] / 1e6:.2f} MB{rate}"
+        f"{doc['file']}: {state}; {doc['duration_s']:.1f} s, file {doc['file_bytes'] / 1e6:.2f} MB{rate}\n"
+        f"  {doc['keys']} fleet keys: {doc['messages']} messages, {doc['payload_bytes'] / 1e6:.2f} MB of payload\n"
+        f"  {len(doc['channels'])} channels: {kinds['key']} keys, {kinds['attachment']} of their Zenoh attachments "
+        f"(<key>#attachment), {kinds['viz']} for visualization (/viz/...)"
     )
-    print(f"  {'channel':<52} {'messages':>8} {'bytes':>11}  schema")
+    print(f"  {'channel':<52} {'kind':<10} {'messages':>8} {'bytes':>11}  schema")
     for c in doc["channels"]:
-        print(f"  {c['topic']:<52} {c['messages']:>8} {c['bytes']:>11}  {c['schema'] or '-'} ({c['message_encoding']})")
+        print(
+            f"  {c['topic']:<52} {c['kind']:<10} {c['messages']:>8} {c['bytes']:>11}  "
+            f"{c['schema'] or '-'} ({c['message_encoding']})"
+        )
     for a in doc["attachments"]:
         print(f"  attachment {a['name']} ({a['bytes']} bytes)")
     for p in doc.get("continued_in") or []:
