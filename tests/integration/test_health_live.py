@@ -9,6 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from services.health import exit_code, fleet_health
+from services.runtime import ZenohSettings, open_session
+
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 HEALTHY = {"ok", "starting", "finished"}
@@ -21,27 +24,45 @@ def _health(mapc, fleet: str, table: bool = False) -> tuple[int, list[dict], str
     return js.returncode, rows, mapc("health", "--fleet", fleet).stdout if table else ""
 
 
+def _world_t(rows: list[dict]) -> float:
+    """The world's scenario time in health rows (0 before it answers)."""
+    world = next((r for r in rows if r["role"] == "world"), None)
+    return 0.0 if world is None else world.get("figures", {}).get("t", 0.0)
+
+
 def test_a_cold_start_is_starting_and_a_replay_that_ended_is_finished(tmp_path, fleet_name, mapc, wait_for) -> None:
     runs = tmp_path / "runs"
     up = mapc("fleet", "up", "--detach", "--json", "--record", "--duration", "14", "--fleet", fleet_name,
               "--runs-dir", str(runs), timeout=240)  # fmt: skip
     assert up.returncode == 0, up.stdout + up.stderr
     run_dir = Path(json.loads(up.stdout)["run_dir"])
-    seen: list[tuple[float, int, dict[str, str]]] = []
+    state = json.loads((run_dir / "state.json").read_text())
+    endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
+    seen: list[tuple[float, int, dict[str, str]]] = []  # (scenario time, exit code, states)
+    session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
     try:
+        # `mapc health` itself at once (a call takes a second or more), then polled in process
+        rc, rows, table = _health(mapc, fleet_name, table=True)
+        t_cli = _world_t(rows)
+        assert rc == 0 and t_cli < 10.0, (rc, t_cli, rows)
+        assert max(len(line) for line in table.splitlines()) <= 100, table
+        assert any(r["role"] == "vehicle" and r["state"] == "starting" for r in rows), table
         while True:  # the first 10 s of the scenario (the world's clock, at time scale 1)
-            rc, rows, table = _health(mapc, fleet_name, table=len(seen) == 1)
-            world = next((r for r in rows if r["role"] == "world"), None)
-            if world is not None and world.get("figures", {}).get("t", 0.0) >= 10.0:
+            views = fleet_health(session, fleet_name, expected={(r["role"], r["id"]) for r in rows}, timeout_s=0.5)
+            rows_now = [v.to_json() for v in views]
+            t = _world_t(rows_now)
+            if t >= 10.0:
                 break
-            states = {f"{r['role']}/{r['id']}": r["state"] for r in rows}
-            seen.append((time.monotonic(), rc, states))
-            if table:
-                assert max(len(line) for line in table.splitlines()) <= 100, table
-                assert "starting" in table, table
+            seen.append((t, exit_code(views), {f"{v.role}/{v.id}": v.state for v in views}))
+            time.sleep(0.2)
     finally:
-        mapc("fleet", "down", "--fleet", fleet_name, timeout=120)
-    assert len(seen) >= 2, seen  # (a call takes one to three seconds)
+        session.close()
+        down = mapc("fleet", "down", "--fleet", fleet_name, timeout=120)
+    # a detached fleet's down prints the run's closing table, as the foreground fleet does
+    assert down.returncode == 0, down.stderr
+    assert down.stdout.startswith(f"fleet {fleet_name}: paper-urban, distributed, network dsrc;"), down.stdout
+    assert "RMSE whole run" in down.stdout and "  objects " in down.stdout, down.stdout
+    assert len(seen) >= 5, seen
     assert all(rc == 0 for _, rc, _ in seen), [s for s in seen if s[1] != 0]
     assert all(set(states.values()) <= HEALTHY for _, _, states in seen)
     starting = [k for _, _, states in seen for k, st in states.items() if st == "starting"]
