@@ -49,6 +49,8 @@ def _fleet_endpoints(fleet: str | None, connect: list[str] | None) -> tuple[str,
 def _cmd_record(args: argparse.Namespace) -> int:
     if args.sub == "info":
         return _cmd_record_info(args)
+    if args.sub == "export":
+        return _cmd_record_export(args)
     if not args.out:
         return _fail("record: give --out FILE (or `mapc record info FILE`)")
     found = _fleet_endpoints(args.fleet, args.connect)
@@ -104,6 +106,28 @@ def _cmd_record_info(args: argparse.Namespace) -> int:
     except RecordingError as exc:
         return _fail(str(exc))
     _print_info(doc, args.json)
+    return 0
+
+
+def _cmd_record_export(args: argparse.Namespace) -> int:
+    from mapcontainer.recording import RecordingError
+    from mapcontainer.recording.ros2 import export_ros2
+
+    path = Path(args.file)
+    if not path.is_file():
+        return _fail(f"{path}: no such file")
+    try:
+        doc = export_ros2(path, Path(args.out))
+    except RecordingError as exc:
+        return _fail(str(exc))
+    if args.json:
+        print(json.dumps(doc))
+        return 0
+    print(f"{doc['bag']}: a ROS 2 bag (MCAP storage), {doc['messages']} messages, fused states of host {doc['host']}")
+    for t in doc["topics"]:
+        print(f"  {t['topic']:<40} {t['type']:<48} {t['messages']:>6}")
+    for what, n in doc["skipped"].items():
+        print(f"  not exported: {n} on {what}")
     return 0
 
 
@@ -311,6 +335,14 @@ def add_recording_commands(sub) -> None:
     ri = rsub.add_parser("info", help="channels, message counts, duration and bytes of a recording (exit 2: not one)")
     ri.add_argument("file")
     ri.add_argument("--json", action="store_true", help="one JSON object")
+    rx = rsub.add_parser("export", help="a recording in another format: --ros2 writes a ROS 2 bag (the ros extra)")
+    rx.add_argument("file", help="a recording (mapc fleet up --record, mapc record)")
+    rx.add_argument("out", help="the directory to write (must not exist)")
+    rx.add_argument(
+        "--ros2", action="store_true", required=True, help="a ROS 2 bag (MCAP storage) with standard messages"
+    )
+    rx.add_argument("--json", action="store_true", help="one JSON object")
+    rx.set_defaults(func=_cmd_record_export)
     rec.set_defaults(func=_cmd_record)
 
     rp = sub.add_parser(

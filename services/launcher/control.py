@@ -132,6 +132,8 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
         argv.append("--standby")
     if p.record:
         argv.append("--record")
+    if s.ros2:
+        argv.append("--ros2")
     if not p.signing:
         argv.append("--no-signing")
     if p.keys is not None:
