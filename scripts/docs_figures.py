@@ -43,7 +43,7 @@ class Figure:
 
 def _machine() -> str:
     load1 = os.getloadavg()[0]
-    return f"{time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, load {load1:.1f} at the start"
+    return f"Run on {time.strftime('%Y-%m-%d')}: {os.cpu_count()} cores, load average {load1:.1f} when it started"
 
 
 def first_run() -> str:
@@ -58,7 +58,7 @@ def first_run() -> str:
     lines = out.rstrip().splitlines()
     start = max(i for i, line in enumerate(lines) if line.startswith("fleet local:"))
     table = "\n".join(lines[start:])
-    table = re.sub(r"runs/local-\d{8}-\d{6}", "runs/local-<date>-<time>", table)
+    table = re.sub(r"\S*runs/local-\d{8}-\d{6}", "runs/local-<date>-<time>", table)
     return f"```console\n$ mapc fleet up --duration 20\n...\n{table}\n```\n({machine}.)\n"
 
 
