@@ -13,7 +13,9 @@ and is rewritten here from the command it names, so it cannot go stale:
     python scripts/docs_figures.py --check     # exit 1 if a deterministic figure is out of date (a test runs this)
 
 Figures measured on a live fleet (``first-run``) depend on the machine: the block says when, on how many
-cores and at what load it was made. ``first-run`` also writes ``docs/birdseye.png`` (the run's picture).
+cores and at what load it was made. ``first-run`` also writes ``docs/birdseye.png`` (the run's picture);
+``view`` writes ``docs/view.png`` (``mapc view`` in headless Chromium: the view and browser extras and
+Debian's chromium).
 """
 
 from __future__ import annotations
@@ -62,6 +64,56 @@ def first_run() -> str:
     return f"```console\n$ mapc fleet up --duration 20\n...\n{table}\n```\n({machine}.)\n"
 
 
+def view() -> str:
+    """`mapc view` of a recorded default fleet in headless Chromium (the view and browser extras, Debian's
+    chromium): a 10 s recording, the viewer started on it, a screenshot once the scene has drawn."""
+    import socket
+
+    from playwright.sync_api import sync_playwright
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        raise SystemExit("view: needs Debian's chromium (apt-get install chromium) and the browser extra")
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {**os.environ, "PYTHONPATH": str(REPO), "MAPC_RUNS_DIR": str(Path(tmp) / "runs")}
+        cli = [sys.executable, "-m", "services.cli"]
+        fleet = [*cli, "fleet", "up", "--duration", "10", "--record", "--no-summary", "--fleet", "docsview"]
+        subprocess.run(fleet, capture_output=True, text=True, env=env, cwd=tmp, timeout=600, check=True)
+        (rec,) = (Path(tmp) / "runs").glob("*/recording.mcap")
+        ports = []
+        for _ in range(2):
+            with socket.socket() as sock:
+                sock.bind(("127.0.0.1", 0))
+                ports.append(sock.getsockname()[1])
+        argv = [*cli, "view", "--file", str(rec), "--web-port", str(ports[0]), "--grpc-port", str(ports[1])]
+        log = Path(tmp) / "view.log"
+        with log.open("w") as out:
+            proc = subprocess.Popen([*argv, "--exit-after", "300"], stdout=out, stderr=subprocess.STDOUT, env=env)
+        try:
+            url = None
+            for _ in range(600):
+                url = next(
+                    (x.split("open ", 1)[1].split()[0] for x in log.read_text().splitlines() if "open http" in x), None
+                )
+                if url or proc.poll() is not None:
+                    break
+                time.sleep(0.1)
+            if url is None:
+                raise SystemExit(f"view: the viewer did not start:\n{log.read_text()[-2000:]}")
+            with sync_playwright() as p:
+                args = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+                browser = p.chromium.launch(executable_path=chromium, args=args)
+                page = browser.new_page(viewport={"width": 1280, "height": 800})
+                page.goto(url)
+                time.sleep(30.0)  # Rerun's web viewer loads and draws in about 20 s (WebGL in software here)
+                page.screenshot(path=str(REPO / "docs" / "view.png"))
+                browser.close()
+        finally:
+            proc.terminate()
+            proc.wait(timeout=30)
+    return "![mapc view of a recorded default fleet](view.png)\n"
+
+
 def topics() -> str:
     """The topic registry (schemas/topics.py) as a table."""
     from schemas.topics import TOPICS
@@ -77,6 +129,7 @@ def topics() -> str:
 FIGURES: dict[str, Figure] = {
     "first-run": Figure(first_run, deterministic=False),
     "topics": Figure(topics, deterministic=True),
+    "view": Figure(view, deterministic=False),
 }
 
 

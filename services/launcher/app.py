@@ -37,7 +37,15 @@ from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
 from ..health import split_key
-from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
+from ..runtime import (
+    ZenohSettings,
+    listening_locators,
+    open_session,
+    time_scale_arg,
+    write_json,
+    zenoh_config,
+    zenoh_error_text,
+)
 from .manifest import FleetParams, ProcessSpec, load_manifest, manifest_path, resolve, vehicle_ids
 from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
 from .supervisor import Supervisor, is_ours
@@ -166,7 +174,13 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     p.add_argument("--fleet", default=None, help=f"fleet name, the key namespace (default {d.fleet})")
     p.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="default distributed")
     p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--time-scale", type=float, default=None, help="scenario seconds per wall second")
+    p.add_argument(
+        "--time-scale",
+        type=time_scale_arg,
+        default=None,
+        help="scenario seconds per wall second, or auto (default): as fast as real time, the world's clock "
+        "pausing while a vehicle or the host is still on the previous frame, so that every frame is processed",
+    )
     p.add_argument(
         "--no-signing",
         dest="signing",

@@ -36,6 +36,7 @@ from .config import (
     service_main,
     service_settings_from_args,
     setup_logging,
+    time_scale_arg,
     zenoh_config,
     zenoh_error_text,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "service_main",
     "service_settings_from_args",
     "setup_logging",
+    "time_scale_arg",
     "write_json",
     "zenoh_config",
     "zenoh_error_text",

@@ -229,3 +229,11 @@ def setup_logging(role: str, sid: str, level: str = "INFO") -> logging.Logger:
     return logging.getLogger(f"mapc.{role}")
 
 
+def time_scale_arg(text: str) -> float | str:
+    """``auto`` or a number of scenario seconds per wall second."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number or auto: {text!r}") from None

@@ -130,7 +130,7 @@ class Service:
             self._queryable = self.session.declare_queryable(self.health_key, self._on_health_query)
             self._token = None
             if self.settings.stale_input_s is not None:  # whether stalled input means the run ended
-                self._worlds = self._watch_tokens(topic("alive").pattern(fleet=self.fleet, role="world"))
+                self._worlds = self.watch_tokens(topic("alive").pattern(fleet=self.fleet, role="world"))
             self.running.set()
             self.spawn(self._health_loop, name="health")
         except BaseException:
@@ -373,7 +373,7 @@ class Service:
         self._declared.append(sub)
         return sub
 
-    def _watch_tokens(self, pattern: str) -> set[str]:
+    def watch_tokens(self, pattern: str) -> set[str]:
         """The keys of the liveliness tokens matching ``pattern`` that exist, kept current (a set that
         Zenoh's callbacks update; reading its emptiness needs no lock)."""
         import zenoh
