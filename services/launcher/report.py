@@ -130,6 +130,7 @@ def make_summary(
             "achieved_time_scale": clock.get("achieved_time_scale"),
             "paused_s": clock.get("paused_s"),
             "skipped_frames": clock.get("skipped_frames"),
+            "waits_timed_out": clock.get("waits_timed_out"),
             "restarts": sum(p["restarts"] for p in procs),
             "restarts_by_process": {p["name"]: p["restarts"] for p in procs if p["restarts"]},
             "burnin_s": ev.get("burnin_s"),
@@ -189,8 +190,10 @@ def format_report(s: dict[str, Any]) -> str:
     lines.append(f"  delivered     {pct(s.get('delivered_fraction'))} of the messages sent over the radio")
     scale, dropped = s.get("time_scale"), s.get("skipped_frames")
     if scale == "auto" and s.get("achieved_time_scale") is not None:
+        gone_on = s.get("waits_timed_out") or 0
+        every = f"{gone_on:.0f} frames went on without a silent service" if gone_on else "every frame processed"
         lines.append(
-            f"  time scale    auto: {s['achieved_time_scale']:.2f} achieved, every frame processed "
+            f"  time scale    auto: {s['achieved_time_scale']:.2f} achieved, {every} "
             f"(the clock paused {s.get('paused_s') or 0:.1f} s for the services)"
         )
     elif scale is not None and scale != "auto":
