@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -39,6 +40,12 @@ class SimClock:
     the world's own limits (``time_scale`` in [TIME_SCALE_MIN, TIME_SCALE_MAX], an epoch after 1970
     that fits int64) is ignored: attachments are unauthenticated, and a time scale of 1e-300 made
     every conversion overflow.
+
+    The adaptive clock (``--time-scale auto``) pauses while a service is behind: the world then moves
+    its epoch forward, and its attachments carry ``t_next``, the scenario time of its next frame, which
+    the clock does not pass before that frame is out. So ``now`` is capped at ``t_next``: during a pause
+    a message received is not stamped seconds ahead of the frames (the host refused such messages as
+    stale), and the epoch kept is the latest (a message relayed late carries an older one).
     """
 
     TIME_SCALE_MIN, TIME_SCALE_MAX = 1e-3, 100.0
@@ -46,6 +53,7 @@ class SimClock:
     def __init__(self) -> None:
         self.epoch_wall_ns: int | None = None
         self.time_scale: float | None = None
+        self.t_next: float | None = None
 
     def update(self, att: Mapping[str, Any]) -> bool:
         e, s = att.get("epoch_wall_ns"), att.get("time_scale")
@@ -55,7 +63,11 @@ class SimClock:
             and type(s) in (int, float)
             and self.TIME_SCALE_MIN <= s <= self.TIME_SCALE_MAX  # not inf, nan
         ):
-            self.epoch_wall_ns, self.time_scale = e, float(s)
+            if self.epoch_wall_ns is None or e >= self.epoch_wall_ns:
+                self.epoch_wall_ns, self.time_scale = e, float(s)
+            t_next = att.get("t_next")
+            if type(t_next) in (int, float) and math.isfinite(t_next):
+                self.t_next = float(t_next) if self.t_next is None else max(self.t_next, float(t_next))
             return True
         return False
 
@@ -68,7 +80,8 @@ class SimClock:
         if self.epoch_wall_ns is None or self.time_scale is None:
             return None
         wall_ns = time.time_ns() if wall_ns is None else wall_ns
-        return (wall_ns - self.epoch_wall_ns) * 1e-9 * self.time_scale
+        t = (wall_ns - self.epoch_wall_ns) * 1e-9 * self.time_scale
+        return t if self.t_next is None else min(t, self.t_next)
 
     def wall_ns(self, t: float) -> int | None:
         """Wall time (ns) at which scenario time ``t`` happened."""
@@ -78,6 +91,4 @@ class SimClock:
 
     def fields(self) -> dict[str, Any]:
         """The clock fields to forward in an attachment."""
-        return {"epoch_wall_ns": self.epoch_wall_ns, "time_scale": self.time_scale}
-
-
+        return {"epoch_wall_ns": self.epoch_wall_ns, "time_scale": self.time_scale, "t_next": self.t_next}

@@ -248,7 +248,9 @@ def main(s: WorldSettings) -> int:
             lag = (now - due) * 1e-9
             if lag > world.dt / s.time_scale:
                 fig["late_frames"] += 1
-            att = make_attachment(t_wall_ns=now, epoch_wall_ns=pacer.epoch_wall_ns, time_scale=s.time_scale)
+            att = make_attachment(
+                t_wall_ns=now, epoch_wall_ns=pacer.epoch_wall_ns, time_scale=s.time_scale, t_next=pacer.t(k + 1)
+            )
             for vid, payload in payloads.items():
                 pubs[vid].put(payload, attachment=att)
             truth_pub.put(truth, attachment=att)

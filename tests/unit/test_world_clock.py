@@ -63,3 +63,20 @@ def test_fleet_time_scale_is_auto_by_default_and_the_other_services_get_slope_1(
     for bad in (0.0, 1000.0, "fast"):
         with pytest.raises(ValueError):
             FleetParams(time_scale=bad)
+
+
+def test_a_service_clock_does_not_run_ahead_of_a_paused_world() -> None:
+    """While the world's clock pauses, a message received is stamped no later than the next frame's time:
+    the host refused messages stamped seconds ahead as stale."""
+    from services.runtime import SimClock
+
+    epoch = 10**18
+    c = SimClock()
+    assert c.update({"epoch_wall_ns": epoch, "time_scale": 1.0, "t_next": 0.5})  # frame 4 out, 0.5 next
+    assert c.now(epoch + 300_000_000) == pytest.approx(0.3)
+    assert c.now(epoch + 3_000_000_000) == 0.5  # 3 s of wall time into a pause: still before frame 5
+    c.update({"epoch_wall_ns": epoch + 2_500_000_000, "time_scale": 1.0, "t_next": 0.6})  # frame 5, 2.5 s late
+    assert c.now(epoch + 3_000_000_000) == pytest.approx(0.5)
+    c.update({"epoch_wall_ns": epoch, "time_scale": 1.0, "t_next": 0.5})  # a late relay of an older frame
+    assert c.epoch_wall_ns == epoch + 2_500_000_000 and c.t_next == 0.6  # the newest clock is kept
+    assert c.fields() == {"epoch_wall_ns": epoch + 2_500_000_000, "time_scale": 1.0, "t_next": 0.6}
