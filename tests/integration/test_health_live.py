@@ -39,6 +39,7 @@ def test_a_cold_start_is_starting_and_a_replay_that_ended_is_finished(tmp_path, 
     state = json.loads((run_dir / "state.json").read_text())
     endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
     seen: list[tuple[float, int, dict[str, str]]] = []  # (scenario time, exit code, states)
+    health_notes: dict[str, str | None] = {}  # why a service was not healthy
     session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
     try:
         # `mapc health` itself at once (a call takes a second or more), then polled in process
@@ -54,6 +55,7 @@ def test_a_cold_start_is_starting_and_a_replay_that_ended_is_finished(tmp_path, 
             if t >= 10.0:
                 break
             seen.append((t, exit_code(views), {f"{v.role}/{v.id}": v.state for v in views}))
+            health_notes.update({f"{v.role}/{v.id}": v.status and v.status.last_error for v in views if v.state not in HEALTHY})
             time.sleep(0.2)
     finally:
         session.close()
@@ -63,7 +65,8 @@ def test_a_cold_start_is_starting_and_a_replay_that_ended_is_finished(tmp_path, 
     assert down.stdout.startswith(f"fleet {fleet_name}: paper-urban, distributed, network dsrc;"), down.stdout
     assert "RMSE whole run" in down.stdout and "  objects " in down.stdout, down.stdout
     assert len(seen) >= 5, seen
-    assert all(rc == 0 for _, rc, _ in seen), [s for s in seen if s[1] != 0]
+    unhealthy = [(t, {k: st for k, st in states.items() if st not in HEALTHY}) for t, rc, states in seen if rc != 0]
+    assert not unhealthy, (unhealthy, health_notes)
     assert all(set(states.values()) <= HEALTHY for _, _, states in seen)
     starting = [k for _, _, states in seen for k, st in states.items() if st == "starting"]
     assert any(k.startswith("vehicle/") for k in starting), seen  # cold starts search for their poses
