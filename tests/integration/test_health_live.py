@@ -55,7 +55,8 @@ def test_a_cold_start_is_starting_and_a_replay_that_ended_is_finished(tmp_path, 
             if t >= 10.0:
                 break
             seen.append((t, exit_code(views), {f"{v.role}/{v.id}": v.state for v in views}))
-            health_notes.update({f"{v.role}/{v.id}": v.status and v.status.last_error for v in views if v.state not in HEALTHY})
+            bad = [v for v in views if v.state not in HEALTHY]
+            health_notes.update({f"{v.role}/{v.id}": v.status and v.status.last_error for v in bad})
             time.sleep(0.2)
     finally:
         session.close()
