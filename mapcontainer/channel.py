@@ -1,4 +1,4 @@
-"""V2X link model: loss, bandwidth queue, latency and jitter per directed link (DESIGN.md §5).
+"""V2X link model: loss, bandwidth queue, latency and jitter per directed link (docs/architecture.md, "The V2X channel").
 
 A pure core: no I/O, no threads, no clock. Time is always an argument (seconds, any epoch), so the
 same :class:`Channel` runs on the simulated clock of ``pipeline.py`` and on wall-clock seconds in the

@@ -3,24 +3,39 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import math
 import os
 import sys
-import time
 from pathlib import Path
 
 from . import jsonout
+from .cliargs import (
+    Parser,
+    config_dir_arg,
+    fleet_name,
+    fleet_sizes,
+    non_negative_int,
+    non_negative_seconds,
+    output_dir,
+    positive_days,
+    positive_float,
+    positive_int,
+    seconds,
+    vehicle_ids,
+)
 from .config import ConfigError
+from .map_cli import add_map_commands
 from .seeds import EVAL_SEED0
 
 __all__ = [
+    "build_parser",
     "fleet_name",
     "main",
     "non_negative_int",
     "non_negative_seconds",
     "output_dir",
+    "positive_float",
     "positive_int",
+    "run",
     "seconds",
     "vehicle_ids",
 ]
@@ -71,132 +86,6 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         summary = record_episode(world, args.duration if args.duration is not None else sc.duration_s, Path(args.out))
     print(jsonout.dumps(summary))
     return 0
-
-
-def _import_args(args: argparse.Namespace):
-    """The reader's options from the command line; ConfigError for options that do not fit the format."""
-    from .hdmap.formats import detect_format
-    from .hdmap.sumo import PlacementRule
-
-    fmt = detect_format(Path(args.file)) if args.format == "auto" else args.format
-    if args.additional is not None and fmt != "sumo":
-        raise ConfigError(f"--additional (SUMO POIs) needs a SUMO network, {args.file} is read as {fmt}")
-    for flag, value in (("--origin", args.origin), ("--projector", args.projector)):
-        if value is not None and fmt != "lanelet2":
-            raise ConfigError(f"{flag} is for Lanelet2 maps, {args.file} is read as {fmt}")
-    return fmt, PlacementRule(seed=args.seed)
-
-
-def _read_map(args: argparse.Namespace):
-    from .hdmap.formats import read_any_map
-
-    fmt, rule = _import_args(args)
-    return read_any_map(args.file, fmt, rule, args.additional, args.origin, args.projector or "local")
-
-
-def _cmd_map_import(args: argparse.Namespace) -> int:
-    from .hdmap.io import save_map
-    from .sim.render import render_map
-
-    t0 = time.perf_counter()
-    imported = _read_map(args)
-    import_s = time.perf_counter() - t0
-    name = imported.hdmap.name
-    args.out.mkdir(parents=True, exist_ok=True)
-    geojson = save_map(imported.hdmap, args.out / f"{name}.geojson", imported.origin)
-    png = args.out / f"{name}.png"
-    render_map(png, imported.hdmap, f"{name} ({imported.source.split(':', 1)[0]})")
-    doc = {**imported.summary(), "import_s": round(import_s, 3), "geojson": str(geojson), "png": str(png)}
-    print(jsonout.dumps(doc))
-    return 0
-
-
-def _cmd_map_show(args: argparse.Namespace) -> int:
-    from .sim.render import render_map
-
-    imported = _read_map(args)
-    png = args.out if args.out is not None else Path.cwd() / f"{imported.hdmap.name}.png"
-    png.parent.mkdir(parents=True, exist_ok=True)
-    render_map(png, imported.hdmap, f"{imported.hdmap.name} ({imported.source.split(':', 1)[0]})")
-    print(jsonout.dumps({**imported.summary(), "png": str(png)}))
-    return 0
-
-
-def _cmd_map_export(args: argparse.Namespace) -> int:
-    from .hdmap.io import MapOrigin, save_map
-
-    if args.scenario is not None:
-        from .sim.config import load_scenario
-        from .sim.maps import world_map
-
-        hdmap, origin = world_map(load_scenario(args.scenario)), None
-    else:
-        from .hdmap.formats import read_any_map
-
-        imported = read_any_map(args.map)
-        hdmap, origin = imported.hdmap, imported.origin
-    origin = args.origin or origin
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    if args.format == "geojson":
-        print(jsonout.dumps({"out": str(save_map(hdmap, args.out, origin)), "features": hdmap.feature_counts()}))
-        return 0
-    from .hdmap.lanelet import export_lanelet2
-
-    doc = export_lanelet2(hdmap, args.out, origin if isinstance(origin, MapOrigin) else None, args.projector)
-    print(jsonout.dumps(doc))
-    return 0
-
-
-def origin_arg(text: str):
-    """``LAT,LON[,ALT]`` in degrees (WGS84) and metres: the geodetic position of the map origin."""
-    from .hdmap.io import MapOrigin
-
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not LAT,LON[,ALT]: {text!r}") from None
-    if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(f"not LAT,LON[,ALT]: {text!r}")
-    if not (-90 <= values[0] <= 90 and -180 <= values[1] <= 180):
-        raise argparse.ArgumentTypeError(f"latitude or longitude out of range: {text!r}")
-    return MapOrigin(*values)
-
-
-def output_file(value: str) -> Path:
-    """An output file whose directory exists (or can be made) and is writable; absolute."""
-    path = Path(value).expanduser().resolve()
-    if path.is_dir():
-        raise argparse.ArgumentTypeError(f"{value} is a directory, expected a file name")
-    output_dir(str(path.parent))
-    return path
-
-
-MAP_FORMATS = ("geojson", "sumo", "lanelet2")  # mapcontainer.hdmap.formats.FORMATS, not imported to build the parser
-
-
-def _add_map_reader_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file", help="a map: our GeoJSON, a SUMO network (.net.xml, .net.xml.gz) or a Lanelet2 .osm file")
-    p.add_argument("--format", choices=("auto", *MAP_FORMATS), default="auto", help="default: from the name or content")
-    p.add_argument(
-        "--seed", type=non_negative_int, default=0, help="SUMO: seed of the lamp and sign placement rule (default 0)"
-    )
-    p.add_argument(
-        "--additional",
-        default=None,
-        help="SUMO: an additional file whose POIs give lamps, traffic lights and signs (replacing the rule's)",
-    )
-    p.add_argument(
-        "--origin",
-        type=origin_arg,
-        default=None,
-        help="Lanelet2: LAT,LON[,ALT] of the map origin (default: the file's first node)",
-    )
-    p.add_argument(
-        "--projector",
-        choices=("local", "utm"),
-        default=None,
-        help="Lanelet2: local east-north-up at the origin (default) or UTM minus the origin's UTM position",
-    )
 
 
 def _cmd_schemas_export(args: argparse.Namespace) -> int:
@@ -399,67 +288,8 @@ def _cmd_experiment_faults(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bounded(parse: type, low: float, strict: bool, unit: str = ""):
-    """An argparse type: ``parse(text)``, finite (inf or nan used to fail deep inside a run) and
-    above ``low`` (``strict``) or at least ``low``."""
-
-    def check(text: str):
-        try:
-            value = parse(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not {'an integer' if parse is int else 'a number'}: {text!r}") from None
-        if not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-        if value < low or (strict and value == low):
-            raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {low:g}{unit}, got {text}")
-        return value
-
-    return check
-
-
-seconds = _bounded(float, 0, strict=True, unit=" s")
-non_negative_seconds = _bounded(float, 0, strict=False, unit=" s")
-positive_int = _bounded(int, 1, strict=False)
-non_negative_int = _bounded(int, 0, strict=False)
-positive_days = _bounded(float, 0, strict=True, unit=" days")
-positive_float = _bounded(float, 0, strict=True)
-
-
-def fleet_sizes(text: str) -> list[int]:
-    """``2,4,8``: two or more distinct fleet sizes, each at least 1."""
-    try:
-        sizes = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a list of integers: {text!r}") from None
-    if len(set(sizes)) < 2 or min(sizes) < 1:
-        raise argparse.ArgumentTypeError(f"need two or more different sizes, each >= 1, got {text!r}")
-    return sizes
-
-
-def vehicle_ids(text: str) -> list[str]:
-    """``cv0,cv1,...``: distinct ids (letters, digits, '_' or '-'), none of them ``ca``."""
-    from schemas.topics import is_chunk
-
-    ids = [v.strip() for v in text.split(",") if v.strip()]
-    bad = [v for v in ids if not is_chunk(v) or v == "ca"]
-    if not ids or bad:
-        raise argparse.ArgumentTypeError(f"not a list of vehicle ids: {', '.join(map(repr, bad)) or repr(text)}")
-    if len(set(ids)) != len(ids):
-        raise argparse.ArgumentTypeError(f"a vehicle id is repeated in {text!r}")
-    return ids
-
-
-def fleet_name(text: str) -> str:
-    """A fleet name: one key chunk of the topics (letters, digits, '_' or '-')."""
-    from schemas.topics import is_chunk
-
-    if not is_chunk(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a fleet name (letters, digits, '_' or '-')")
-    return text
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="mapc",
         description="Map Container: map-based cooperative perception over V2X",
         epilog="Presets (scenarios/, network/, sensors/, manifests/ of YAML files) are looked up in --config-dir "
@@ -689,34 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
     ef.add_argument("--quiet", action="store_true", help="no progress bar")
     ef.set_defaults(func=_cmd_experiment_faults)
 
-    mp = sub.add_parser(
-        "map", help="HD maps: import SUMO and Lanelet2 maps, draw any map, export a scenario's map"
-    ).add_subparsers(dest="sub", required=True)
-    mi = mp.add_parser(
-        "import",
-        help="read a SUMO network or Lanelet2 map (the roads extra) or our GeoJSON; write NAME.geojson and NAME.png",
-    )
-    _add_map_reader_args(mi)
-    mi.add_argument("--out", required=True, type=output_dir, help="output directory")
-    mi.set_defaults(func=_cmd_map_import)
-    ms = mp.add_parser("show", help="draw any supported map as a PNG")
-    _add_map_reader_args(ms)
-    ms.add_argument("--out", type=output_file, default=None, help="the PNG (default: ./NAME.png)")
-    ms.set_defaults(func=_cmd_map_show)
-    me = mp.add_parser("export", help="write a scenario's map (or any supported map) as Lanelet2 OSM or our GeoJSON")
-    src = me.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scenario", default=None, help="a scenario preset (mapc scenario list) or YAML file")
-    src.add_argument("--map", default=None, help="a map file of any supported format")
-    me.add_argument("--format", choices=("lanelet2", "geojson"), required=True)
-    me.add_argument("--out", required=True, type=output_file, help="the file to write")
-    me.add_argument(
-        "--origin",
-        type=origin_arg,
-        default=None,
-        help="LAT,LON[,ALT] of the map origin (default: the map's own, else 49.0,8.4 for Lanelet2)",
-    )
-    me.add_argument("--projector", choices=("local", "utm"), default="local", help="Lanelet2 projector")
-    me.set_defaults(func=_cmd_map_export)
+    add_map_commands(sub)
 
     sch = sub.add_parser("schemas", help="the wire contract").add_subparsers(dest="sub", required=True)
     ex = sch.add_parser("export", help="write JSON Schema files (default: schemas/json/)")
@@ -739,36 +542,6 @@ def build_parser() -> argparse.ArgumentParser:
     ki.add_argument("--force", action="store_true", help="replace credentials already in --out")
     ki.set_defaults(func=_cmd_keys_init)
     return p
-
-
-def config_dir_arg(value: str) -> Path:
-    """``--config-dir``: an existing directory, absolute (the services the launcher starts inherit it)."""
-    path = Path(value).expanduser().resolve()
-    if not path.is_dir():
-        raise argparse.ArgumentTypeError(f"{value} is not a directory")
-    return path
-
-
-def output_dir(value: str) -> Path:
-    """An ``--out`` directory, absolute (fleets run elsewhere write into it), checked before any work
-    is done: a file of that name, or a place where no directory can be made, used to fail only after
-    the whole run, losing it. A directory that does not exist yet is made and removed again (a probe:
-    a command refused later leaves nothing behind)."""
-    path = Path(value).expanduser().resolve()
-    if path.exists() and not path.is_dir():
-        raise argparse.ArgumentTypeError(f"{value} exists and is not a directory")
-    missing = [p for p in (path, *path.parents) if not p.exists()]  # deepest first
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        if not os.access(path, os.W_OK | os.X_OK):
-            raise PermissionError(13, "Permission denied")
-    except OSError as exc:
-        raise argparse.ArgumentTypeError(f"cannot write into {value}: {exc.strerror}") from None
-    finally:
-        for d in missing:
-            with contextlib.suppress(OSError):
-                d.rmdir()
-    return path
 
 
 def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:

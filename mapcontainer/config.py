@@ -112,10 +112,30 @@ def validate_model(model: type[M], data: dict[str, Any], source: Path | str) -> 
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise config_error(exc, source) from None
+        raise config_error(exc, source, data) from None
 
 
-def config_error(exc: ValidationError, source: Path | str) -> ConfigError:
-    """A pydantic validation error as a ConfigError: one line per field, naming ``source``."""
-    lines = [f"{'.'.join(map(str, e['loc'])) or '<root>'}: {e['msg']}" for e in exc.errors()]
+def path_in_file(loc: tuple, data: Any) -> tuple:
+    """A validation error's location as the file spells it: pydantic puts the tag of the union member it
+    tried into the location (``map.procedural.lenght_m``), where the file says ``map.lenght_m``. The
+    location is followed through ``data``; a part that is not there, before the last, is such a tag."""
+    out, cur = [], data
+    for i, part in enumerate(loc):
+        if isinstance(cur, dict) and part in cur:
+            cur = cur[part]
+        elif isinstance(cur, list) and isinstance(part, int) and 0 <= part < len(cur):
+            cur = cur[part]
+        elif i < len(loc) - 1 and isinstance(cur, (dict, list)):
+            continue  # a union member's tag, not in the file
+        else:
+            cur = None
+        out.append(part)
+    return tuple(out)
+
+
+def config_error(exc: ValidationError, source: Path | str, data: Any = None) -> ConfigError:
+    """A pydantic validation error as a ConfigError: one line per field, named as in ``data`` (what was
+    validated, when given), naming ``source``."""
+    locs = [e["loc"] if data is None else path_in_file(e["loc"], data) for e in exc.errors()]
+    lines = [f"{'.'.join(map(str, loc)) or '<root>'}: {e['msg']}" for loc, e in zip(locs, exc.errors(), strict=True)]
     return ConfigError(f"{source} is not a valid {exc.title}:\n  " + "\n  ".join(lines))

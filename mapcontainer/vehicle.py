@@ -183,8 +183,9 @@ class VehicleAgent:
         return res
 
     def health(self) -> tuple[str, str | None]:
-        """("ok", None) or ("degraded", why): degraded while the vehicle does not know where it is (after a gap,
-        a restart or a reset, until relocalized) or is not map-matched for long (:mod:`.localization.health`).
+        """("ok", None), ("starting", why) or ("degraded", why): starting while it searches for its pose in its
+        cold start, degraded while it does not know where it is (after a gap, a restart or a reset, until
+        relocalized) or is not map-matched for long (:mod:`.localization.health`).
         Its own time is the newest step's; before the first step, "ok"."""
         return verdict(self.pose_health, self.health_params)
 

@@ -133,6 +133,12 @@ class Envelope(_Model):
     time_scale: float | None = Field(
         None, ge=MIN_TIME_SCALE, le=MAX_TIME_SCALE, description="live fleets: scenario seconds per wall second"
     )
+    t_next: float | None = Field(
+        None,
+        ge=-MAX_TIME_S,
+        le=MAX_TIME_S,
+        description="live fleets on the adaptive clock: scenario time of the world's next frame (clocks stop there)",
+    )
 
 
 # --------------------------------------------------------------------------------- parts
@@ -419,7 +425,12 @@ class HealthStatus(Envelope):
     """Every service -> health CLI: periodic status and the reply to a health query."""
 
     role: str = Field(pattern=NAME_PATTERN)
-    state: Literal["ok", "degraded", "failed"]
+    state: Literal["ok", "finished", "starting", "degraded", "failed"] = Field(
+        description="ok; finished (its input ended with its source: the world finished, a replay ended); "
+        "starting (a cold start's expected period); degraded; failed. The first three are healthy. "
+        "finished and starting are new in schema_version 4's health messages (2026-12): a reader that "
+        "does not know them should take them as ok"
+    )
     uptime_s: float = Field(ge=0)
     msgs_in_per_s: float = Field(0.0, ge=0)
     msgs_out_per_s: float = Field(0.0, ge=0)

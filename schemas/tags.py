@@ -136,7 +136,8 @@ TAGS: dict[str, int] = {
     # Envelope (added): the world's clock of a live fleet
     "epoch_wall_ns": 97,
     "time_scale": 98,
-    # new fields: next tag 99
+    "t_next": 99,
+    # new fields: next tag 100
 }
 
 

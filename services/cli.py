@@ -18,6 +18,7 @@ import json
 import os
 import sys
 import time
+from pathlib import Path
 
 from mapcontainer.cli import build_parser, positive_int, run, seconds
 
@@ -98,16 +99,22 @@ def _cmd_fleet_status(args: argparse.Namespace) -> int:
 
 def _cmd_fleet_down(args: argparse.Namespace) -> int:
     from .launcher.control import down, to_stop
+    from .launcher.report import format_report
 
     fleets, refused = to_stop(args.fleet, every=args.all)
     if refused:
         print(f"mapc: {refused}", file=sys.stderr)
     rc, results = (2, []) if refused else down(fleets, timeout_s=args.timeout)
+    for r in results:  # the run's closing table, as `mapc fleet up` prints it in the foreground
+        report = Path(r["run_dir"]) / "report.json"
+        r["summary"] = json.loads(report.read_text()).get("summary") if report.is_file() else None
     if args.json:
         print(json.dumps(results))
     elif not results and not refused:
         print("no fleet is running")
     for r in results if not args.json else []:
+        if r["summary"]:
+            print(format_report(r["summary"]))
         left = f"; STILL RUNNING: {', '.join(r['left'])}" if r["left"] else "; no process left"
         swept = f"; killed leftovers: {', '.join(r['swept'])}" if r["swept"] else ""
         print(f"fleet {r['fleet']} down ({r['run_dir']}){swept}{left}")
@@ -315,7 +322,10 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
     dn.add_argument("--json", action="store_true")
     dn.set_defaults(func=_cmd_fleet_down)
 
-    h = sub.add_parser("health", help="every service's health (exit 0 all ok, 1 degraded/missing, 2 nothing answers)")
+    h = sub.add_parser(
+        "health",
+        help="every service's health (exit 0: ok, starting or finished; 1 degraded/missing; 2 nothing answers)",
+    )
     h.add_argument("--fleet", default=None, help="fleet name (default: the one running fleet)")
     h.add_argument("--connect", action="append", default=None, help="a Zenoh endpoint of the fleet")
     h.add_argument(

@@ -2,9 +2,11 @@
 
 Used by ``mapc health`` and by the launcher. A service is *alive* while its liveliness token
 ``mc/{fleet}/alive/{role}/{id}`` exists; its status comes from the queryable on
-``mc/{fleet}/health/{role}/{id}``. Exit codes of ``mapc health``: 0 every service answers ``ok``
-(and every expected one is there), 1 any degraded/failed/unanswered or expected-but-missing,
-2 nothing answers at all.
+``mc/{fleet}/health/{role}/{id}``. Exit codes of ``mapc health``: 0 every service answers a healthy
+state (``ok``, ``starting`` in a cold start's expected period, ``finished`` when its input ended with
+the run) and every expected one is there, 1 any degraded/failed/unanswered or expected-but-missing,
+2 nothing answers at all. The table fits 100 columns (one line per service, its reason or refusals
+cut to fit); ``--json`` has every figure.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import dataclass
 
 from schemas import HealthStatus, decode
 from schemas.topics import topic
+from services.runtime import HEALTHY_STATES
 
 __all__ = ["ServiceView", "alive_services", "exit_code", "fleet_health", "format_table", "split_key"]
 
@@ -26,15 +29,13 @@ class ServiceView:
     role: str
     id: str
     alive: bool
-    state: str  # ok | degraded | failed | missing (expected, no token) | unresponsive (token, no reply)
+    state: str  # a HealthStatus state | missing (expected, no token) | unresponsive (token, no reply)
     status: HealthStatus | None = None
 
     def to_json(self) -> dict:
         d = {"role": self.role, "id": self.id, "alive": self.alive, "state": self.state}
         if self.status is not None:
-            st = self.status.model_dump(
-                mode="json", exclude={"schema_version", "fleet", "sender", "role", "state"}
-            )
+            st = self.status.model_dump(mode="json", exclude={"schema_version", "fleet", "sender", "role", "state"})
             d.update(st)
         return d
 
@@ -96,30 +97,47 @@ def fleet_health(
 def exit_code(views: list[ServiceView]) -> int:
     if not any(v.alive or v.status is not None for v in views):
         return 2
-    return 0 if all(v.state == "ok" for v in views) else 1
+    return 0 if all(v.state in HEALTHY_STATES for v in views) else 1
+
+
+TABLE_WIDTH = 100
 
 
 def _fmt(x: float | None, spec: str = ".1f") -> str:
     return "-" if x is None else format(x, spec)
 
 
+def _note(v: ServiceView) -> str:
+    """What a person reads first: the reason of a state that is not ok, else the refusals counted."""
+    s = v.status
+    if s is None:
+        return "no health token" if v.state == "missing" else "alive, does not answer"
+    if v.state != "ok" and s.last_error:
+        return s.last_error
+    return ("rejected " + ", ".join(f"{k} {n}" for k, n in sorted(s.rejects.items()))) if s.rejects else ""
+
+
 def format_table(views: list[ServiceView], fleet: str) -> str:
-    head = (
-        f"{'role':<10} {'id':<10} {'state':<12} {'uptime':>7} {'in/s':>6} {'out/s':>6} {'kB/s in':>8} "
-        f"{'kB/s out':>8} {'p50 ms':>7} {'p99 ms':>7}  rejects / last error / figures"
-    )
-    lines = [f"fleet {fleet}: {len(views)} services at {time.strftime('%H:%M:%S')}", head]
+    """One line per service, at most :data:`TABLE_WIDTH` columns (the note is cut; ``--json`` has it all)."""
+    head = f"{'service':<16} {'state':<9} {'up':>5} {'in/s':>6} {'out/s':>6} {'kB/s':>6} {'p99 ms':>7}  note"
+    lines = [
+        f"fleet {fleet}: {len(views)} services at {time.strftime('%H:%M:%S')} (mapc health --json: all figures)",
+        head,
+    ]
     for v in views:
         s = v.status
+        name = f"{v.role}/{v.id}" if v.id != v.role else v.role
         if s is None:
-            lines.append(f"{v.role:<10} {v.id:<10} {v.state:<12}")
-            continue
-        rej = ",".join(f"{k}={n}" for k, n in sorted(s.rejects.items()))
-        figs = " ".join(f"{k}={val:.3g}" for k, val in list(sorted(s.figures.items()))[:8])
-        extra = "  ".join(x for x in (rej, s.last_error or "", figs) if x)
-        lines.append(
-            f"{v.role:<10} {v.id:<10} {v.state:<12} {s.uptime_s:>6.0f}s {s.msgs_in_per_s:>6.1f} "
-            f"{s.msgs_out_per_s:>6.1f} {s.bytes_in_per_s / 1e3:>8.1f} {s.bytes_out_per_s / 1e3:>8.1f} "
-            f"{_fmt(s.latency_ms_p50):>7} {_fmt(s.latency_ms_p99):>7}  {extra}"
-        )
+            row = f"{name:<16.16} {v.state:<9} {'':>5} {'':>6} {'':>6} {'':>6} {'':>7}"
+        else:
+            kb = (s.bytes_in_per_s + s.bytes_out_per_s) / 1e3
+            row = (
+                f"{name:<16.16} {v.state:<9} {s.uptime_s:>4.0f}s {s.msgs_in_per_s:>6.1f} {s.msgs_out_per_s:>6.1f} "
+                f"{kb:>6.1f} {_fmt(s.latency_ms_p99):>7}"
+            )
+        note = _note(v)
+        room = TABLE_WIDTH - len(row) - 2
+        if len(note) > room:
+            note = note[: room - 3] + "..."
+        lines.append(f"{row}  {note}".rstrip())
     return "\n".join(lines)

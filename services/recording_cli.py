@@ -12,9 +12,9 @@ import os
 import sys
 from pathlib import Path
 
-from mapcontainer.cli import _bounded
+from mapcontainer.cliargs import bounded
 
-positive_float = _bounded(float, 0, strict=True)
+positive_float = bounded(float, 0, strict=True)
 
 __all__ = ["add_recording_commands"]
 
@@ -57,6 +57,8 @@ def _login_settings(connect: list[str], entry: dict | None):
 def _cmd_record(args: argparse.Namespace) -> int:
     if args.sub == "info":
         return _cmd_record_info(args)
+    if args.sub == "export":
+        return _cmd_record_export(args)
     if not args.out:
         return _fail("record: give --out FILE (or `mapc record info FILE`)")
     found = _fleet_endpoints(args.fleet, args.connect)
@@ -114,6 +116,28 @@ def _cmd_record_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_record_export(args: argparse.Namespace) -> int:
+    from mapcontainer.recording import RecordingError
+    from mapcontainer.recording.ros2 import export_ros2
+
+    path = Path(args.file)
+    if not path.is_file():
+        return _fail(f"{path}: no such file")
+    try:
+        doc = export_ros2(path, Path(args.out))
+    except RecordingError as exc:
+        return _fail(str(exc))
+    if args.json:
+        print(json.dumps(doc))
+        return 0
+    print(f"{doc['bag']}: a ROS 2 bag (MCAP storage), {doc['messages']} messages, fused states of host {doc['host']}")
+    for t in doc["topics"]:
+        print(f"  {t['topic']:<40} {t['type']:<48} {t['messages']:>6}")
+    for what, n in doc["skipped"].items():
+        print(f"  not exported: {n} on {what}")
+    return 0
+
+
 def _print_info(doc: dict, as_json: bool) -> None:
     if as_json:
         print(json.dumps(doc))
@@ -125,13 +149,19 @@ def _print_info(doc: dict, as_json: bool) -> None:
     else:
         state = f"INCOMPLETE (read up to the last whole chunk: {doc['stopped']})"
     rate = f", {doc['mb_per_min']:.2f} MB/min" if doc["mb_per_min"] else ""
+    kinds = doc["channels_by_kind"]
     print(
-        f"{doc['file']}: {state}; {doc['duration_s']:.1f} s, {doc['keys']} keys, {doc['messages']} messages, "
-        f"{doc['payload_bytes'] / 1e6:.2f} MB of payload, file {doc['file_bytes'] / 1e6:.2f} MB{rate}"
+        f"{doc['file']}: {state}; {doc['duration_s']:.1f} s, file {doc['file_bytes'] / 1e6:.2f} MB{rate}\n"
+        f"  {doc['keys']} fleet keys: {doc['messages']} messages, {doc['payload_bytes'] / 1e6:.2f} MB of payload\n"
+        f"  {len(doc['channels'])} channels: {kinds['key']} keys, {kinds['attachment']} of their Zenoh attachments "
+        f"(<key>#attachment), {kinds['viz']} for visualization (/viz/...)"
     )
-    print(f"  {'channel':<52} {'messages':>8} {'bytes':>11}  schema")
+    print(f"  {'channel':<52} {'kind':<10} {'messages':>8} {'bytes':>11}  schema")
     for c in doc["channels"]:
-        print(f"  {c['topic']:<52} {c['messages']:>8} {c['bytes']:>11}  {c['schema'] or '-'} ({c['message_encoding']})")
+        print(
+            f"  {c['topic']:<52} {c['kind']:<10} {c['messages']:>8} {c['bytes']:>11}  "
+            f"{c['schema'] or '-'} ({c['message_encoding']})"
+        )
     for a in doc["attachments"]:
         print(f"  attachment {a['name']} ({a['bytes']} bytes)")
     for p in doc.get("continued_in") or []:
@@ -317,6 +347,14 @@ def add_recording_commands(sub) -> None:
     ri = rsub.add_parser("info", help="channels, message counts, duration and bytes of a recording (exit 2: not one)")
     ri.add_argument("file")
     ri.add_argument("--json", action="store_true", help="one JSON object")
+    rx = rsub.add_parser("export", help="a recording in another format: --ros2 writes a ROS 2 bag (the ros extra)")
+    rx.add_argument("file", help="a recording (mapc fleet up --record, mapc record)")
+    rx.add_argument("out", help="the directory to write (must not exist)")
+    rx.add_argument(
+        "--ros2", action="store_true", required=True, help="a ROS 2 bag (MCAP storage) with standard messages"
+    )
+    rx.add_argument("--json", action="store_true", help="one JSON object")
+    rx.set_defaults(func=_cmd_record_export)
     rec.set_defaults(func=_cmd_record)
 
     rp = sub.add_parser(

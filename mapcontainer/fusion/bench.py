@@ -82,8 +82,8 @@ def bench_fusion(
     more after the run by plain GTSAM (:func:`batch_solve_ms`), a yardstick of the machine's speed at
     the time: ``batch_ms_p50`` is their median, ``cycle_over_batch`` the median over those ticks of the
     tick's cycle divided by its window's batch solve (paired: the window's size changes over the run).
-    DESIGN.md's cold batch solves (~27 ms at 4 / 14 / 10, ~450 ms at 16 / 100 / 10) started cold, so
-    they cost more than this lower bound.
+    A batch solve started cold (no previous linearization: ~27 ms at 4 / 14 / 10, ~450 ms at
+    16 / 100 / 10 on one 2.8 GHz core) costs more than this lower bound.
     """
     if vehicles < 1 or objects < 0 or window < 1 or ticks <= window or batch_samples < 0:
         raise ValueError(

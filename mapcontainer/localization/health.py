@@ -10,7 +10,9 @@ The rule folds the localizer's steps one by one (:func:`advance`, scenario time 
 * any phase but TRACKING (uninitialised, verifying a start pose, searching among hypotheses),
 
 until frames map-matched in TRACKING have followed one another for ``relocalized_s``: one
-accepted match after a search or a gap is not yet a pose. While lost the vehicle is degraded.
+accepted match after a search or a gap is not yet a pose. While lost the vehicle is degraded, except
+in its cold start: lost since its first step and never localized yet, for at most ``cold_start_s``
+after that step, it is *starting* (the expected search for its pose from GNSS in its first seconds).
 
 While tracking and not lost, frames that are not map-matched (GNSS and odometry only) are allowed
 for ``unlocalized_s``, so that single failed matches do not flicker the health; longer, it is
@@ -47,6 +49,12 @@ class PoseHealthParams(BaseModel):
         0.5, ge=0, description="a lost pose is found again after map-matched tracking frames for this long"
     )
     unlocalized_s: float = Field(3.0, gt=0, description="tracking frames not map-matched for longer: degraded")
+    cold_start_s: float = Field(
+        20.0,
+        ge=0,
+        description="a vehicle lost since its first step is starting, not degraded, this long after it "
+        "(the paper-urban fleet's slowest cold starts took about 17 s)",
+    )
 
 
 @dataclass(frozen=True)
@@ -59,6 +67,8 @@ class PoseHealth:
     gap: float | None = None  # while lost: the gap that lost it, if one did
     matched_since: float | None = None  # while lost: the first of the map-matched tracking frames since
     unmatched_since: float | None = None  # not lost: the first of the tracking frames not map-matched since
+    t_first: float | None = None  # the first step
+    localized: bool = False  # whether the pose was ever known (not lost) since the first step
 
 
 def advance(
@@ -86,14 +96,18 @@ def advance(
             unmatched_since = t
     if lost:
         unmatched_since = None
-    return PoseHealth(t, phase, lost, lost_gap, matched_since, unmatched_since)
+    t_first = t if h.t_first is None else h.t_first
+    return PoseHealth(t, phase, lost, lost_gap, matched_since, unmatched_since, t_first, h.localized or not lost)
 
 
 def verdict(h: PoseHealth, p: PoseHealthParams) -> tuple[str, str | None]:
-    """("ok", None) or ("degraded", why)."""
+    """("ok", None), ("starting", why) in the cold start's expected period, or ("degraded", why)."""
     if h.t is None:
         return "ok", None
     if h.lost:
+        state = "degraded"
+        if not h.localized and h.t_first is not None and h.t - h.t_first <= p.cold_start_s + _EPS:
+            state = "starting"
         head = "localizing" if h.gap is None else f"relocalizing after a {h.gap:.1f} s gap"
         if h.phase in _SEEKING:
             why = _SEEKING[h.phase] if h.gap is None else f"{head}: {_SEEKING[h.phase]}"
@@ -102,7 +116,9 @@ def verdict(h: PoseHealth, p: PoseHealthParams) -> tuple[str, str | None]:
         else:
             done = h.t - h.matched_since
             why = f"{head}: tracking, map-matched for {done:.1f} s of the {p.relocalized_s:g} s that confirm it"
-        return "degraded", why
+        if state == "degraded" and not h.localized:
+            why = f"{why} ({h.t - h.t_first:.0f} s after its start: longer than a cold start's {p.cold_start_s:g} s)"
+        return state, why
     if h.unmatched_since is not None and h.t - h.unmatched_since > p.unlocalized_s:
         return "degraded", f"not map-matched for {h.t - h.unmatched_since:.1f} s (GNSS-grade priors)"
     return "ok", None

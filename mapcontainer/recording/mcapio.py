@@ -380,9 +380,13 @@ def info(path: str | Path) -> dict[str, Any]:
     for cid, ch in sorted(scan.channels.items(), key=lambda kv: kv[1].topic):
         c = channels.get(cid, {"count": 0, "bytes": 0})
         schema = scan.schemas.get(ch.schema_id)
+        kind = (
+            "viz" if ch.topic.startswith("/viz/") else "attachment" if ch.topic.endswith(ATTACHMENT_SUFFIX) else "key"
+        )
         rows.append(
             {
                 "topic": ch.topic,
+                "kind": kind,
                 "messages": c["count"],
                 "bytes": c["bytes"],
                 "message_encoding": ch.message_encoding,
@@ -392,7 +396,7 @@ def info(path: str | Path) -> dict[str, Any]:
         )
     duration = (t[1] - t[0]) * 1e-9 if t[0] is not None else 0.0
     size = path.stat().st_size
-    data = [r for r in rows if not r["topic"].startswith("/viz/") and not r["topic"].endswith(ATTACHMENT_SUFFIX)]
+    data = [r for r in rows if r["kind"] == "key"]  # the fleet's Zenoh keys: what a replay publishes
     return {
         "file": str(path),
         "profile": scan.profile,
@@ -404,6 +408,7 @@ def info(path: str | Path) -> dict[str, Any]:
         "end_ns": t[1],
         "duration_s": duration,
         "keys": len(data),
+        "channels_by_kind": {k: sum(r["kind"] == k for r in rows) for k in ("key", "attachment", "viz")},
         "messages": sum(r["messages"] for r in data),
         "payload_bytes": sum(r["bytes"] for r in data),
         "records": sum(r["messages"] for r in rows),

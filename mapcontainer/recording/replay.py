@@ -484,7 +484,7 @@ def refuse(
         if not_found:
             notes.append(f"{not_found} messages the host ingested are not in the recording (the recorder missed them)")
     else:
-        clock = _Clock()
+        clock = RecordedClock()
         gate = FrameGate(known, setup.max_wait_s, reference=setup.local[0] if setup.local else None)
 
         def release(now: float) -> bool:
@@ -545,7 +545,7 @@ def refuse(
     )
 
 
-class _Clock:
+class RecordedClock:
     """The world's clock from attachments (services.runtime.SimClock's arithmetic, for recorded times)."""
 
     def __init__(self) -> None:
@@ -567,3 +567,9 @@ class _Clock:
         if self.epoch_ns is None or self.scale is None:
             return None
         return (wall_ns - self.epoch_ns) * 1e-9 * self.scale
+
+    def wall_ns(self, t: float) -> int | None:
+        """The wall time (ns) at which scenario time ``t`` happened; None until a clock was seen."""
+        if self.epoch_ns is None or self.scale is None:
+            return None
+        return int(self.epoch_ns + t / self.scale * 1e9)

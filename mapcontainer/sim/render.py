@@ -17,14 +17,32 @@ from ..hdmap.model import HDMap  # noqa: E402
 from .actors import ActorState  # noqa: E402
 from .sensors import CameraObservation  # noqa: E402
 
-__all__ = ["draw_map", "render_birdseye", "render_camera_view", "render_map"]
+__all__ = ["draw_map", "map_extent", "map_mark_sizes", "render_birdseye", "render_camera_view", "render_map"]
 
 _CLS_COLOR = {ObjectClass.PEDESTRIAN: "tab:orange", ObjectClass.VEHICLE: "tab:blue"}
 
 
-def draw_map(ax, hdmap: HDMap) -> None:
+def map_mark_sizes(m_per_pt: float | None) -> tuple[float, float]:
+    """(landmark marker size, lane line dot size), in points, for a drawing at ``m_per_pt`` metres per point
+    (None: the default sizes, for pictures of a few hundred metres).
+
+    A landmark is drawn about 2 m across and a lane line about 0.6 m wide, each within readable limits: at
+    city scale (a metre per point and more) a landmark is no bigger than a lane line, so that a district's
+    hundreds of lamps and signs do not cover its roads as one sheet of markers."""
+    if m_per_pt is None:
+        return 4.0, 0.6
+    if not m_per_pt > 0:
+        raise ValueError(f"m_per_pt must be positive, got {m_per_pt}")
+    lane = float(np.clip(0.6 / m_per_pt, 0.5, 1.5))
+    landmark = float(np.clip(2.0 / m_per_pt, 0.5, 5.0))
+    return min(landmark, lane) if m_per_pt >= 1.0 else landmark, lane
+
+
+def draw_map(ax, hdmap: HDMap, m_per_pt: float | None = None) -> None:
     """Junction and walkable areas, lane lines and landmarks on a matplotlib axis (map frame, metres); one artist
-    per kind of element (a district's thousands of areas and lines draw in a second, not one artist each)."""
+    per kind of element (a district's thousands of areas and lines draw in a second, not one artist each).
+    ``m_per_pt``: the drawing's scale, which sizes the landmarks and lane lines (:func:`map_mark_sizes`)."""
+    landmark_ms, lane_ms = map_mark_sizes(m_per_pt)
     from matplotlib.collections import PolyCollection
 
     areas = [(j.polygon, "0.93") for j in hdmap.junctions]
@@ -38,14 +56,14 @@ def draw_map(ax, hdmap: HDMap) -> None:
         pts = [ln.painted_samples(0.5)[:, :2] for ln in hdmap.lane_lines if ln.kind == kind]
         if pts:
             p = np.concatenate(pts)
-            ax.plot(p[:, 0], p[:, 1], ".", ms=0.6, color=color)
+            ax.plot(p[:, 0], p[:, 1], ".", ms=lane_ms, color=color)
     if hdmap.poles:
         b = np.array([f.base for f in hdmap.poles])
-        ax.plot(b[:, 0], b[:, 1], "o", ms=4, color="tab:green", label="lamp")
+        ax.plot(b[:, 0], b[:, 1], "o", ms=landmark_ms, mew=0, color="tab:green", label="lamp")
     for cls, marker, color in (("traffic_light", "^", "tab:red"), ("sign", "s", "tab:purple")):
         p = np.array([f.p_map for f in hdmap.points if f.cls == cls]).reshape(-1, 3)
         if len(p):
-            ax.plot(p[:, 0], p[:, 1], marker, ms=5, color=color, label=cls.replace("_", " "))
+            ax.plot(p[:, 0], p[:, 1], marker, ms=landmark_ms * 1.2, mew=0, color=color, label=cls.replace("_", " "))
 
 
 def render_birdseye(
@@ -122,28 +140,50 @@ def render_camera_view(path: Path, obs: CameraObservation, title: str) -> None:
     cv2.imwrite(str(path), img)
 
 
-def render_map(path: Path, hdmap: HDMap, title: str) -> None:
-    """A PNG of the whole map: junctions, walkable areas, lane lines (solid dark, dashed grey), lane centre
-    lines with their driving direction (faint arrows), and the landmarks."""
+def map_extent(hdmap: HDMap) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1): the rectangle the map's lines and areas cover (m)."""
     xy = [ln.points[:, :2] for ln in hdmap.lane_lines] + [w.polygon for w in hdmap.walkable]
     xy += [j.polygon for j in hdmap.junctions] + [c.points[:, :2] for c in hdmap.centerlines]
     pts = np.vstack(xy) if xy else np.zeros((1, 2))
-    span = np.ptp(pts, axis=0) + 1.0
+    (x0, y0), (x1, y1) = pts.min(axis=0), pts.max(axis=0)
+    return float(x0), float(y0), float(x1), float(y1)
+
+
+def render_map(
+    path: Path,
+    hdmap: HDMap,
+    title: str,
+    bounds: tuple[float, float, float, float] | None = None,
+    marks: dict[str, tuple[float, float]] | None = None,
+) -> None:
+    """A PNG of the map, or of the rectangle ``bounds`` (x0, y0, x1, y1 in m) of it: junctions, walkable
+    areas, lane lines (solid dark, dashed grey), lane centre lines with their driving direction (faint
+    arrows, below city scale), and the landmarks, sized for the drawing's scale (:func:`map_mark_sizes`).
+    ``marks``: labelled points (e.g. the vehicle a view is centred on)."""
+    x0, y0, x1, y1 = map_extent(hdmap) if bounds is None else bounds
+    span = np.array([x1 - x0, y1 - y0]) + 1.0
     width = 14.0
     fig, ax = plt.subplots(figsize=(width, float(np.clip(width * span[1] / span[0], 4.0, 14.0))))
+    m_per_pt = float(max(span[0] / (0.8 * width * 72), span[1] / (0.8 * fig.get_figheight() * 72)))
     for c in hdmap.centerlines:
         ax.plot(c.points[:, 0], c.points[:, 1], "-", lw=0.4, color="tab:cyan", alpha=0.6)
-        if len(c.points) >= 2 and c.polyline.length > 1.0:
+        if m_per_pt < 0.5 and len(c.points) >= 2 and c.polyline.length > 1.0:  # at city scale arrows are clutter
             mid = c.polyline.length / 2
             p, t = c.polyline.point_at(mid), c.polyline.tangent_at(mid)
             ax.annotate("", p[:2] + t[:2], p[:2], arrowprops={"arrowstyle": "->", "color": "tab:cyan", "lw": 0.6})
-    draw_map(ax, hdmap)
+    draw_map(ax, hdmap, m_per_pt)
+    for label, (mx, my) in (marks or {}).items():
+        ax.plot([mx], [my], "*", ms=12, color="tab:red")
+        ax.annotate(label, (mx, my), xytext=(6, 6), textcoords="offset points", color="tab:red", fontsize=10)
     ax.plot([], [], "-", color="tab:cyan", label="lane centre line")
+    if bounds is not None:
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
     ax.set_xlabel("x east (m)")
     ax.set_ylabel("y north (m)")
     ax.set_title(title)
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="upper right", fontsize=8, markerscale=max(1.0, 4.0 / map_mark_sizes(m_per_pt)[0]))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -43,6 +43,7 @@ from __future__ import annotations
 import atexit
 import functools
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -133,6 +134,30 @@ class _Raw:
     speed: float
 
 
+def import_libsumo():
+    """libsumo, imported without the pyarrow version warning it prints on every import.
+
+    libsumo 1.28 compares the installed pyarrow with the Arrow it was built against and prints a warning
+    to stdout when they differ; the ``view`` extra's rerun-sdk brings a newer pyarrow, so every SUMO run
+    printed it. libsumo uses Arrow only to write SUMO's Parquet outputs, which we never ask for (we step
+    it in process and read the states through its API), so the mismatch does not concern us. Its own
+    switch, ``LIBSUMO_AS_TRACI=quiet``, skips the check; set only around the import, after ``traci`` is
+    imported as itself (with the variable set, importing traci would load libsumo in its place).
+    """
+    if sys.modules.get("libsumo") is not None:
+        return sys.modules["libsumo"]
+    require("traci", "SUMO traffic")
+    old = os.environ.get("LIBSUMO_AS_TRACI")
+    os.environ["LIBSUMO_AS_TRACI"] = "quiet"
+    try:
+        return require("libsumo", "SUMO traffic")
+    finally:
+        if old is None:
+            del os.environ["LIBSUMO_AS_TRACI"]
+        else:
+            os.environ["LIBSUMO_AS_TRACI"] = old
+
+
 _ACTIVE: list[SumoTraffic] = []  # the SumoTraffic whose simulation libsumo holds (at most one)
 
 
@@ -188,7 +213,7 @@ class SumoTraffic:
     """
 
     def __init__(self, cfg: SumoTrafficConfig, hdmap: HDMap, dt: float, seed: int):
-        self._ls = require("libsumo", "SUMO traffic")
+        self._ls = import_libsumo()
         self.cfg = cfg
         self.dt = float(dt)
         self.seed = int(seed)

@@ -1,4 +1,4 @@
-"""Channel service: the V2X link emulator as an application-level relay (ZENOH.md, "Link emulation").
+"""Channel service: the V2X link emulator as an application-level relay (docs/architecture.md, "The V2X channel").
 
 Subscribes ``mc/{fleet}/v2x/tx/*/prior`` and ``.../raw``. For every receiver ``dst`` (``--receiver``,
 repeatable) the Zenoh callback only calls ``Channel.send(src, dst, payload, now)`` under a lock

@@ -175,7 +175,8 @@ class Evaluator:
         self.truth_vehicles: dict[str, Trace] = {}  # vid -> (t, x, y)
         self.truth_obstacles: dict[int, Trace] = {}  # obstacle id -> (t, x, y)
         self.tracks_fused: dict[str, Trace] = {}  # vid -> (t, x, y), NaN at gaps
-        self.fused_objects: deque[tuple[float, int, int, float, float]] = deque(maxlen=OBJECTS_RECENT)  # t, id, cls, x, y
+        # t, id, cls, x, y
+        self.fused_objects: deque[tuple[float, int, int, float, float]] = deque(maxlen=OBJECTS_RECENT)
         # per fused state: (t_meas, {vid: horizontal error m}, object RMSE m or None, coverage or None)
         self.errors = Trace()
         self.last_fused: FusedState | None = None

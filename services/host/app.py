@@ -145,14 +145,17 @@ def fusion_stall(
 
 
 def fused_lag(
-    t_now: float | None, t_fused: float | None, time_scale: float, max_lag_s: float, causes: list[str] | None = None
+    t_input: float | None, t_fused: float | None, time_scale: float, max_lag_s: float, causes: list[str] | None = None
 ) -> str | None:
     """Why the host is degraded although it fuses, or None: its newest fused state (scenario time
-    ``t_fused``) trails the world's clock ``t_now`` by more than ``max_lag_s`` wall seconds. The reason
-    names the ``causes`` seen (:func:`lag_causes`); with none, the host does not keep up with its input."""
-    if t_now is None or t_fused is None:
+    ``t_fused``) trails its newest input (received at scenario time ``t_input``) by more than ``max_lag_s``
+    wall seconds, so it does not keep up with its input (a solve slower than the frames, e.g. under a
+    flood). Measured against the input, not the world's clock: when the input ends (the world finished,
+    a replay ended) there is nothing left to keep up with. The reason names the ``causes`` seen
+    (:func:`lag_causes`); with none, the host does not keep up with its input."""
+    if t_input is None or t_fused is None:
         return None
-    lag_s = (t_now - t_fused) / time_scale
+    lag_s = (t_input - t_fused) / time_scale
     if lag_s <= max_lag_s:
         return None
     why = "; ".join(causes) if causes else "not keeping up"
@@ -254,6 +257,7 @@ def main(s: HostSettings) -> int:
 
     # the last publish (monotonic), the rejections until then, and its scenario time
     fused_at: dict[str, Any] = {"t": time.monotonic(), "rejects": {}, "t_meas": None}
+    newest_input: dict[str, float | None] = {"t": None}  # the newest input's receive time (scenario s)
     rc = 0
     with Service("host", s, figures=figures) as svc:
 
@@ -277,7 +281,7 @@ def main(s: HostSettings) -> int:
                     dict(svc.metrics.rejects),
                     fused_at["rejects"],
                 )
-                why = fused_lag(clock.now(), fused_at.get("t_meas"), s.time_scale, s.max_fused_lag_s, causes)
+                why = fused_lag(newest_input["t"], fused_at.get("t_meas"), s.time_scale, s.max_fused_lag_s, causes)
             flagged = core_stats["stats"].get("flagged_why") or {}
             if why is None and flagged:
                 why = "misbehaviour (detections not fused): " + "; ".join(
@@ -305,7 +309,9 @@ def main(s: HostSettings) -> int:
                 return
             clock.update(head)  # the world's clock from the message (a verified one on a signed fleet)
             t_recv = clock.now(msg.t_recv_wall_ns)
-            if t_recv is None:
+            if t_recv is not None:  # on the world's clock, which the fused states' times are on
+                newest_input["t"] = t_recv if newest_input["t"] is None else max(newest_input["t"], t_recv)
+            else:
                 if not warned.is_set():
                     warned.set()
                     log.warning("no world clock in the messages; receive times are seconds since start")

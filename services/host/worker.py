@@ -1,9 +1,9 @@
 """The fusion loop: the host container's core, fed through queues, run in a worker process.
 
-GTSAM holds the GIL for a whole solve (DESIGN.md §5), so the container runs in a process started
-with the ``spawn`` context (never ``fork`` after a Zenoh session is open: ZENOH.md), and the host
-service's main process only does Zenoh I/O. The same loop runs in a thread with ``--inline``
-(for comparison and debugging).
+GTSAM holds the GIL for a whole solve (docs/architecture.md, "The host"), so the container runs in a
+process started with the ``spawn`` context (never ``fork`` after a Zenoh session is open: docs/architecture.md,
+"Processes and Zenoh"), and the host service's main process only does Zenoh I/O. The same loop runs in
+a thread with ``--inline`` (for comparison and debugging).
 
 Protocol (tuples on the queues):
   inbox:  ("ingest", payload: bytes, t_recv: float) | ("stop",)

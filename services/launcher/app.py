@@ -46,10 +46,18 @@ from schemas import EvalMetrics, Rejection, decode
 from schemas.topics import topic
 
 from ..health import split_key
-from ..runtime import ZenohSettings, listening_locators, open_session, write_json, zenoh_config, zenoh_error_text
+from ..runtime import (
+    ZenohSettings,
+    listening_locators,
+    open_session,
+    time_scale_arg,
+    write_json,
+    zenoh_config,
+    zenoh_error_text,
+)
+from . import mesh, shm
 from .manifest import FleetParams, ProcessSpec, keys_dir, load_manifest, manifest_path, resolve, vehicle_ids
 from .report import console_event, down_reasons, format_report, make_summary, scenario_time, summary_line
-from . import mesh, shm
 from .supervisor import Supervisor, is_ours
 
 __all__ = [
@@ -80,6 +88,7 @@ class LauncherSettings(BaseModel):
     listen: str = "tcp/127.0.0.1:0"
     join: str | None = Field(None, description="join this router as a client instead of being the rendezvous")
     summary: bool = Field(True, description="the live line each second")
+    ros2: bool = Field(False, description="with record: also write the recording as a ROS 2 bag, <run dir>/ros2/")
     json_summary: bool = Field(False, description="end with the summary as one JSON line instead of the table")
     frozen_kill_s: float = 5.0
     drain_s: float = 2.0
@@ -182,7 +191,13 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
     p.add_argument("--fleet", default=None, help=f"fleet name, the key namespace (default {d.fleet})")
     p.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="default distributed")
     p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--time-scale", type=float, default=None, help="scenario seconds per wall second")
+    p.add_argument(
+        "--time-scale",
+        type=time_scale_arg,
+        default=None,
+        help="scenario seconds per wall second, or auto (default): as fast as real time, the world's clock "
+        "pausing while a vehicle or the host is still on the previous frame, so that every frame is processed",
+    )
     p.add_argument(
         "--no-signing",
         dest="signing",
@@ -208,6 +223,11 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         action="store_true",
         default=None,
         help="record every message of the fleet to <run dir>/recording.mcap (mapc record info, mapc replay)",
+    )
+    p.add_argument(
+        "--ros2",
+        action="store_true",
+        help="with --record: at the end also write <run dir>/ros2/, a ROS 2 bag (mapc record export --ros2)",
     )
     p.add_argument(
         "--manifest",
@@ -267,6 +287,10 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
     }
     if a.runs_dir:
         kw["runs_dir"] = a.runs_dir
+    if getattr(a, "ros2", False):
+        if not params.record:
+            raise ConfigError("--ros2 writes the recording as a ROS 2 bag: give --record too")
+        kw["ros2"] = True
     return LauncherSettings(**kw)
 
 
@@ -532,6 +556,8 @@ def run(s: LauncherSettings) -> int:
             summary = write_report(r)["summary"]
             r.write_state()
             print(json.dumps(summary) if s.json_summary else format_report(summary), flush=True)
+            if s.ros2:
+                export_bag(r.run_dir, json_line=s.json_summary)
         r.events_f.close()
         r.metrics_f.close()
         try:
@@ -542,6 +568,21 @@ def run(s: LauncherSettings) -> int:
         for sig, h in old_handlers.items():
             signal.signal(sig, h)
     return 130 if rc == 0 and r.interrupted else rc
+
+
+def export_bag(run_dir: Path, json_line: bool) -> None:
+    """The run's recording as a ROS 2 bag in ``run_dir/ros2`` (``--ros2``), and a line saying so."""
+    from mapcontainer.recording import RecordingError
+    from mapcontainer.recording.ros2 import export_ros2
+
+    rec = run_dir / "recording.mcap"
+    try:
+        doc = export_ros2(rec, run_dir / "ros2")
+    except (RecordingError, ConfigError, OSError) as exc:
+        print(f"mapc: no ROS 2 bag: {exc}", file=sys.stderr, flush=True)
+        return
+    line = json.dumps({"ros2": doc}) if json_line else f"ROS 2 bag: {doc['bag']} ({doc['messages']} messages)"
+    print(line, flush=True)
 
 
 def log_tail(path: Path, n: int) -> str:

@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .app import LauncherSettings, already_running, log_tail, make_run_dir, registry_dir
 from . import shm
+from .app import LauncherSettings, already_running, log_tail, make_run_dir, registry_dir
 from .supervisor import is_ours, kill_group, pid_alive
 
 __all__ = ["active_fleets", "detach", "down", "launcher_argv", "to_stop"]
@@ -134,6 +134,8 @@ def launcher_argv(s: LauncherSettings, run_dir: Path) -> list[str]:
     argv.append("--standby" if p.standby else "--no-standby")
     if p.record:
         argv.append("--record")
+    if s.ros2:
+        argv.append("--ros2")
     if not p.signing:
         argv.append("--no-signing")
     if p.keys is not None:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from mapcontainer.config import ConfigError, find_preset, read_yaml, validate_model
 
@@ -82,7 +82,24 @@ class FleetParams(_Strict):
     mode: Literal["distributed", "centralized"] = "distributed"
     duration_s: float | None = Field(None, gt=0, description="scenario seconds; None: until stopped")
     seed: int = Field(0, ge=0)
-    time_scale: float = Field(1.0, ge=1e-3, le=100.0)
+    time_scale: float | Literal["auto"] = Field(
+        "auto",
+        description="scenario seconds per wall second; auto: as fast as real time, the world's clock pausing "
+        "while a vehicle or the host it needs is still on the previous frame (every frame is processed)",
+    )
+
+    @field_validator("time_scale")
+    @classmethod
+    def _scale_in_range(cls, v):
+        if v != "auto" and not 1e-3 <= v <= 100.0:
+            raise ValueError(f"time_scale must be auto or in [0.001, 100], got {v}")
+        return v
+
+    @property
+    def clock_scale(self) -> float:
+        """The slope of the world's clock that the other services convert wall time with (auto: 1, with pauses)."""
+        return 1.0 if self.time_scale == "auto" else float(self.time_scale)
+
     host_id: str = Field("host", pattern=NAME)
     ego: str = Field("cv0", pattern=NAME, description="the vehicle the host container runs on")
     standby: bool = Field(False, description="run a warm standby host that takes over when the host is gone")
@@ -200,9 +217,7 @@ def _fill(template: str, values: dict[str, Any]) -> str:
     names = {f for _, f, _, _ in string.Formatter().parse(template) if f}
     unknown = names - values.keys()
     if unknown:
-        raise ConfigError(
-            f"unknown placeholder(s) {sorted(unknown)} in {template!r}; known: {sorted(values)}"
-        )
+        raise ConfigError(f"unknown placeholder(s) {sorted(unknown)} in {template!r}; known: {sorted(values)}")
     return template.format(**{k: (_Missing() if v is None else v) for k, v in values.items()})
 
 
@@ -216,9 +231,7 @@ def _args(items: list[str | list[str]], values: dict[str, Any]) -> list[str]:
         else:
             val = _fill(a, values)
             if "\x00none\x00" in val:
-                raise ConfigError(
-                    f"argument {a!r} has no value; write it as a [flag, value] pair to make it optional"
-                )
+                raise ConfigError(f"argument {a!r} has no value; write it as a [flag, value] pair to make it optional")
             out.append(val)
     return out
 
@@ -240,6 +253,7 @@ def resolve(
         "run_dir": str(run_dir),
         "connect": connect,
         "vehicle_ids": ",".join(vids),
+        "clock_scale": params.clock_scale,
         "python": python,
     }
     specs: list[ProcessSpec] = []

@@ -112,6 +112,10 @@ def make_summary(
     """The run's headline figures (report.json ``summary``; ``mapc fleet up --json`` prints it)."""
     ev = ev or {}
     pictures = {name: str(Path(run_dir) / f"{name}.png") for name in ("birdseye", "errors")}
+    try:  # how the world's clock went (the world's state file)
+        clock = json.loads((Path(run_dir) / "world-clock.json").read_text())
+    except (OSError, ValueError):
+        clock = {}
     return _round(
         {
             "fleet": fleet,
@@ -122,6 +126,11 @@ def make_summary(
             "ego": params.get("ego"),
             "t_scenario_s": ev.get("t_meas_last"),
             "wall_s": round(wall_s, 1),
+            "time_scale": params.get("time_scale"),
+            "achieved_time_scale": clock.get("achieved_time_scale"),
+            "paused_s": clock.get("paused_s"),
+            "skipped_frames": clock.get("skipped_frames"),
+            "waits_timed_out": clock.get("waits_timed_out"),
             "restarts": sum(p["restarts"] for p in procs),
             "restarts_by_process": {p["name"]: p["restarts"] for p in procs if p["restarts"]},
             "burnin_s": ev.get("burnin_s"),
@@ -179,6 +188,17 @@ def format_report(s: dict[str, Any]) -> str:
         f"p99 {num(s.get('e2e_latency_ms_p99'), '.0f', ' ms')} (sensor time to fused output)"
     )
     lines.append(f"  delivered     {pct(s.get('delivered_fraction'))} of the messages sent over the radio")
+    scale, dropped = s.get("time_scale"), s.get("skipped_frames")
+    if scale == "auto" and s.get("achieved_time_scale") is not None:
+        gone_on = s.get("waits_timed_out") or 0
+        every = f"{gone_on:.0f} frames went on without a silent service" if gone_on else "every frame processed"
+        lines.append(
+            f"  time scale    auto: {s['achieved_time_scale']:.2f} achieved, {every} "
+            f"(the clock paused {s.get('paused_s') or 0:.1f} s for the services)"
+        )
+    elif scale is not None and scale != "auto":
+        lost = f"; the world dropped {dropped:.0f} frames to keep up" if dropped else ""
+        lines.append(f"  time scale    {scale:g}{lost}")
     flagged = s.get("flagged_first_t") or {}
     if flagged:
         first = ", ".join(f"{v} from t = {t:.1f} s" for v, t in flagged.items())

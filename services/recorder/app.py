@@ -22,8 +22,8 @@ from typing import Any
 from pydantic import Field
 
 from mapcontainer.recording import RecordingWriter
-from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate
 from mapcontainer.recording.foxglove import SCENE_UPDATE, map_points, map_scene, point_cloud_schema, visualizer
+from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate
 
 from ..runtime import Service, ServiceSettings, add_service_args, service_settings_from_args, setup_logging
 

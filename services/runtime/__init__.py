@@ -7,7 +7,7 @@ A role's ``main(settings)`` does::
         svc.subscribe_queued(topic("sensors").key(...), on_frame)  # counted, errors recorded
         svc.wait()  # declares the liveliness token; returns on SIGINT/SIGTERM/stop()/parent death
     # the session is closed here: a process with callback subscribers that exits without
-    # closing its session hangs (ZENOH.md)
+    # closing its session hangs (docs/architecture.md, "Processes and Zenoh")
 
 Health: every service holds the liveliness token ``mc/{fleet}/alive/{role}/{id}`` and puts a
 :class:`schemas.HealthStatus` on ``mc/{fleet}/health/{role}/{id}`` once a second; a queryable on
@@ -36,11 +36,13 @@ from .config import (
     service_main,
     service_settings_from_args,
     setup_logging,
+    time_scale_arg,
     zenoh_config,
     zenoh_error_text,
 )
 from .metrics import (
     DEGRADING_REJECTS,
+    HEALTHY_STATES,
     STATES,
     LatencySamples,
     RateCounter,
@@ -64,6 +66,7 @@ __all__ = [
     "LatencySamples",
     "RateCounter",
     "Received",
+    "HEALTHY_STATES",
     "STATES",
     "Service",
     "ServiceMetrics",
@@ -82,6 +85,7 @@ __all__ = [
     "service_main",
     "service_settings_from_args",
     "setup_logging",
+    "time_scale_arg",
     "write_json",
     "zenoh_config",
     "zenoh_error_text",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -36,13 +37,21 @@ def read_attachment(sample_or_bytes) -> dict[str, Any]:
 class SimClock:
     """The world's clock as seen from another service: scenario time <-> wall time.
 
-    ``t_scenario = (wall_ns - epoch_wall_ns) * 1e-9 * time_scale``. The world puts ``epoch_wall_ns`` and
-    ``time_scale`` into the envelope of every message it sends (:class:`schemas.Envelope`'s optional
-    clock fields); the vehicles and the host copy them into theirs. A service takes the clock from a
-    message it decoded (from a verified one where messages are signed), never from a Zenoh attachment:
-    anyone can write those, and copies of genuine priors whose attachment said ``epoch_wall_ns = 1``
-    made a host refuse every genuine prior as stale. (Attachments still carry the clock as
-    instrumentation, for recordings.) A clock outside the world's own limits is ignored.
+    ``t_scenario = (wall_ns - epoch_wall_ns) * 1e-9 * time_scale``. The world puts ``epoch_wall_ns``,
+    ``time_scale`` and ``t_next`` into the envelope of every message it sends (:class:`schemas.Envelope`'s
+    optional clock fields); the vehicles and the host copy them into theirs. A service takes the clock from
+    a message it decoded (from a verified one where messages are signed), never from a Zenoh attachment:
+    anyone can write those, and copies of genuine priors whose attachment said ``epoch_wall_ns = 1`` made a
+    host refuse every genuine prior as stale. (Attachments still carry the clock as instrumentation, for
+    recordings.) A clock outside the world's own limits is ignored.
+
+    The adaptive clock (``--time-scale auto``) pauses while a service is behind: the world then moves its
+    epoch forward, and its messages carry ``t_next``, the scenario time of its next frame, which the clock
+    does not pass before that frame is out. So ``now`` is capped at ``t_next``: during a pause a message
+    received is not stamped seconds ahead of the frames (the host refused such messages as stale), and the
+    epoch kept is the latest (a message relayed late carries an older one, which is ignored). A message
+    whose time scale differs from the known one changes the clock (a restarted world, or a liar) and is
+    counted, with its sender, for the host's health to name.
     """
 
     TIME_SCALE_MIN, TIME_SCALE_MAX = MIN_TIME_SCALE, MAX_TIME_SCALE
@@ -50,7 +59,8 @@ class SimClock:
     def __init__(self) -> None:
         self.epoch_wall_ns: int | None = None
         self.time_scale: float | None = None
-        self.changes = 0  # how often a message changed a clock already known (a world restart, or a liar)
+        self.t_next: float | None = None
+        self.changes = 0  # how often a message changed the time scale of a clock already known
         self.changed_by: str | None = None  # the sender of the message that changed it last
 
     def update(self, msg: Mapping[str, Any] | Any) -> bool:
@@ -58,19 +68,24 @@ class SimClock:
         False when it carries none (or an impossible one)."""
         get = msg.get if isinstance(msg, Mapping) else lambda k: getattr(msg, k, None)
         e, s = get("epoch_wall_ns"), get("time_scale")
-        if (
+        if not (
             type(e) is int  # not bool
             and 0 < e < 2**63
             and type(s) in (int, float)
             and self.TIME_SCALE_MIN <= s <= self.TIME_SCALE_MAX  # not inf, nan
         ):
-            if self.epoch_wall_ns is not None and (e, float(s)) != (self.epoch_wall_ns, self.time_scale):
-                self.changes += 1
-                sender = get("sender")
-                self.changed_by = sender if isinstance(sender, str) else None
+            return False
+        if self.time_scale is not None and float(s) != self.time_scale:  # another clock altogether
+            self.changes += 1
+            sender = get("sender")
+            self.changed_by = sender if isinstance(sender, str) else None
+            self.epoch_wall_ns, self.time_scale, self.t_next = e, float(s), None
+        elif self.epoch_wall_ns is None or e >= self.epoch_wall_ns:  # the same clock, or moved on by a pause
             self.epoch_wall_ns, self.time_scale = e, float(s)
-            return True
-        return False
+        t_next = get("t_next")
+        if type(t_next) in (int, float) and math.isfinite(t_next):
+            self.t_next = float(t_next) if self.t_next is None else max(self.t_next, float(t_next))
+        return True
 
     @property
     def known(self) -> bool:
@@ -81,7 +96,8 @@ class SimClock:
         if self.epoch_wall_ns is None or self.time_scale is None:
             return None
         wall_ns = time.time_ns() if wall_ns is None else wall_ns
-        return (wall_ns - self.epoch_wall_ns) * 1e-9 * self.time_scale
+        t = (wall_ns - self.epoch_wall_ns) * 1e-9 * self.time_scale
+        return t if self.t_next is None else min(t, self.t_next)
 
     def wall_ns(self, t: float) -> int | None:
         """Wall time (ns) at which scenario time ``t`` happened."""
@@ -91,7 +107,7 @@ class SimClock:
 
     def fields(self) -> dict[str, Any]:
         """The clock fields, for a message's envelope (or an attachment); None while unknown."""
-        return {"epoch_wall_ns": self.epoch_wall_ns, "time_scale": self.time_scale}
+        return {"epoch_wall_ns": self.epoch_wall_ns, "time_scale": self.time_scale, "t_next": self.t_next}
 
     def stamp(self, msg):
         """``msg`` (a model) with this clock in its envelope (unchanged while the clock is unknown)."""

@@ -19,7 +19,7 @@ from mapcontainer.config import ConfigError
 
 
 class ZenohSettings(BaseModel):
-    """How a process joins the Zenoh network (the verified recipes are in ZENOH.md).
+    """How a process joins the Zenoh network (the recipes: docs/operations.md, "Several machines").
 
     peer (default): listen on a loopback port (``tcp/127.0.0.1:0`` picks a free one), connect to a
     rendezvous endpoint with ``exit_on_failure`` so a missing rendezvous fails fast; gossip forms
@@ -229,3 +229,11 @@ def setup_logging(role: str, sid: str, level: str = "INFO") -> logging.Logger:
     return logging.getLogger(f"mapc.{role}")
 
 
+def time_scale_arg(text: str) -> float | str:
+    """``auto`` or a number of scenario seconds per wall second."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number or auto: {text!r}") from None

@@ -16,7 +16,11 @@ from schemas import HealthStatus
 
 log = logging.getLogger("mapc.runtime")
 
-STATES = ("ok", "degraded", "failed")
+# From best to worst (a service reports the worst that applies). ``starting``: in the expected period of a
+# cold start (a vehicle searching for its pose in its first seconds); ``finished``: its input ended because
+# its source did (the world finished, or a replay did); both are healthy (``mapc health`` exits 0).
+STATES = ("ok", "finished", "starting", "degraded", "failed")
+HEALTHY_STATES = ("ok", "finished", "starting")
 # Refusals that mean lost input (a full queue, a flooding sender, too many senders): any of them in the last
 # DEGRADED_AFTER_REJECT_S seconds makes a service degraded. Bad input (invalid, stale, ...) does not: the
 # service handled it as it should.

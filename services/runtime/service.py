@@ -112,6 +112,7 @@ class Service:
         self._threads: list[threading.Thread] = []
         self.thread_died: str | None = None  # the first worker thread that died, and why
         self._declared: list[Any] = []
+        self._worlds: set[str] | None = None  # the fleet's world tokens alive (None: not watched)
         self._old_handlers: dict[int, Any] = {}
         self._parent = os.getppid()
         self.health_key = topic("health").key(fleet=self.fleet, role=role, id=self.id)
@@ -129,6 +130,8 @@ class Service:
             )
             self._queryable = self.session.declare_queryable(self.health_key, self._on_health_query)
             self._token = None
+            if self.settings.stale_input_s is not None:  # whether stalled input means the run ended
+                self._worlds = self.watch_tokens(topic("alive").pattern(fleet=self.fleet, role="world"))
             self.running.set()
             self.spawn(self._health_loop, name="health")
         except BaseException:
@@ -268,7 +271,11 @@ class Service:
         idle = self.metrics.msgs_in.idle_s()
         stale = self.settings.stale_input_s
         if stale is not None and idle is not None and idle > stale:
-            candidates.append(("degraded", f"input stalled for {idle:.1f} s"))
+            if self._worlds is not None and not self._worlds:
+                # no world alive: it finished (or this is a replay fleet, whose replay ended)
+                candidates.append(("finished", f"input ended {idle:.0f} s ago; no world runs (finished or replayed)"))
+            else:
+                candidates.append(("degraded", f"input stalled for {idle:.1f} s"))
         if self.metrics.last_error_t is not None and time.monotonic() - self.metrics.last_error_t < 10.0:
             candidates.append(("degraded", self.metrics.last_error))
         for reason, (n, detail) in self.metrics.recent_rejects(DEGRADING_REJECTS, DEGRADED_AFTER_REJECT_S).items():
@@ -383,6 +390,19 @@ class Service:
         sub = self.session.declare_subscriber(key, on_sample)
         self._declared.append(sub)
         return sub
+
+    def watch_tokens(self, pattern: str) -> set[str]:
+        """The keys of the liveliness tokens matching ``pattern`` that exist, kept current (a set that
+        Zenoh's callbacks update; reading its emptiness needs no lock)."""
+        import zenoh
+
+        keys: set[str] = set()
+
+        def on_token(sample) -> None:
+            (keys.add if sample.kind == zenoh.SampleKind.PUT else keys.discard)(str(sample.key_expr))
+
+        self._declared.append(self.session.liveliness().declare_subscriber(pattern, on_token, history=True))
+        return keys
 
     def watch_alive(self, key: str) -> threading.Event:
         """An event that is set while the liveliness token ``key`` exists (Zenoh tells of a killed process

@@ -43,6 +43,10 @@ def test_fleet_up_health_kill_restart_and_down(
         "2",
         "--network",
         "ideal",
+        # the fixed clock: this test is about health, a crash and a restart; at the adaptive clock's pace on a
+        # loaded machine the vehicles' cold starts (starting, not ok) outlast the waits below
+        "--time-scale",
+        "1",
         "--runs-dir",
         str(runs),
         timeout=240,
@@ -73,9 +77,10 @@ def test_fleet_up_health_kill_restart_and_down(
         def healthy():
             h = mapc("health", "--fleet", fleet_name, "--json", cwd=elsewhere)
             rows = json.loads(h.stdout) if h.stdout.strip() else []
-            return rows if h.returncode == 0 and len(rows) == 7 else None
+            ok = h.returncode == 0 and len(rows) == 7 and all(r["state"] == "ok" for r in rows)
+            return rows if ok else None  # (starting while a vehicle searches for its pose: exit 0 too)
 
-        rows = wait_for(healthy, timeout=60, what="all seven services healthy", every=0.5)
+        rows = wait_for(healthy, timeout=60, what="all seven services ok", every=0.5)
         assert {(r["role"], r["id"]) for r in rows} == {
             ("evaluator", "evaluator"),
             ("host", "host"),

@@ -94,8 +94,8 @@ def test_unreadable_map_exits_2_with_one_line(capsys, tmp_path) -> None:
 
 
 def test_the_parser_knows_every_format() -> None:
-    from mapcontainer.cli import MAP_FORMATS
     from mapcontainer.hdmap.formats import FORMATS
+    from mapcontainer.map_cli import MAP_FORMATS
 
     assert MAP_FORMATS == FORMATS
 
@@ -114,3 +114,74 @@ def test_missing_extra_exits_2_naming_it(capsys, monkeypatch, tmp_path) -> None:
     monkeypatch.setitem(sys.modules, "sumolib", None)
     code, _, err = _run(capsys, "map", "import", str(net), "--out", str(tmp_path))
     assert code == 2 and "mapc: missing optional dependency" in err and "map-container[roads]" in err
+
+
+# ------------------------------------------------------------------------------ names, views, scale
+
+
+def _urban_geojson(capsys, tmp_path) -> Path:
+    out = tmp_path / "src" / "urban.geojson"
+    code, _, err = _run(capsys, "map", "export", "--scenario", "paper-urban", "--format", "geojson", "--out", str(out))
+    assert code == 0, err
+    return out
+
+
+def test_import_refuses_to_overwrite_without_force_and_takes_a_name(capsys, tmp_path) -> None:
+    src, maps = _urban_geojson(capsys, tmp_path), tmp_path / "maps"
+    code, doc, err = _run(capsys, "map", "import", str(src), "--out", str(maps))
+    assert code == 0, err
+    first = Path(doc["geojson"]).read_bytes()
+    code, doc, err = _run(capsys, "map", "import", str(src), "--out", str(maps), "--seed", "3")
+    assert code == 2 and doc is None
+    assert err.strip().splitlines() == [
+        f"mapc: configuration error: {maps} already holds urban.geojson and urban.png: "
+        "give the map another --name, or --force to overwrite"
+    ]
+    assert (maps / "urban.geojson").read_bytes() == first  # untouched
+    code, doc, err = _run(capsys, "map", "import", str(src), "--out", str(maps), "--name", "ring-b")
+    assert code == 0, err
+    assert doc["name"] == "ring-b" and Path(doc["geojson"]).name == "ring-b.geojson"
+    assert Path(doc["png"]).read_bytes()[:8] == PNG_MAGIC and load_map(doc["geojson"]).name == "ring-b"
+    code, doc, err = _run(capsys, "map", "import", str(src), "--out", str(maps), "--force")
+    assert code == 0, err
+    with pytest.raises(SystemExit):
+        main(["map", "import", str(src), "--out", str(maps), "--name", "../up"])
+    assert "not a map name" in capsys.readouterr().err
+
+
+def test_show_a_rectangle_or_around_a_point_or_a_vehicle(capsys, tmp_path) -> None:
+    src = _urban_geojson(capsys, tmp_path)
+    png = tmp_path / "b.png"
+    code, doc, err = _run(capsys, "map", "show", str(src), "--bounds=-20,-40,30,10", "--out", str(png))
+    assert code == 0, err
+    assert doc["bounds"] == [-20.0, -40.0, 30.0, 10.0] and png.read_bytes()[:8] == PNG_MAGIC
+    code, doc, err = _run(capsys, "map", "show", str(src), "--around", "10,5", "--radius", "25", "--out", str(png))
+    assert code == 0, err
+    assert doc["around"] == [10.0, 5.0] and doc["radius_m"] == 25.0
+    code, doc, err = _run(capsys, "map", "show", "--scenario", "paper-urban", "--around", "cv1", "--out", str(png))
+    assert code == 0, err
+    assert doc["vehicle"] == "cv1" and doc["radius_m"] == 50.0 and len(doc["around"]) == 2
+    for argv, says in (
+        (["map", "show", str(src), "--around", "cv1"], "a vehicle needs --scenario"),
+        (["map", "show", "--scenario", "paper-urban", "--around", "cv9"], "no such vehicle"),
+        (["map", "show", str(src), "--radius", "5"], "--radius goes with --around"),
+        (["map", "show"], "give a map FILE or --scenario S"),
+    ):
+        code, _, err = _run(capsys, *argv, "--out", str(png))
+        assert code == 2 and says in err, (argv, err)
+    for bad in ("1,2,3", "5,0,1,10", "a,b,c,d"):
+        with pytest.raises(SystemExit):
+            main(["map", "show", str(src), "--bounds", bad])
+        assert "--bounds" in capsys.readouterr().err
+
+
+def test_landmarks_are_no_bigger_than_lane_lines_at_city_scale() -> None:
+    from mapcontainer.sim.render import map_mark_sizes
+
+    for m_per_pt in (1.0, 1.5, 3.0, 10.0):  # a district or a city on one page
+        landmark, lane = map_mark_sizes(m_per_pt)
+        assert landmark <= lane, m_per_pt
+    landmark, lane = map_mark_sizes(0.1)  # a crossing: landmarks big enough to tell apart
+    assert landmark == 5.0 and lane == 1.5
+    with pytest.raises(ValueError, match="m_per_pt"):
+        map_mark_sizes(0.0)

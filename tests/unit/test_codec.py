@@ -707,7 +707,7 @@ FUSED_STATE = {
     0: "schema_version", 1: "fleet", 2: "sender", 3: "seq", 4: "t_meas", 5: "t_sent",
     38: "vehicle_ids", 39: "vehicle_pose", 40: "vehicle_pose_cov", 41: "object_id", 42: "object_cls",
     43: "object_p_map", 44: "object_v_map", 45: "object_cov", 46: "messages_fused", 93: "flagged",
-    97: "epoch_wall_ns", 98: "time_scale",
+    97: "epoch_wall_ns", 98: "time_scale", 99: "t_next",
 }
 
 

@@ -113,3 +113,21 @@ def test_flagged_vehicles_are_in_the_table() -> None:
     s = make_summary("f", Path("/r"), {}, [], {**EV, "flagged_first_t": {"cv1": 2.9}}, 10.0)
     assert "flagged       cv1 from t = 2.9 s" in format_report(s)
     assert "flagged" not in format_report(make_summary("f", Path("/r"), {}, [], EV, 10.0))
+
+
+def test_the_closing_table_says_how_the_clock_went(tmp_path) -> None:
+    from services.launcher.report import format_report, make_summary
+
+    (tmp_path / "world-clock.json").write_text(
+        json.dumps({"epoch_wall_ns": 1, "time_scale": 1.0, "achieved_time_scale": 0.26, "paused_s": 57.3,
+                    "waits_timed_out": 0, "skipped_frames": 0})
+    )  # fmt: skip
+    s = make_summary("f", tmp_path, {"time_scale": "auto"}, [], {}, 100.0)
+    assert s["achieved_time_scale"] == 0.26 and s["time_scale"] == "auto"
+    line = next(x for x in format_report(s).splitlines() if "time scale" in x)
+    assert (
+        line == "  time scale    auto: 0.26 achieved, every frame processed (the clock paused 57.3 s for the services)"
+    )
+    (tmp_path / "world-clock.json").write_text(json.dumps({"epoch_wall_ns": 1, "time_scale": 0.5, "skipped_frames": 7}))
+    s = make_summary("f", tmp_path, {"time_scale": 0.5}, [], {}, 100.0)
+    assert "  time scale    0.5; the world dropped 7 frames to keep up" in format_report(s).splitlines()

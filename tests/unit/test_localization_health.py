@@ -32,18 +32,33 @@ def test_no_step_yet_is_ok():
     assert verdict(PoseHealth(), P) == ("ok", None)
 
 
-def test_start_up_is_degraded_until_matched_in_tracking_for_relocalized_s():
+def test_start_up_is_starting_until_matched_in_tracking_for_relocalized_s():
     out, h = tracked(n=8)
-    assert out[0] == ("degraded", "no pose: initialising from GNSS and the camera")
-    assert out[1] == ("degraded", "localizing: tracking, map-matched for 0.0 s of the 0.5 s that confirm it")
-    assert [s for s, _ in out[1:6]] == ["degraded"] * 5  # 0.1 .. 0.5: 0.4 s matched so far
+    assert out[0] == ("starting", "no pose: initialising from GNSS and the camera")
+    assert out[1] == ("starting", "localizing: tracking, map-matched for 0.0 s of the 0.5 s that confirm it")
+    assert [s for s, _ in out[1:6]] == ["starting"] * 5  # 0.1 .. 0.5: 0.4 s matched so far
     assert out[6:] == [("ok", None)] * 2  # 0.6: 0.5 s since the first match
-    assert not h.lost
+    assert not h.lost and h.localized
 
 
 def test_first_step_already_tracking_after_an_initialisation_is_not_ok():
     out, _ = run([(0.0, T, True, True)])
-    assert out[0][0] == "degraded"
+    assert out[0][0] == "starting"
+
+
+def test_a_cold_start_longer_than_cold_start_s_is_degraded():
+    p = PoseHealthParams(gap_s=1.0, relocalized_s=0.5, unlocalized_s=3.0, cold_start_s=10.0)
+    steps = [(0.0, U, False)] + [(0.1 * k, S, False) for k in range(1, 121)]  # searching until 12.0 s
+    out, h = run(steps, p=p)
+    assert out[100] == ("starting", "searching for its pose")  # 10.0 s: still the expected period
+    assert out[101] == ("degraded", "searching for its pose (10 s after its start: longer than a cold start's 10 s)")
+    assert out[-1][0] == "degraded" and not h.localized
+
+
+def test_a_pose_lost_after_the_start_is_degraded_even_early():
+    _, h = tracked()  # localized by 0.6 s
+    out, _ = run([(1.0, S, False)], h)
+    assert out == [("degraded", "searching for its pose")]
 
 
 def test_a_gap_loses_the_pose_until_relocalized():

@@ -58,7 +58,7 @@ def write(path: Path, items, **kw) -> RecordingWriter:
     return w
 
 
-def test_every_message_is_kept_byte_for_byte_with_its_attachment_and_times(tmp_path: Path) -> None:
+def test_every_message_is_kept_byte_for_byte_with_its_attachment_and_times(tmp_path: Path, capsys) -> None:
     t0 = 1_700_000_000_000_000_000
     items = []
     for k in range(30):
@@ -95,6 +95,16 @@ def test_every_message_is_kept_byte_for_byte_with_its_attachment_and_times(tmp_p
     doc = info(path)
     assert doc["complete"] and doc["keys"] == 3 and doc["messages"] == 60
     assert doc["duration_s"] == pytest.approx(2.9, abs=1e-6)
+    # the keys and the channels counted apart, adding up: mapc record info said "23 keys" over 45 channels
+    kinds = doc["channels_by_kind"]
+    assert kinds["key"] == doc["keys"] == 3 and sum(kinds.values()) == len(doc["channels"])
+    assert kinds["viz"] == sum(c["topic"].startswith("/viz/") for c in doc["channels"]) > 0
+    from services.recording_cli import _print_info
+
+    _print_info(doc, as_json=False)
+    out = capsys.readouterr().out.splitlines()
+    assert out[1] == "  3 fleet keys: 60 messages, " + f"{doc['payload_bytes'] / 1e6:.2f} MB of payload"
+    assert out[2].startswith(f"  {len(doc['channels'])} channels: 3 keys, {kinds['attachment']} of their Zenoh")
 
 
 def test_a_signed_key_is_recorded_as_a_secured_message_naming_the_model_inside(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ import pytest
 from schemas import HealthStatus, decode, encode
 from services.health import ServiceView, exit_code, format_table, split_key
 from services.runtime import (
+    STATES,
     LatencySamples,
     RateCounter,
     ServiceMetrics,
@@ -121,7 +122,7 @@ def test_build_health_rejects_an_unknown_state() -> None:
         build_health(fleet="f", role="r", sid="i", seq=0, uptime_s=0, metrics=ServiceMetrics(), state="meh")
 
 
-def _view(role, sid, state, alive=True, status=True):
+def _view(role, sid, state, alive=True, status=True, note=None, rejects=None):
     st = None
     if status:
         st = build_health(
@@ -131,8 +132,11 @@ def _view(role, sid, state, alive=True, status=True):
             seq=1,
             uptime_s=1,
             metrics=ServiceMetrics(),
-            state=state if state in ("ok", "degraded", "failed") else "ok",
+            state=state if state in STATES else "ok",
+            note=note,
         )
+        if rejects:
+            st.rejects.update(rejects)
     return ServiceView(role, sid, alive, state, st)
 
 
@@ -143,6 +147,30 @@ def test_health_exit_codes() -> None:
     assert exit_code([_view("world", "world", "ok"), _view("host", "host", "degraded")]) == 1
     assert exit_code([_view("world", "world", "ok"), _view("host", "host", "missing", False, False)]) == 1
     assert exit_code([_view("world", "world", "unresponsive", True, False)]) == 1
+    # a cold start's expected period and a run whose input ended are healthy
+    assert exit_code([_view("world", "world", "starting"), _view("vehicle", "cv1", "starting")]) == 0
+    assert exit_code([_view("host", "host", "finished"), _view("evaluator", "evaluator", "ok")]) == 0
+    assert exit_code([_view("host", "host", "finished"), _view("vehicle", "cv1", "degraded")]) == 1
+
+
+def test_health_table_fits_100_columns_and_says_why() -> None:
+    long_reason = "misbehaviour (detections not fused): " + "; ".join(
+        f"cv{i} seen 3.2 m from where it says it is, more than its covariance allows" for i in range(8)
+    )
+    views = [
+        _view("host", "host", "degraded", note=long_reason, rejects={"stale": 20, "flood": 3}),
+        _view("vehicle", "cv1", "starting", note="searching for its pose"),
+        _view("vehicle", "cv0", "ok", rejects={"stale": 2}),
+        _view("world", "world", "missing", alive=False, status=False),
+    ]
+    table = format_table(views, "a-long-fleet-name")
+    assert max(len(line) for line in table.splitlines()) <= 100
+    rows = {line.split()[0]: line for line in table.splitlines()[2:]}
+    assert rows["host"].split()[1] == "degraded" and "misbehaviour (detections" in rows["host"]
+    assert rows["host"].endswith("...")
+    assert rows["vehicle/cv1"].split()[1] == "starting" and rows["vehicle/cv1"].endswith("searching for its pose")
+    assert rows["vehicle/cv0"].endswith("rejected stale 2")
+    assert rows["world"].split()[1] == "missing" and rows["world"].endswith("no health token")
 
 
 def test_health_table_and_json() -> None:
@@ -283,5 +311,12 @@ def test_the_clock_comes_from_a_message_and_its_changes_are_counted() -> None:
     assert not c.update(plain) and c.stamp(plain) is plain  # no clock in it, none to stamp
     assert c.update(VehiclePrior(sender="cv0", epoch_wall_ns=10**18, time_scale=1.0, **fields, **cov, **quality))
     assert c.changes == 0 and c.stamp(plain).epoch_wall_ns == 10**18
+    # an older epoch (a message relayed from before a pause of the adaptive clock, or a liar) is not taken
     assert c.update({"sender": "cv1", "epoch_wall_ns": 1, "time_scale": 1.0})
-    assert (c.changes, c.changed_by) == (1, "cv1")
+    assert (c.epoch_wall_ns, c.changes) == (10**18, 0)
+    # a later one is the same clock after a pause; another time scale is another clock, counted with its sender
+    assert c.update({"sender": "cv1", "epoch_wall_ns": 10**18 + 5, "time_scale": 1.0, "t_next": 2.0})
+    assert (c.epoch_wall_ns, c.changes, c.t_next) == (10**18 + 5, 0, 2.0)
+    assert c.now(10**18 + 5 + 10**10) == 2.0  # capped at the next frame's time while the world is paused
+    assert c.update({"sender": "cv2", "epoch_wall_ns": 10**18, "time_scale": 0.5})
+    assert (c.changes, c.changed_by, c.time_scale, c.t_next) == (1, "cv2", 0.5, None)

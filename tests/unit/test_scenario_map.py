@@ -48,7 +48,7 @@ def test_the_generated_ring_road_stays_the_default(tmp_path):
     [
         ("{format: shapefile, path: ring.geojson}", r"unknown map format 'shapefile'.*sumo \| lanelet2 \| geojson"),
         ("{format: geojson, path: nowhere.geojson}", r"map file .*nowhere.geojson does not exist"),
-        ("{format: geojson}", r"map.file.path: Field required"),
+        ("{format: geojson}", r"map.path: Field required"),
         ("{format: geojson, path: ring.geojson, bounds: [10, 0, 5, 1]}", "xmin < xmax"),
         ("{format: geojson, path: ring.geojson, origin: [49, 8]}", "origin: is the origin of a Lanelet2 map"),
         ("{format: geojson, path: ring.geojson, landmarks: {seed: 3}}", "place landmarks on a SUMO network"),
@@ -128,3 +128,28 @@ def test_the_presets_build_their_world_with_sumo_traffic(preset):
         assert classes.count("VEHICLE") > 20 and classes.count("PEDESTRIAN") > 3  # the streets carry traffic
         tick = next(iter(world.run(0.2)))
         assert set(tick.frames) == set(world.vehicle_ids)
+
+
+def test_a_yaml_error_names_the_field_as_the_file_spells_it(tmp_path) -> None:
+    """pydantic puts the union member's tag in the location (map.procedural.lenght_m); the file says map.lenght_m."""
+    from mapcontainer.config import ConfigError
+    from mapcontainer.sim.config import load_scenario
+
+    bad = tmp_path / "mine.yaml"
+    bad.write_text("name: mine\nmap:\n  lenght_m: 300\n")
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(str(bad))
+    assert str(exc.value).splitlines()[1:] == ["  map.lenght_m: Extra inputs are not permitted"]
+    bad.write_text("name: mine\nmap: {format: sumo, path: x.net.xml, bogus: 1}\n")
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(str(bad))
+    assert "  map.bogus: Extra inputs are not permitted" in str(exc.value).splitlines()
+
+
+def test_path_in_file_keeps_list_indices_and_missing_fields() -> None:
+    from mapcontainer.config import path_in_file
+
+    data = {"faults": [{"kind": "pose_bias"}], "map": {"format": "sumo"}}
+    assert path_in_file(("faults", 0, "pose_bias", "vehicle"), data) == ("faults", 0, "vehicle")
+    assert path_in_file(("map", "file", "path"), data) == ("map", "path")
+    assert path_in_file(("name",), data) == ("name",)

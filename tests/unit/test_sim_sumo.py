@@ -217,6 +217,17 @@ def test_without_libsumo_the_error_names_the_extra(road, monkeypatch):
         World(sc, seed=0)
 
 
+def test_libsumo_is_imported_without_its_pyarrow_warning():
+    """With the view extra's newer pyarrow, `import libsumo` printed a version warning on every SUMO run."""
+    code = (
+        "import os; from mapcontainer.sim.sumo import import_libsumo; ls = import_libsumo(); "
+        "assert ls.simulation is not None and 'LIBSUMO_AS_TRACI' not in os.environ"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == "" and "pyarrow" not in r.stderr, (r.stdout, r.stderr)
+
+
 # ------------------------------------------------------------------------------- determinism, preset
 
 
