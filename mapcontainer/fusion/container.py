@@ -26,6 +26,8 @@ from .hostcore import (
     cross_observation,
     detections_in_map,
     fused_state,
+    observer_bias,
+    observer_weights,
     vehicle_at,
     vehicle_candidate,
 )
@@ -313,9 +315,12 @@ class Container:
         vids = sorted(g.vehicles)
         poses, pose_covs = [], []
         pp = self.params
+        seen_from: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # vid -> (pose, S_b): an observer's repeated error
         for vid in vids:
             ts, T, cov_xi = g.vehicle_estimate(vid)
             pose = vector_from_pose3(T)
+            if vid in self._bias_sigma:
+                seen_from[vid] = (pose, bias_cov(self._bias_sigma[vid], float(pose[5])))
             if cov_xi is None:
                 cov = g.vehicles[vid].latest().cov
             else:
@@ -334,7 +339,10 @@ class Container:
             cls.append(tr.cls)
             dts.append(t - ts)
             xs.append(np.concatenate([p, v]))
-            Cs.append(tr.P if C is None else C)
+            C = np.array(tr.P if C is None else C)
+            w = observer_weights(tr.frames, t - pp.window_s)
+            C[:3, :3] += observer_bias(p, [(*seen_from[v], w[v]) for v in w if v in seen_from])
+            Cs.append(C)
         ps, covs, vs = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))
         if ids:
             q = np.array([accel_psd(self.params, c) for c in cls])

@@ -14,6 +14,7 @@ alike lives here, once:
 * :func:`vehicle_candidate`: a connected vehicle's reported position at a detection's time, for gating;
 * :func:`cross_observation`: a detection of a connected vehicle corrected to the observed vehicle's
   frame time;
+* :func:`observer_bias`: what the observers' repeated errors add to an object's covariance (a consider term);
 * :func:`vehicle_at` and :func:`fused_state`: the output, moved to the fuse time and made wire-valid;
 * :func:`common_stats`: the figures both report under the same names.
 
@@ -31,6 +32,7 @@ import numpy as np
 
 from schemas import FusedState, Rejection, decode
 
+from .. import geometry as geo
 from .association import Detection, Tracker, VehicleCandidate, observations_to_map
 from .buffer import ReorderBuffer
 from .params import FusionParams
@@ -46,6 +48,8 @@ __all__ = [
     "detections_in_map",
     "fused_state",
     "make_pd",
+    "observer_bias",
+    "observer_weights",
     "vehicle_at",
     "vehicle_candidate",
 ]
@@ -235,6 +239,35 @@ def cross_observation(
     if bias_p is not None:
         cov = cov + R_obs.T @ bias_p @ R_obs
     return z, cov
+
+
+def observer_weights(frames: dict, t_min: float) -> dict[str, float]:
+    """Each observer's share w_v of a track's detections since ``t_min`` (``Track.frames``: (sender, time key)
+    -> t), the weight its errors have in the track's estimate (every detection counted alike)."""
+    n: Counter[str] = Counter(sender for (sender, _), t in frames.items() if t >= t_min)
+    total = sum(n.values())
+    return {v: k / total for v, k in n.items()} if total else {}
+
+
+def observer_bias(p_map, observers: list[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
+    """What the observers' repeated errors add to the covariance of an object at ``p_map`` (3,) that they saw:
+
+        C = sum_v w_v^2 J_v S_v J_v^T,   J_v = d (t_v + R_v z_v) / d pose_v,   z_v = R_v^T (p - t_v),
+
+    ``observers``: (pose_v (6,) [x, y, z, roll, pitch, yaw], S_v (6, 6) the map-frame covariance of the error
+    every frame of v repeats (its calibration, the map's survey drift: VehiclePrior.pose_bias_sigma), w_v its
+    share of the detections). Such an error does not average out over v's detections, so the estimator, which
+    takes them as independent, leaves it out of the object's covariance; errors of different observers are
+    independent, so the weighted mean's covariance is the sum of the w_v^2 terms. A consider term: the host
+    does not estimate these errors, it states what they do to the estimate."""
+    p = np.asarray(p_map, dtype=float)
+    C = np.zeros((3, 3))
+    for pose, S_v, w in observers:
+        pose = np.asarray(pose, dtype=float)
+        R = geo.rpy_to_matrix(*pose[3:6])
+        z = R.T @ (p - pose[:3])
+        C += w * w * observations_to_map(pose, S_v, z[None], np.zeros((1, 3, 3)))[1][0]
+    return C
 
 
 def vehicle_at(pose, cov, v_map, dt: float, params: FusionParams) -> tuple[np.ndarray, np.ndarray]:

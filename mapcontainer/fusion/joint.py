@@ -61,6 +61,8 @@ from .hostcore import (
     cross_observation,
     detections_in_map,
     fused_state,
+    observer_bias,
+    observer_weights,
     vehicle_at,
     vehicle_candidate,
 )
@@ -466,17 +468,23 @@ class JointHost:
             poses.append(pose)
             covs.append(cov)
         ids, cls, ps, vs, Ps = [], [], [], [], []
+        seen_from = {  # every observer's repeated error (its camera's calibration, the map's drift)
+            k[1]: (x := self.mu[self._sl(k)][:6], bias_cov(self.loc_params.match_bias_sigma, float(x[5])))
+            for k in self._keys
+            if k[0] == "v"
+        }
         for tid, tr in sorted(self.tracker.confirmed().items()):
             key = ("o", tid)
             if key not in self._off or len(ids) >= MAX_OBJECTS:
                 continue
             s = self._sl(key)
             x, C = cv_predict(self.mu[s], self.P[s, s], t - self._t[key], accel_psd(pp, tr.cls))
+            w = observer_weights(tr.frames, t - pp.window_s)
             ids.append(tid)
             cls.append(tr.cls)
             ps.append(x[:3])
             vs.append(self.mu[s][3:])
-            Ps.append(C[:3, :3])
+            Ps.append(C[:3, :3] + observer_bias(x[:3], [(*seen_from[v], w[v]) for v in w if v in seen_from]))
         self._seq += 1
         frames = self._cycle_frames  # a filter has no window: the frames this cycle took in
         return fused_state(self.fleet, self.host_id, self._seq, t, vids, poses, covs, ids, cls, ps, vs, Ps, frames, [])

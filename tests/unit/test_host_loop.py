@@ -129,3 +129,19 @@ def test_the_host_service_needs_a_map_file_in_centralized_mode_only(tmp_path) ->
     path = save_map(generate_map(load_scenario("overlap").map), tmp_path / "m.geojson")
     s = parse_args(["--fleet", "f", "--id", "h", "--mode", "centralized", "--map", str(path), "--local", "cv0"])
     assert (s.host.fleet, s.host.host_id, s.host.map_file, s.host.local) == ("f", "h", str(path), ("cv0",))
+
+
+def test_the_observers_repeated_error_is_added_to_an_objects_covariance_with_its_share() -> None:
+    """observer_bias: a translation bias S of the only observer adds S; a yaw bias sigma adds (r sigma)^2
+    across the line of sight at range r; two observers with half the detections each add a quarter each."""
+    from mapcontainer.fusion.hostcore import observer_bias, observer_weights
+
+    S_t = np.diag([0.1, 0.2, 0.05, 0.0, 0.0, 0.0]) ** 2
+    pose = np.array([5.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(observer_bias([25.0, 1.0, 0.0], [(pose, S_t, 1.0)]), S_t[:3, :3], atol=1e-15)
+    S_yaw = np.diag([0, 0, 0, 0, 0, 0.01]) ** 2
+    np.testing.assert_allclose(observer_bias([25.0, 1.0, 0.0], [(pose, S_yaw, 1.0)]), np.diag([0, 0.2**2, 0]), atol=1e-12)
+    two = observer_bias([25.0, 1.0, 0.0], [(pose, S_t, 0.5), (pose + [0, 3, 0, 0, 0, 0], S_t, 0.5)])
+    np.testing.assert_allclose(two, 0.5 * S_t[:3, :3], atol=1e-15)
+    w = observer_weights({("cv0", 1): 0.1, ("cv0", 2): 0.2, ("cv1", 2): 0.2, ("cv1", -5): -0.5}, t_min=0.0)
+    assert w == {"cv0": 2 / 3, "cv1": 1 / 3}
