@@ -11,6 +11,10 @@ world's clock, ``t_wall_ns``, the solve time ``t_fused`` and frame tolerance ``t
 ``[sender, seq, t_recv]`` of every payload the container ingested since its previous solve, in order, which
 makes a recording re-fusable exactly (``mapc replay --refuse``).
 
+The container is ``mapcontainer.host.build_host`` of the host's own flags (``add_host_args``: ``--mode``,
+``--map``, ``--local``, ``--known-senders``, ``--max-wait``, ``--params``); its HD map is a file
+(``--map``, any format ``mapc map`` reads), which the centralized host needs and the distributed one does not.
+
 GTSAM holds the GIL for a whole solve, so by default the container runs in a worker process
 (``multiprocessing`` spawn context, started before the Zenoh session is opened) and this
 process only moves bytes: subscriber callbacks never wait for a solve. ``--inline`` runs the
