@@ -282,3 +282,17 @@ def test_an_efficiency_is_valid_only_where_the_references_nees_is_in_its_band():
     assert not veh["pass"] and "not valid" in veh["target"]
     obj = rows["suburban: distributed efficiency, objects >= 0.9"]
     assert obj["pass"] and obj["value"] == pytest.approx((0.29 / 0.3) ** 2, rel=1e-3)
+
+
+def test_the_sensitivity_table_follows_the_fused_estimates_anees():
+    from mapcontainer.experiments.paper import _headline
+
+    f = {
+        "ego_rmse_m": {"onboard": 0.2, "map_matching": 0.3, "cooperative": 0.15},
+        "target_rmse_m": {"ego_only": 0.4, "cooperative": 0.3},
+        "objects": {"ego_only": {"coverage": 0.8}, "cooperative": {"coverage": 0.9}},
+        "consistency": {"vehicles_cooperative_6dof": {"anees": 22.8}, "objects_cooperative_3d": {"anees": 11.4}},
+    }
+    h = _headline({"urban": f, "suburban": {**f, "consistency": {}}}, {}, {"ii": {}, "iii": {}})
+    assert h["urban: fused vehicles ANEES (6-DoF)"] == 22.8 and h["urban: fused objects ANEES (3-D)"] == 11.4
+    assert math.isnan(h["suburban: fused objects ANEES (3-D)"])
