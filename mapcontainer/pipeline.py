@@ -36,14 +36,13 @@ from typing import Literal
 import numpy as np
 
 from schemas import FusedState, GroundTruth, Rejection, body_pose_cov, encode
-from schemas.codec import peek
 
 from . import geometry as geo
 from .channel import NetworkProfile, load_profile
 from .faults import FaultInjector
 from .fusion import FusionParams
-from .fusion.gate import MAX_WAIT_S, FrameGate
-from .host import make_host
+from .fusion.gate import MAX_WAIT_S
+from .host import Fused, HostSetup, build_host
 from .radio import RadioChannel, make_channel
 from .radio.cpm import CpmRules
 from .sim import Tick, World, load_scenario
@@ -199,27 +198,30 @@ def run_pipeline(
     radio = isinstance(channel, RadioChannel)
     if radio:
         channel.place(HOST_ID, ego)  # the container runs on the ego
-    hosts = {
-        view.name: make_host(
-            world.hdmap,
-            fusion or FusionParams(),
-            fleet,
-            HOST_ID,
-            mode,
-            known_senders=set(view.senders or world.vehicle_ids),
+    listeners = {view.name: set(view.senders or world.vehicle_ids) for view in views}
+    hosts = {  # the container runs on the ego: its clock times the frames
+        view.name: build_host(
+            HostSetup(
+                fleet=fleet,
+                host_id=HOST_ID,
+                mode=mode,
+                known_senders=tuple(sorted(listeners[view.name])),
+                local=(ego,),
+                max_wait_s=max_wait_s,
+                params=fusion or FusionParams(),
+            ),
+            world.hdmap,  # the centralized host localizes against the vehicles' (published) map
         )
         for view in views
     }
-    listeners = {view.name: set(view.senders or world.vehicle_ids) for view in views}
     signers, verifiers = _security(world.vehicle_ids, [view.name for view in views]) if signing else ({}, {})
     duration = sc.duration_s if duration_s is None else duration_s
     result = PipelineResult(sc.name, seed, mode, profile.name, ego, duration_s=duration, start=start, signing=signing)
 
-    gates = {name: FrameGate(senders, max_wait_s, reference=ego) for name, senders in listeners.items()}
     records: dict[int, TickRecord] = {}  # frame index k (t = k dt) -> its record
 
     def ingest(name: str, src: str, payload: bytes, t_arrive: float) -> None:
-        """Into view ``name``'s host; an accepted message tells the view's gate (as the live host's loop)."""
+        """Into view ``name``'s host loop (its gate hears of what the core accepts)."""
         c0 = time.thread_time()
         if signing:
             out = verifiers[name].verify(payload, SIGNING_EPOCH_S + t_arrive, expected_sender=src)
@@ -228,30 +230,21 @@ def run_pipeline(
                 result.host_cpu_s[name] += time.thread_time() - c0
                 return
             payload = out.payload
-        r = hosts[name].ingest(payload, t_arrive)
+        hosts[name].receive(payload, t_arrive)
         result.host_cpu_s[name] += time.thread_time() - c0
-        if bool(getattr(r, "accepted", r)):
-            head = peek(payload)
-            gates[name].arrived(head["sender"], float(head["t_meas"]), t_arrive)
 
-    def release(name: str, now: float) -> bool:
-        t_frame = gates[name].due(now)
-        if t_frame is None:
-            return False
-        rec = records[int(round(t_frame / world.dt))]  # the frame's time is the ego's clock: ms off t_k
-        c0 = time.thread_time()
-        rec.fused[name] = hosts[name].fuse(t_frame, gates[name].tolerance_s)
-        cpu = time.thread_time() - c0
-        result.host_cpu_s[name] += cpu
-        result.fuse_cpu_ms[name].append(1e3 * cpu)
-        rec.released[name] = now
-        return True
+    def released(name: str, f: Fused) -> None:
+        rec = records[int(round(f.t / world.dt))]  # the frame's time is the ego's clock: ms off t_k
+        rec.fused[name] = f.state
+        result.host_cpu_s[name] += f.cpu_s
+        result.fuse_cpu_ms[name].append(1e3 * f.cpu_s)
+        rec.released[name] = f.released
 
     def timeouts(until: float) -> None:
         """Release what times out by ``until`` (a deadline falls before an arrival at the same instant)."""
-        for name, gate in gates.items():
-            while (d := gate.next_deadline()) is not None and d <= until + 1e-9 and release(name, d):
-                pass
+        for name, host in hosts.items():
+            for f in host.timeouts(until):
+                released(name, f)
 
     def advance(t_end: float, onboard: list[tuple[str, bytes]]) -> None:
         """Every arrival up to ``t_end`` in time order (on-board messages at ``t_end``, before the
@@ -266,7 +259,8 @@ def run_pipeline(
             for name in hosts:
                 if src in listeners[name]:
                     ingest(name, src, payload, t_arrive)
-                    release(name, t_arrive)
+                    if (f := hosts[name].step(t_arrive)) is not None:
+                        released(name, f)
         timeouts(t_end)
 
     t_last = 0.0
@@ -313,8 +307,8 @@ def run_pipeline(
         advance(t, onboard)
     advance(t_last + max_wait_s, [])  # the last frames: their late messages and time-outs
     result.channel_stats = channel.stats()
-    result.host_stats = {name: host.stats() for name, host in hosts.items()}
-    result.gate_stats = {name: {"complete": g.complete, "timed_out": g.timed_out} for name, g in gates.items()}
+    result.host_stats = {name: host.core.stats() for name, host in hosts.items()}
+    result.gate_stats = {name: {"complete": h.gate.complete, "timed_out": h.gate.timed_out} for name, h in hosts.items()}
     return result
 
 

@@ -293,7 +293,7 @@ def _live_replay(args: argparse.Namespace, path: Path) -> int:
 
 def _refuse(args: argparse.Namespace, path: Path) -> int:
     from mapcontainer.config import read_yaml, validate_model
-    from mapcontainer.fusion import FusionParams
+    from mapcontainer.fusion.params import FusionParams
     from mapcontainer.recording.replay import refuse
 
     if not args.out:
@@ -302,7 +302,7 @@ def _refuse(args: argparse.Namespace, path: Path) -> int:
     if args.params:
         params = read_yaml(Path(args.params))
         validate_model(FusionParams, params, args.params)  # ConfigError: exit 2, one line
-    res = refuse(path, params=params, mode=args.mode, schedule=args.schedule)
+    res = refuse(path, params=params, mode=args.mode, schedule=args.schedule, hdmap=args.map)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     doc = {"recording": str(path), "params": params, **res.summary()}
@@ -373,6 +373,9 @@ def add_recording_commands(sub) -> None:
         "--params", default=None, help="--refuse: a YAML file of FusionParams fields (default: the recorded)"
     )
     rp.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="--refuse: the host's mode")
+    rp.add_argument(
+        "--map", default=None, help="--refuse: the centralized host's HD map file (default: the recorded --map)"
+    )
     rp.add_argument(
         "--schedule",
         choices=["host", "arrival"],

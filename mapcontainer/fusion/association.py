@@ -83,18 +83,24 @@ def observations_to_map(pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, n
 
 def mahalanobis_matrix(m, S_m, c, S_c) -> np.ndarray:
     """d2[i, j] = (m_i - c_j)^T (S_m_i + S_c_j)^-1 (m_i - c_j) for (N, 3) / (K, 3) points and their covariances."""
+    return mahalanobis_logdet(m, S_m, c, S_c)[0]
+
+
+def mahalanobis_logdet(m, S_m, c, S_c) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`mahalanobis_matrix` and ln det(S_m_i + S_c_j) of every pair (inf where not positive definite)."""
     m = np.asarray(m, dtype=float).reshape(-1, 3)
     c = np.asarray(c, dtype=float).reshape(-1, 3)
     if len(m) == 0 or len(c) == 0:
-        return np.zeros((len(m), len(c)))
+        return np.zeros((len(m), len(c))), np.zeros((len(m), len(c)))
     diff = m[:, None, :] - c[None, :, :]
     S = np.asarray(S_m, dtype=float)[:, None] + np.asarray(S_c, dtype=float)[None, :]
-    return _quad_inv3(S, diff)
+    return _quad_inv3(S, diff, logdet=True)
 
 
-def _quad_inv3(S: np.ndarray, d: np.ndarray) -> np.ndarray:
+def _quad_inv3(S: np.ndarray, d: np.ndarray, logdet: bool = False):
     """d^T S^-1 d for stacks of symmetric positive definite 3x3 S (..., 3, 3) and vectors d (..., 3), by
-    the adjugate (closed form; a batched LAPACK solve costs ~1 us of overhead per matrix)."""
+    the adjugate (closed form; a batched LAPACK solve costs ~1 us of overhead per matrix); with ``logdet``
+    also ln det S."""
     a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
     e, f, i = S[..., 1, 1], S[..., 1, 2], S[..., 2, 2]
     A00, A01, A02 = e * i - f * f, c * f - b * i, b * f - c * e
@@ -103,8 +109,25 @@ def _quad_inv3(S: np.ndarray, d: np.ndarray) -> np.ndarray:
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     q = A00 * x * x + A11 * y * y + A22 * z * z + 2.0 * (A01 * x * y + A02 * x * z + A12 * y * z)
     with np.errstate(divide="ignore", invalid="ignore"):
-        out = q / det
-    return np.where(det > 0, out, np.inf)
+        out = np.where(det > 0, q / det, np.inf)
+        if logdet:
+            return out, np.where(det > 0, np.log(np.where(det > 0, det, 1.0)), np.inf)
+    return out
+
+
+def _match_probability(nll: np.ndarray, gated: np.ndarray, clutter_density: float) -> np.ndarray:
+    """P[i, j]: the probability that detection i is of candidate j, given the gated candidates of its row and
+    the hypothesis that it is of none of them (a new object, a false alarm) with spatial density
+    ``clutter_density`` (per m^3), as in JPDA's single-detection marginals:
+
+        P[i, j] = N_ij / (lambda + sum_k N_ik),   N_ij = (2 pi)^-3/2 exp(-nll_ij / 2),   nll = d2 + ln det S.
+    """
+    if nll.size == 0:
+        return np.zeros_like(nll)
+    log_n = np.where(gated, -0.5 * nll - 1.5 * np.log(2.0 * np.pi), -np.inf)
+    top = np.maximum(log_n.max(axis=1, keepdims=True, initial=np.log(clutter_density)), np.log(clutter_density))
+    n = np.exp(log_n - top)
+    return n / (np.exp(np.log(clutter_density) - top) + n.sum(axis=1, keepdims=True))
 
 
 def classes_compatible(a: int, b: int) -> bool:
@@ -285,15 +308,18 @@ class Tracker:
         # one Mahalanobis matrix against the vehicles' reported positions and the tracks' predictions
         c = np.concatenate([np.array([v.p_map for v in vehicles]).reshape(-1, 3), inst.x[near, :3]])
         S_c = np.concatenate([np.array([v.cov for v in vehicles]).reshape(-1, 3, 3), inst.P[near, :3, :3]])
-        d2 = mahalanobis_matrix(m, np.array([d.cov_map for d in dets]), c, S_c)
+        d2, logdet = mahalanobis_logdet(m, np.array([d.cov_map for d in dets]), c, S_c)
         dc = np.array([d.cls for d in dets])[:, None]
         tc = np.array([int(ObjectClass.VEHICLE)] * nv + [tr.cls for tr in live])[None, :]
         compat = (dc == tc) | (dc == ObjectClass.UNKNOWN) | (tc == ObjectClass.UNKNOWN)
         d2_all = np.where(compat, d2, np.inf)
         gate = np.r_[np.full(nv, self.vehicle_gate), np.full(nt, self.gate)]
-        cost = np.where(d2_all <= gate, d2, _INFEASIBLE)
+        gated = d2_all <= gate
+        nll = d2 + logdet  # -2 ln N(m; c, S) - 3 ln 2 pi: a wide candidate pays for its width
+        cost = np.where(gated, nll, _INFEASIBLE)
         rows, cols = linear_sum_assignment(cost)
-        matched: dict[int, int] = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < _INFEASIBLE}
+        matched: dict[int, int] = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if gated[r, c]}
+        p_match = _match_probability(nll, gated, self.params.clutter_density_m3)
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
 
@@ -311,17 +337,20 @@ class Tracker:
                     self._maybe_confirm(tr, out, born)
                     self.counts["new_tentative"] += 1
             elif j < nv:
-                out.append(Assignment("vehicle", vehicles[j].vid, det, float(cost[i, j])))
+                if p_match[i, j] < self.params.vehicle_association_probability:  # another candidate may be it
+                    self.counts["vehicle_ambiguous"] += 1
+                    continue
+                out.append(Assignment("vehicle", vehicles[j].vid, det, float(d2[i, j])))
                 self.counts["matched_vehicle"] += 1
             else:
                 tr = live[j - nv]
                 self._record(tr, det)
                 kf.append((int(near[j - nv]), det))
                 if tr.confirmed:
-                    out.append(Assignment("track", tr.id, det, float(cost[i, j])))
+                    out.append(Assignment("track", tr.id, det, float(d2[i, j])))
                     self.counts["matched_track"] += 1
                 else:
-                    tr.pending.append((det, float(cost[i, j])))
+                    tr.pending.append((det, float(d2[i, j])))
                     self.counts["matched_tentative"] += 1
                     self._maybe_confirm(tr, out, born)
         self._update(inst, kf)

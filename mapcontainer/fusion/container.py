@@ -11,79 +11,34 @@ fused driving environment with :meth:`Container.fuse`.
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import FusedState, Rejection, VehiclePrior, bias_cov, decode
+from schemas import FusedState, VehiclePrior, bias_cov
 from schemas.models import MAX_OBJECTS
 
-from .association import Detection, Tracker, VehicleCandidate, observations_to_map
-from .buffer import ReorderBuffer
+from .association import Tracker, VehicleCandidate
 from .graph import FusionGraph
+from .hostcore import (
+    IngestResult,
+    Intake,
+    common_stats,
+    cross_observation,
+    detections_in_map,
+    fused_state,
+    observer_bias,
+    observer_weights,
+    vehicle_at,
+    vehicle_candidate,
+)
 from .laps import Laps
 from .misbehaviour import MisbehaviourMonitor
 from .motion import accel_psd, cv_predict
 from .params import FusionParams
-from .poses import pose_cov_from_tangent, sym_from_upper, upper_from_sym, vector_from_pose3
+from .poses import pose_cov_from_tangent, sym_from_upper, vector_from_pose3
 from .solver import SolveReport
 
 __all__ = ["Container", "FusionParams", "IngestResult"]
-
-
-@dataclass(frozen=True)
-class IngestResult:
-    """Whether a payload was taken; ``reason`` says why not (decoder reasons, duplicate, stale, future,
-    overflow, unknown_sender, fleet)."""
-
-    accepted: bool
-    reason: str | None = None
-
-
-def _make_pd(C: np.ndarray) -> np.ndarray:
-    """Symmetric (..., n, n) with eigenvalues floored (float32-safe): covariances the wire validator accepts."""
-    C = np.asarray(C, dtype=float)
-    if C.size == 0:
-        return C
-    C = 0.5 * (C + np.swapaxes(C, -1, -2))
-    w, U = np.linalg.eigh(C)
-    floor = np.maximum(1e-12, 1e-7 * np.max(np.abs(w), axis=-1, keepdims=True))
-    return (U * np.maximum(w, floor)[..., None, :]) @ np.swapaxes(U, -1, -2)
-
-
-def vehicle_at(pose, cov, v_map, dt: float, params: FusionParams) -> tuple[np.ndarray, np.ndarray]:
-    """A vehicle's pose and covariance moved dt at constant velocity v_map, with the vehicle motion
-    factor's noise (its newest frame is not at the output time: latency, clocks)."""
-    pose, cov = np.array(pose, dtype=float), np.array(cov, dtype=float)
-    if dt != 0:
-        pose[:3] += np.asarray(v_map, dtype=float) * dt
-        s_t2 = (params.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * params.vehicle_accel_sigma_mps2 * dt**2) ** 2
-        s_r2 = (params.vehicle_rate_sigma_radps * dt) ** 2
-        cov = cov + np.diag([s_t2, s_t2, s_t2, s_r2, s_r2, s_r2])
-    return pose, cov
-
-
-def fused_state(
-    fleet, host_id, seq, t, vids, poses, pose_covs, ids, cls, ps, vs, covs, messages_fused, flagged
-) -> FusedState:
-    """The FusedState message of a host's estimate at t (covariances made wire-valid by _make_pd)."""
-    return FusedState(
-        fleet=fleet,
-        sender=host_id,
-        seq=seq,
-        t_meas=t,
-        t_sent=t,
-        vehicle_ids=vids,
-        vehicle_pose=np.array(poses, dtype=np.float32).reshape(-1, 6),
-        vehicle_pose_cov=upper_from_sym(_make_pd(np.array(pose_covs).reshape(-1, 6, 6))).astype(np.float32),
-        object_id=np.array(ids, dtype=np.uint32),
-        object_cls=np.array(cls, dtype=np.uint8),
-        object_p_map=np.array(ps, dtype=np.float32).reshape(-1, 3),
-        object_v_map=np.array(vs, dtype=np.float32).reshape(-1, 3),
-        object_cov=upper_from_sym(_make_pd(np.array(covs).reshape(-1, 3, 3))).astype(np.float32),
-        messages_fused=messages_fused,
-        flagged=flagged,
-    )
 
 
 class Container:
@@ -99,15 +54,13 @@ class Container:
         self.params = params
         self.fleet = fleet
         self.host_id = host_id
-        self.known_senders = None if known_senders is None else set(known_senders)
-        self.buffer = ReorderBuffer(params.window_s, params.future_tolerance_s, params.max_pending)
+        self.intake = Intake(VehiclePrior, params, fleet, known_senders, self._buffered)
         self.graph = FusionGraph(params)
         self.tracker = Tracker(params)
         self._counts: Counter[str] = Counter()
         self._cross: list = []  # (observed vehicle id, Detection) waiting for that vehicle's frame
         # vid -> body-frame 1-sigmas of the error its every frame repeats (VehiclePrior.pose_bias_sigma)
         self._bias_sigma: dict[str, np.ndarray] = {}
-        self._rejected: Counter[str] = Counter()
         self._seq = 0
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
@@ -122,40 +75,15 @@ class Container:
     # ------------------------------------------------------------------ input
     def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
         """Decode and buffer one payload received at scenario time ``t_recv``. Never raises on bad input."""
-        self._counts["received"] += 1
-        msg = decode(payload, VehiclePrior)
-        if isinstance(msg, Rejection):
-            return self._reject(msg.reason)
-        return self._take(msg, t_recv)
+        return self.intake.ingest(payload, t_recv)
 
     def ingest_prior(self, prior: VehiclePrior, t_recv: float) -> IngestResult:
         """Buffer an already-decoded prior."""
-        if not isinstance(prior, VehiclePrior):
-            raise TypeError(f"ingest_prior takes a VehiclePrior, got {type(prior).__name__}")
-        self._counts["received"] += 1
-        return self._take(prior, t_recv)
+        return self.intake.take(prior, t_recv)
 
-    def _take(self, msg: VehiclePrior, t_recv: float) -> IngestResult:
-        reason = self._sender_refused(msg)
-        if reason is None:
-            reason = self.buffer.push(msg, float(t_recv))
-            if self.params.misbehaviour:
-                self.monitor.message(msg.sender, float(msg.t_meas), float(t_recv), reason)
-        if reason is not None:
-            return self._reject(reason)
-        self._counts["accepted"] += 1
-        return IngestResult(True)
-
-    def _sender_refused(self, msg: VehiclePrior) -> str | None:
-        if msg.fleet != self.fleet:
-            return "fleet"
-        if self.known_senders is not None and msg.sender not in self.known_senders:
-            return "unknown_sender"
-        return None
-
-    def _reject(self, reason: str) -> IngestResult:
-        self._rejected[reason] += 1
-        return IngestResult(False, reason)
+    def _buffered(self, msg: VehiclePrior, t_recv: float, reason: str | None) -> None:
+        if self.params.misbehaviour:
+            self.monitor.message(msg.sender, float(msg.t_meas), t_recv, reason)
 
     # ------------------------------------------------------------------ fusion
     def fuse(self, t: float, tolerance_s: float = 0.0) -> FusedState:
@@ -167,9 +95,7 @@ class Container:
         laps = Laps()
         t = float(t)
         t_min = t - self.params.window_s
-        msgs = [m for m in self.buffer.pop_until(t + tolerance_s)]
-        fresh = [m for m in msgs if m.t_meas >= t_min]
-        self._counts["expired"] += len(msgs) - len(fresh)
+        fresh = self.intake.pop(t, tolerance_s)
         keys = []
         for m in fresh:  # all poses first, so that detections can be matched to any vehicle of the instant
             key = self.graph.add_vehicle_prior(
@@ -249,30 +175,19 @@ class Container:
     def _associate(self, m: VehiclePrior) -> list[tuple]:
         """Associate a message's detections; returns the track detections for the graph
         (:meth:`FusionGraph.add_detections` items)."""
-        objs = m.objects
-        if len(objs) == 0:
-            return []
         t = float(m.t_meas)
-        p_body = objs.p_body
-        cov_body = sym_from_upper(np.asarray(objs.cov, dtype=np.float64))
-        keep = np.linalg.norm(p_body, axis=1) >= self.params.min_range_m
-        self._counts["too_close"] += int((~keep).sum())
-        if not keep.any():
-            return []
         pose = np.asarray(m.pose, dtype=float)
         pose_cov = sym_from_upper(np.asarray(m.pose_cov, dtype=float))
-        p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
+        mapped = detections_in_map(m.sender, t, m.objects, pose, pose_cov, self.params, self._counts)
+        if mapped is None:
+            return []
+        dets, p_map = mapped.dets, mapped.p_map
         if self.params.misbehaviour:
-            self.monitor.observe(m.sender, t, p_map, S_map, np.asarray(objs.cls)[keep], self._reported(t))
+            self.monitor.observe(m.sender, t, p_map, mapped.S_map, mapped.cls, self._reported(t))
             self._look(m, t, pose, p_map)
             if m.sender in self.monitor.flagged:  # its detections would carry its error into everyone's picture
                 self._counts["detections_of_flagged"] += len(p_map)
                 return []
-        idx = np.flatnonzero(keep)
-        dets = [
-            Detection(m.sender, t, int(i), p_body[i], cov_body[i], int(objs.cls[i]), p_map[j], S_map[j])
-            for j, i in enumerate(idx)
-        ]
         mb = self.monitor
         cands, (_, where, _) = self._vehicle_candidates(t), self._reported(t)
         close = np.flatnonzero(
@@ -359,9 +274,7 @@ class Container:
             s = chain.nearest(t, self.params.vehicle_gate_max_dt_s)
             if s is None:
                 continue
-            dt = t - s.t
-            cov = s.cov[:3, :3] + (self.params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
-            out.append(VehicleCandidate(vid, s.pose[:3] + s.v_map * dt, cov))
+            out.append(vehicle_candidate(vid, s.pose[:3], s.cov[:3, :3], s.v_map, t - s.t, self.params))
         self._candidates[t] = out
         return out
 
@@ -385,13 +298,10 @@ class Container:
             if target is None:
                 waiting.append((vid, det))
                 continue
-            R_obs = obs.M[:3, :3]
-            delta = det.t - target.t
-            z = det.p_body - R_obs.T @ target.v_map * delta
-            cov = det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3)
+            S_b = None
             if vid in self._bias_sigma:  # the detection sees the body; the graph's pose is the camera's
                 S_b = bias_cov(self._bias_sigma[vid], float(target.pose[5]))[:3, :3]
-                cov = cov + R_obs.T @ S_b @ R_obs
+            z, cov = cross_observation(det, obs.M[:3, :3], target.v_map, det.t - target.t, self.params, S_b)
             items.append((obs.key, target.key, z, cov))
         self.graph.add_cross_detections(items)
         self._counts["cross_detections"] += len(items)
@@ -405,9 +315,12 @@ class Container:
         vids = sorted(g.vehicles)
         poses, pose_covs = [], []
         pp = self.params
+        seen_from: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # vid -> (pose, S_b): an observer's repeated error
         for vid in vids:
             ts, T, cov_xi = g.vehicle_estimate(vid)
             pose = vector_from_pose3(T)
+            if vid in self._bias_sigma:
+                seen_from[vid] = (pose, bias_cov(self._bias_sigma[vid], float(pose[5])))
             if cov_xi is None:
                 cov = g.vehicles[vid].latest().cov
             else:
@@ -426,7 +339,10 @@ class Container:
             cls.append(tr.cls)
             dts.append(t - ts)
             xs.append(np.concatenate([p, v]))
-            Cs.append(tr.P if C is None else C)
+            C = np.array(tr.P if C is None else C)
+            w = observer_weights(tr.frames, t - pp.window_s)
+            C[:3, :3] += observer_bias(p, [(*seen_from[v], w[v]) for v in w if v in seen_from])
+            Cs.append(C)
         ps, covs, vs = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))
         if ids:
             q = np.array([accel_psd(self.params, c) for c in cls])
@@ -454,34 +370,19 @@ class Container:
     def stats(self) -> dict:
         """Counters and figures of the last cycle (for health status and benchmarks)."""
         last = self._last
-        tracks = list(self.tracker.tracks.values())
         return {
-            "received": self._counts["received"],
-            "accepted": self._counts["accepted"],
-            "rejected": dict(self._rejected),
-            "pending": len(self.buffer),
-            "expired": self._counts["expired"],
-            "fused_cycles": self._counts["fused_cycles"],
+            **common_stats(self.intake, self.tracker, self._counts, len(self.graph.vehicles), self._last_cycle_ms),
             "last_iterations": last.iterations if last else 0,
             "last_error_before": last.error_before if last else float("nan"),
             "last_error_after": last.error_after if last else float("nan"),
-            "last_cycle_ms": self._last_cycle_ms,
             "last_phases_ms": dict(self._last_phases_ms),
             "cliques_below_root": last.cliques_below_root if last else 0,
             "reweighted": last.reweighted if last else 0,
             "factors": self.graph.num_factors,
             "variables": self.graph.num_variables,
-            "vehicles": len(self.graph.vehicles),
-            "tracks_confirmed": sum(tr.confirmed for tr in tracks),
-            "tracks_tentative": sum(not tr.confirmed for tr in tracks),
-            "association": dict(self.tracker.counts),
-            "detections": self._counts["detections"],
             "detections_folded": self._counts["detections_folded"],
-            "cross_detections": self._counts["cross_detections"],
-            "cross_no_state": self._counts["cross_no_state"],
             "observer_gone": self._counts["observer_gone"],
             "duplicate_instant": self._counts["duplicate_instant"],
-            "too_close": self._counts["too_close"],
             "flagged": dict.fromkeys(sorted(self.monitor.flagged), 1.0),
             "flagged_why": dict(sorted(self.monitor.flagged.items())),
             "flagged_total": self.monitor.flagged_total,

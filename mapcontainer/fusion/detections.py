@@ -15,7 +15,8 @@ and its IRLS weights.
   ``ReferenceFrameFactorPoint3Pose3(h, x, p)``, gives the same estimates (the test oracle in
   tests/unit/test_fusion_graph.py) with two factors and a variable per detection instead of one factor;
 * a detection of another connected vehicle (cross-localization): the same model against the observed
-  vehicle's body origin, e = R_obs^T (t_target - t_obs) - z (``LinearContainerFactor`` on both poses).
+  vehicle's body origin, e = R_obs^T (t_target - t_obs) - z (``LinearContainerFactor`` on both poses),
+  robust by dynamic covariance scaling (``cross_dcs_phi``, :func:`robust_weights`).
 
 Why not ``BearingRangeFactor3D`` (one factor, nonlinear): in this GTSAM build its bearing error is in the
 tangent basis of the *predicted* Unit3, which Unit3 picks by the smallest component of the direction.
@@ -33,7 +34,7 @@ import numpy as np
 
 from .params import FusionParams
 
-__all__ = ["DetectionRecord", "huber_weights", "linear_factors", "moved", "observed", "skews"]
+__all__ = ["DetectionRecord", "robust_weights", "linear_factors", "moved", "observed", "skews"]
 
 _UNIT3 = gtsam.noiseModel.Unit.Create(3)
 
@@ -108,12 +109,20 @@ def linear_factors(dets: list[DetectionRecord], values: gtsam.Values) -> list[gt
     return out
 
 
-def huber_weights(dets: list[DetectionRecord], values: gtsam.Values, k: float) -> np.ndarray:
-    """Huber weights w = min(1, k / |W e|) of the detections' residuals e = R^T (p - t) - z at ``values``."""
+def robust_weights(dets: list[DetectionRecord], values: gtsam.Values, k: float, phi: float | None = None) -> np.ndarray:
+    """IRLS weights of the detections' residuals e = R^T (p - t) - z at ``values``: Huber w = min(1, k / |W e|)
+    for detections of tracks; for cross-observations, with ``phi``, dynamic covariance scaling (Agarwal et
+    al., "Robust map optimization using dynamic covariance scaling", ICRA 2013): w = s^2,
+    s = min(1, 2 phi / (phi + |W e|^2)), whose influence vanishes far out, so a detection of another
+    vehicle wrongly associated with this one cannot drag it (Huber's influence stays k)."""
     e = observed(dets, values)[2] - np.array([d.z for d in dets])
     we = np.einsum("nij,nj->ni", np.array([d.W for d in dets]), e)
     dist = np.linalg.norm(we, axis=1)
-    return np.minimum(1.0, k / np.maximum(dist, 1e-12))
+    w = np.minimum(1.0, k / np.maximum(dist, 1e-12))
+    if phi is not None:
+        cross = np.array([d.cross for d in dets])
+        w[cross] = np.minimum(1.0, 2.0 * phi / (phi + dist[cross] ** 2)) ** 2
+    return w
 
 
 def moved(lin: dict[int, np.ndarray], values: gtsam.Values, params: FusionParams) -> set[int]:

@@ -101,6 +101,12 @@ class FrameGate:
         self._frames = [g for g in self._frames if g.t_first > f.t_first]
         return f.t
 
+    def solved(self, t: float) -> None:
+        """Frame ``t`` was solved outside :meth:`due` (re-fusion at recorded times): the frames up to it are
+        dropped and later messages for them ignored, as after releasing it."""
+        self._last_t = t if self._last_t is None else max(self._last_t, t)
+        self._frames = [f for f in self._frames if f.t_first > t + self.tolerance_s + _EPS_S]
+
     def next_deadline(self) -> float | None:
         """The earliest time a pending frame times out, None when none is pending."""
         return min((f.first + self.max_wait_s for f in self._frames), default=None)

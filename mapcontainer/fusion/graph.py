@@ -487,7 +487,8 @@ class FusionGraph:
             elif det.pose_key in moved or (det.cross and det.target_key in moved):
                 todo.append((det, det.weight))
         if recent:
-            for det, w in zip(recent, detections.huber_weights(recent, self.values, k), strict=True):
+            weights = detections.robust_weights(recent, self.values, k, p.cross_dcs_phi)
+            for det, w in zip(recent, weights, strict=True):
                 relin = det.pose_key in moved or (det.cross and det.target_key in moved)
                 if relin or abs(w - det.weight) > 0.05 * det.weight:
                     todo.append((det, float(w)))

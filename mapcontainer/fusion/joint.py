@@ -45,19 +45,29 @@ from collections import Counter
 
 import numpy as np
 
-from schemas import FusedState, RawObservations, Rejection, bias_cov, decode
+from schemas import FusedState, RawObservations, bias_cov
 from schemas.models import MAX_OBJECTS
 
 from .. import geometry as geo
 from ..hdmap.model import HDMap
 from ..localization import Localizer, LocalizerParams
 from ..vehicle import camera_frame
-from .association import Detection, Tracker, VehicleCandidate, observations_to_map
-from .buffer import ReorderBuffer, time_key
-from .container import IngestResult, fused_state, vehicle_at
+from .association import Detection, Tracker, VehicleCandidate
+from .buffer import time_key
+from .hostcore import (
+    IngestResult,
+    Intake,
+    common_stats,
+    cross_observation,
+    detections_in_map,
+    fused_state,
+    observer_bias,
+    observer_weights,
+    vehicle_at,
+    vehicle_candidate,
+)
 from .motion import accel_psd, cv_model, cv_predict
 from .params import FusionParams
-from .poses import sym_from_upper
 
 __all__ = ["JointHost"]
 
@@ -94,10 +104,9 @@ class JointHost:
         self.params = params
         self.fleet = fleet
         self.host_id = host_id
-        self.known_senders = None if known_senders is None else set(known_senders)
         self.loc_params = localizer_params or LocalizerParams()
         self.idle_s = idle_s
-        self.buffer = ReorderBuffer(params.window_s, params.future_tolerance_s, params.max_pending)
+        self.intake = Intake(RawObservations, params, fleet, known_senders)
         self.tracker = Tracker(params)
         self.localizers: dict[str, Localizer] = {}
         self._results: dict = {}  # vid -> its localizer's last LocalizationResult
@@ -107,7 +116,6 @@ class JointHost:
         self._t: dict[tuple[str, object], float] = {}  # each block's time
         self._off: dict[tuple[str, object], int] = {}
         self._counts: Counter[str] = Counter()
-        self._rejected: Counter[str] = Counter()
         self._seq = 0
         self._cycle_frames = 0
         self._last_cycle_ms = float("nan")
@@ -115,23 +123,7 @@ class JointHost:
     # ------------------------------------------------------------------ input
     def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
         """Decode and buffer one RawObservations payload received at ``t_recv``. Never raises on bad input."""
-        self._counts["received"] += 1
-        raw = decode(payload, RawObservations)
-        if isinstance(raw, Rejection):
-            return self._reject(raw.reason)
-        if raw.fleet != self.fleet:
-            return self._reject("fleet")
-        if self.known_senders is not None and raw.sender not in self.known_senders:
-            return self._reject("unknown_sender")
-        reason = self.buffer.push(raw, float(t_recv))
-        if reason is not None:
-            return self._reject(reason)
-        self._counts["accepted"] += 1
-        return IngestResult(True)
-
-    def _reject(self, reason: str) -> IngestResult:
-        self._rejected[reason] += 1
-        return IngestResult(False, reason)
+        return self.intake.ingest(payload, t_recv)
 
     # ------------------------------------------------------------------ state blocks
     def _size(self, key) -> int:
@@ -189,9 +181,7 @@ class JointHost:
         """Process every frame received with t_meas <= t + tolerance_s (in time order); the state at t."""
         t0 = time.perf_counter()
         t = float(t)
-        msgs = self.buffer.pop_until(t + tolerance_s)
-        fresh = [m for m in msgs if m.t_meas >= t - self.params.window_s]
-        self._counts["expired"] += len(msgs) - len(fresh)
+        fresh = self.intake.pop(t, tolerance_s)
         by_instant: dict[int, list[RawObservations]] = {}
         for m in fresh:
             by_instant.setdefault(time_key(m.t_meas), []).append(m)
@@ -244,13 +234,13 @@ class JointHost:
         try:
             frame = camera_frame(raw)
         except ValueError:  # e.g. a lane mask that is not an image
-            self._rejected["invalid"] += 1
+            self.intake.reject("invalid")
             return False
         loc = self.localizers.get(vid)
         if loc is None:
             loc = self.localizers[vid] = Localizer(self.hdmap, self.loc_params)
         if loc.t_prev is not None and t <= loc.t_prev:
-            self._rejected["out_of_order"] += 1
+            self.intake.reject("out_of_order")
             return False
         key = ("v", vid)
         held = key in self._off and loc.initialized
@@ -265,7 +255,7 @@ class JointHost:
             self._counts["localizer_failure"] += 1
             return False
         if res.bad_input:
-            self._rejected["bad_input"] += 1
+            self.intake.reject("bad_input")
             return False
         self._results[vid] = res
         self._counts["frames"] += 1
@@ -322,39 +312,28 @@ class JointHost:
             if abs(dt) > self.params.vehicle_gate_max_dt_s:
                 continue
             x = self.mu[s]
-            cov = (
-                self.P[s, s][:3, :3]
-                + bias_cov(self.loc_params.match_bias_sigma, float(x[5]))[:3, :3]
-                + (self.params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
-            )
-            out.append(VehicleCandidate(key[1], x[:3] + self._results[key[1]].velocity_map * dt, cov))
+            S_b = bias_cov(self.loc_params.match_bias_sigma, float(x[5]))[:3, :3]
+            v = self._results[key[1]].velocity_map
+            out.append(vehicle_candidate(key[1], x[:3], self.P[s, s][:3, :3], v, dt, self.params, S_b))
         return out
 
     def _detections(self, raw: RawObservations) -> list[tuple[str, Detection]]:
         """Step 2 for one frame's object detections; returns its cross-observations (target vid, detection)."""
         vid, t = raw.sender, float(raw.t_meas)
         key = ("v", vid)
-        objs = raw.objects
-        if len(objs) == 0:
+        if len(raw.objects) == 0:
             return []
         if key not in self._off:
-            self._counts["detections_unlocalized"] += len(objs)
-            return []
-        p_body = np.asarray(objs.p_body, dtype=float)
-        cov_body = _floored(sym_from_upper(np.asarray(objs.cov, dtype=np.float64)))
-        keep = np.linalg.norm(p_body, axis=1) >= self.params.min_range_m
-        self._counts["too_close"] += int((~keep).sum())
-        if not keep.any():
+            self._counts["detections_unlocalized"] += len(raw.objects)
             return []
         s = self._sl(key)
         pose, pose_cov = self.mu[s][:6], self.P[s, s][:6, :6]
+        mapped = detections_in_map(vid, t, raw.objects, pose, pose_cov, self.params, self._counts, _floored)
+        if mapped is None:
+            return []
         self._predict_tracks(t)
         self._sync_tracker()
-        p_map, S_map = observations_to_map(pose, pose_cov, p_body[keep], cov_body[keep])
-        dets = [
-            Detection(vid, t, int(i), p_body[i], cov_body[i], int(objs.cls[i]), p_map[j], S_map[j])
-            for j, i in enumerate(np.flatnonzero(keep))
-        ]
+        dets = mapped.dets
         assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid))
         for tid in born:
             det = next((a.det for a in assignments if a.target == tid and a.det.sender == vid and a.det.t == t), None)
@@ -413,12 +392,9 @@ class JointHost:
                 self._counts["cross_no_state"] += 1
                 continue
             R_obs = geo.rpy_to_matrix(*self.mu[self._sl(okey)][3:6])
-            x_t = self.mu[self._sl(tkey)]
-            z = det.p_body - R_obs.T @ self._results[target].velocity_map * delta
-            S_b = bias_cov(self.loc_params.match_bias_sigma, float(x_t[5]))[:3, :3]
-            cov = (
-                det.cov_body + (self.params.vehicle_velocity_sigma_mps * delta) ** 2 * np.eye(3) + R_obs.T @ S_b @ R_obs
-            )
+            S_b = bias_cov(self.loc_params.match_bias_sigma, float(self.mu[self._sl(tkey)][5]))[:3, :3]
+            v = self._results[target].velocity_map
+            z, cov = cross_observation(det, R_obs, v, delta, self.params, S_b)
             by_observer.setdefault(det.sender, []).append((tkey, z, cov))
         for observer, rows in by_observer.items():
             self._counts["cross_detections"] += len(rows)
@@ -492,43 +468,35 @@ class JointHost:
             poses.append(pose)
             covs.append(cov)
         ids, cls, ps, vs, Ps = [], [], [], [], []
+        seen_from = {  # every observer's repeated error (its camera's calibration, the map's drift)
+            k[1]: (x := self.mu[self._sl(k)][:6], bias_cov(self.loc_params.match_bias_sigma, float(x[5])))
+            for k in self._keys
+            if k[0] == "v"
+        }
         for tid, tr in sorted(self.tracker.confirmed().items()):
             key = ("o", tid)
             if key not in self._off or len(ids) >= MAX_OBJECTS:
                 continue
             s = self._sl(key)
             x, C = cv_predict(self.mu[s], self.P[s, s], t - self._t[key], accel_psd(pp, tr.cls))
+            w = observer_weights(tr.frames, t - pp.window_s)
             ids.append(tid)
             cls.append(tr.cls)
             ps.append(x[:3])
             vs.append(self.mu[s][3:])
-            Ps.append(C[:3, :3])
+            Ps.append(C[:3, :3] + observer_bias(x[:3], [(*seen_from[v], w[v]) for v in w if v in seen_from]))
         self._seq += 1
         frames = self._cycle_frames  # a filter has no window: the frames this cycle took in
         return fused_state(self.fleet, self.host_id, self._seq, t, vids, poses, covs, ids, cls, ps, vs, Ps, frames, [])
 
     def stats(self) -> dict:
         """Counters and figures (for health status and benchmarks)."""
-        tracks = list(self.tracker.tracks.values())
+        vehicles = sum(k[0] == "v" for k in self._keys)
         return {
-            "received": self._counts["received"],
-            "accepted": self._counts["accepted"],
-            "rejected": dict(self._rejected),
-            "pending": len(self.buffer),
-            "expired": self._counts["expired"],
-            "fused_cycles": self._counts["fused_cycles"],
-            "last_cycle_ms": self._last_cycle_ms,
-            "vehicles": sum(k[0] == "v" for k in self._keys),
+            **common_stats(self.intake, self.tracker, self._counts, vehicles, self._last_cycle_ms),
             "state_dim": len(self.mu),
-            "tracks_confirmed": sum(tr.confirmed for tr in tracks),
-            "tracks_tentative": sum(not tr.confirmed for tr in tracks),
-            "association": dict(self.tracker.counts),
-            "detections": self._counts["detections"],
-            "cross_detections": self._counts["cross_detections"],
-            "cross_no_state": self._counts["cross_no_state"],
             "detections_unlocalized": self._counts["detections_unlocalized"],
             "vehicle_reseeded": self._counts["vehicle_reseeded"],
-            "too_close": self._counts["too_close"],
             "numerical_failure": self._counts["numerical_failure"],
             "localizer_failure": self._counts["localizer_failure"],
         }

@@ -59,6 +59,23 @@ class FusionParams(BaseModel):
     merge_probability: float = Field(
         0.99, gt=0, lt=1, description="gate on position and velocity under which two confirmed tracks are one object"
     )
+    clutter_density_m3: float = Field(
+        1e-5,
+        gt=0,
+        description=(
+            "spatial density (per m^3) of detections of nothing the host holds (new objects, false alarms): the"
+            " detector's 0.1 false objects a frame over its 60 m, 120 deg, ~3 m high field of view (~1e-5)"
+        ),
+    )
+    vehicle_association_probability: float = Field(
+        0.9,
+        gt=0,
+        lt=1,
+        description=(
+            "a detection assigned to a connected vehicle constrains its pose only if it is that vehicle with at"
+            " least this probability against every other gated vehicle, track and clutter (else not used)"
+        ),
+    )
     merge_cycles: int = Field(3, ge=1, description="... for this many consecutive fuse() calls")
     vehicle_shadow_m: float = Field(
         1.5,
@@ -98,6 +115,15 @@ class FusionParams(BaseModel):
     relinearize_m: float = Field(0.5, gt=0, description="... or moved this far from its linearization point")
     huber_k: float | None = Field(
         3.0, gt=0, description="Huber threshold on the whitened 3-D detection residual norm; None = Gaussian"
+    )
+    cross_dcs_phi: float | None = Field(
+        11.34,
+        gt=0,
+        description=(
+            "dynamic covariance scaling of cross-observations (detections of connected vehicles): weight"
+            " min(1, 2 phi / (phi + chi2))^2 of the whitened squared residual chi2; 11.34 = chi2_3(0.99);"
+            " None: Huber as the track detections. Needs huber_k (the reweighting)"
+        ),
     )
     min_range_m: float = Field(0.5, gt=0, description="detections closer to the body origin than this are ignored")
     cross_localization: bool = Field(True, description="detections of connected vehicles constrain their poses")

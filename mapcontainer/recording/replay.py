@@ -15,7 +15,8 @@ the services take it as live traffic:
   shifted by the replay's start minus the recording's (and scaled by ``1 / speed``, ``time_scale``
   multiplied by ``speed``), so scenario times, receive times and latencies come out as recorded.
 
-**Re-fusion.** The host container (``mapcontainer.host.make_host``) is fed the recorded vehicle
+**Re-fusion.** The recorded host's set-up (:func:`host_setup`: its command line, read with the host's own
+flags) builds the same host loop (:func:`mapcontainer.host.build_host`), which is fed the recorded vehicle
 messages and solved, two ways:
 
 * ``schedule="host"`` (exact): the live host publishes with every fused state the solve time, the
@@ -37,11 +38,12 @@ refused again; without a certificate the payloads are unwrapped unverified and t
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from collections import defaultdict, deque
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +56,7 @@ from schemas.tags import TAGS
 from schemas.topics import topic
 
 from ..evaluation import Totals, score_frame
+from ..host import HostSetup, add_host_args, build_host, host_setup_from_args
 from .mcapio import Record, RecordingError, read_records, read_scan, recording_files
 
 __all__ = [
@@ -67,7 +70,7 @@ __all__ = [
     "shift_attachment",
 ]
 
-_NO_CLOCK = {"epoch_wall_ns": None, "time_scale": None}  # encode leaves None out
+_NO_CLOCK = {"epoch_wall_ns": None, "time_scale": None, "t_next": None}  # encode leaves None out
 TRUTH_TOL_S = 0.02  # the evaluator's t_tol_s: a fused state is scored against the truth this close in time
 BURNIN_S = 5.0  # the evaluator's steady state
 _FLEET_TAG = TAGS["fleet"]
@@ -231,29 +234,11 @@ def replay_plan(
 # ---------------------------------------------------------------------------- re-fusion
 
 
-@dataclass
-class HostSetup:
-    """How the recorded host ran: what re-fusion needs to build the same container."""
-
-    fleet: str
-    host_id: str = "host"
-    mode: str = "distributed"
-    scenario: str = "paper-urban"
-    seed: int = 0
-    local: list[str] = field(default_factory=list)
-    known_senders: list[str] | None = None
-    max_wait_s: float = 0.1
-    params: dict[str, Any] | None = None
-
-
-def _flag(argv: list[str], name: str, many: bool = False):
-    vals = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == name]
-    return vals if many else (vals[-1] if vals else None)
-
-
 def host_setup(path: str | Path) -> HostSetup:
-    """The recorded host's setup, from the run's config.json kept in the recording (its command line),
-    else from the recording's metadata and keys."""
+    """The recorded host's set-up: its command line in the run's config.json kept in the recording, read with
+    the host's own flags (:func:`mapcontainer.host.add_host_args`), else the fleet from the recording's
+    metadata and the defaults. A ``--map`` or ``--params`` file is named as recorded (relative to where the
+    host ran)."""
     path = Path(path)
     scan = read_scan(path)
     meta = scan.metadata.get("recording", {})
@@ -270,27 +255,15 @@ def host_setup(path: str | Path) -> HostSetup:
             None,
         )
         if host is not None:
-            argv = host["argv"]
-            known = _flag(argv, "--known-senders")
-            params = None
-            if _flag(argv, "--params"):
-                from ..config import read_yaml
-
-                params = read_yaml(Path(_flag(argv, "--params")))
-            return HostSetup(
-                fleet=_flag(argv, "--fleet") or fleet or "local",
-                host_id=_flag(argv, "--id") or "host",
-                mode=_flag(argv, "--mode") or "distributed",
-                scenario=_flag(argv, "--scenario") or "paper-urban",
-                seed=int(_flag(argv, "--seed") or 0),
-                local=_flag(argv, "--local", many=True),
-                known_senders=[x for x in known.split(",") if x] if known else None,
-                max_wait_s=float(_flag(argv, "--max-wait") or 0.1),
-                params=params,
-            )
+            p = argparse.ArgumentParser(add_help=False)
+            add_host_args(p)
+            p.add_argument("--fleet", default=fleet or "local")
+            p.add_argument("--id", default="host")
+            a, _ = p.parse_known_args(host["argv"])  # the service's transport flags are not the container's
+            return host_setup_from_args(a, a.fleet, a.id)
     if not fleet:
         raise RecordingError(f"{path}: no config.json or metadata says which fleet and host were recorded")
-    return HostSetup(fleet=fleet, scenario=meta.get("scenario") or "paper-urban", seed=int(meta.get("seed") or 0))
+    return HostSetup(fleet=fleet)
 
 
 @dataclass
@@ -313,7 +286,7 @@ class RefuseResult:
 
     def summary(self) -> dict[str, Any]:
         return {
-            "setup": self.setup.__dict__,
+            "setup": self.setup.model_dump(mode="json"),
             "schedule": self.schedule,
             "fused_states": len(self.fused),
             "recorded_fused_states": len(self.live),
@@ -366,15 +339,14 @@ def refuse(
     schedule: str = "host",
     burnin_s: float = BURNIN_S,
     setup: HostSetup | None = None,
+    hdmap=None,
 ) -> RefuseResult:
-    """Re-fuse a recording's vehicle messages with the host's core (module docstring); ``params``
-    (FusionParams fields) and ``mode`` replace the recorded host's."""
-    from ..fusion import FusionParams, limit_blas_threads
-    from ..fusion.gate import FrameGate
+    """Re-fuse a recording's vehicle messages with the host's loop (module docstring); ``params``
+    (FusionParams fields) replace the recorded host's, ``mode`` must be the recorded one. ``hdmap`` (an
+    HDMap or a map file): the centralized host's map, else the recorded ``--map``."""
+    from ..fusion.blas import limit_blas_threads
+    from ..fusion.params import FusionParams
     from ..security import fused_signers, unwrap
-    from ..host import make_host
-    from ..sim.config import load_scenario
-    from ..sim.errors import published_map
 
     if schedule not in ("host", "arrival"):
         raise ValueError(f"schedule must be 'host' or 'arrival', got {schedule!r}")
@@ -386,10 +358,16 @@ def refuse(
             f"{'priors' if setup.mode == 'distributed' else 'raw observations'}, which the {mode} host cannot fuse"
         )
     limit_blas_threads(1)  # as the live host's worker: the same BLAS path for the same numbers
-    fp = FusionParams(**params) if params is not None else FusionParams(**(setup.params or {}))
-    hdmap = published_map(load_scenario(setup.scenario), setup.seed)
-    known = set(setup.known_senders) if setup.known_senders else None
-    core = make_host(hdmap, fp, setup.fleet, setup.host_id, setup.mode, known_senders=known)
+    if params is not None:
+        setup = setup.model_copy(update={"params": FusionParams(**params)})
+    if isinstance(hdmap, str | Path):
+        setup, hdmap = setup.model_copy(update={"map_file": str(hdmap)}), None
+    if setup.mode == "centralized" and hdmap is None and (setup.map_file is None or not Path(setup.map_file).is_file()):
+        raise RecordingError(
+            f"{path}: the centralized host needs its HD map: the recorded --map {setup.map_file} is not here; "
+            "give the map file (--map)"
+        )
+    host = build_host(setup, hdmap)
     kind = "prior" if setup.mode == "distributed" else "raw"
     rx, tx = topic(f"{kind}_rx"), topic(f"{kind}_tx")
     fused_t, truth_t = topic("fused"), topic("truth")
@@ -476,51 +454,39 @@ def refuse(
                     cache[id(rec)] = inner(rec, src)
                 data = cache[id(rec)]
                 if data is not None:
-                    core.ingest(data, float(t_recv))
+                    host.receive(data, float(t_recv))
                     ingested += 1
-            out = core.fuse(float(att["t_fused"]), float(att.get("tol", 0.0)))
-            fused.append(out)
-            payloads.append(encode(out))
+            out = host.fuse(float(att["t_fused"]), float(att.get("tol", 0.0)))
+            fused.append(out.state)
+            payloads.append(out.payload())
         if not_found:
             notes.append(f"{not_found} messages the host ingested are not in the recording (the recorder missed them)")
     else:
         clock = RecordedClock()
-        gate = FrameGate(known, setup.max_wait_s, reference=setup.local[0] if setup.local else None)
-
-        def release(now: float) -> bool:
-            t = gate.due(now)
-            if t is None:
-                return False
-            out = core.fuse(t, gate.tolerance_s)
-            fused.append(out)
-            payloads.append(encode(out))
-            return True
-
         t0_ns = inputs[0][0].log_time_ns if inputs else 0
+        solved = []
         for r, src in inputs:
             now = (r.log_time_ns - t0_ns) * 1e-9  # seconds since the first input: Unix seconds lose the ns
-            while (d := gate.next_deadline()) is not None and d <= now and release(d):
-                pass
+            solved += host.timeouts(now)
             clock.update(r.attachment)
             t_recv = clock.now(r.log_time_ns)
             data = inner(r, src)
             if data is None or t_recv is None:
                 continue
-            res = core.ingest(data, t_recv)
+            host.receive(data, t_recv, now)
             ingested += 1
-            if getattr(res, "accepted", res):
-                head = peek(data)
-                gate.arrived(head["sender"], float(head["t_meas"]), now)
-            release(now)
-        while (d := gate.next_deadline()) is not None and release(d):
-            pass
+            if (f := host.step(now)) is not None:
+                solved.append(f)
+        solved += host.timeouts(math.inf)
+        fused = [f.state for f in solved]
+        payloads = [f.payload() for f in solved]
 
     identical = compared = 0
     max_diff = 0.0
     if schedule == "host":
-        for (r, m), p, f in zip(live, payloads, fused, strict=True):
+        for (_, m), p, f in zip(live, payloads, fused, strict=True):
             compared += 1
-            identical += p == encode(m.model_copy(update=_NO_CLOCK))  # the container's bytes: the service adds the clock
+            identical += p == encode(m.model_copy(update=_NO_CLOCK))  # the container's: the service adds the clock
             d = _state_diff(f, m)
             max_diff = max(max_diff, math.inf if d is None else d)
     scores = {

@@ -11,6 +11,10 @@ world's clock, ``t_wall_ns``, the solve time ``t_fused`` and frame tolerance ``t
 ``[sender, seq, t_recv]`` of every payload the container ingested since its previous solve, in order, which
 makes a recording re-fusable exactly (``mapc replay --refuse``).
 
+The container is ``mapcontainer.host.build_host`` of the host's own flags (``add_host_args``: ``--mode``,
+``--map``, ``--local``, ``--known-senders``, ``--max-wait``, ``--params``); its HD map is a file
+(``--map``, any format ``mapc map`` reads), which the centralized host needs and the distributed one does not.
+
 GTSAM holds the GIL for a whole solve, so by default the container runs in a worker process
 (``multiprocessing`` spawn context, started before the Zenoh session is opened) and this
 process only moves bytes: subscriber callbacks never wait for a solve. ``--inline`` runs the
@@ -26,12 +30,12 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from mapcontainer.admission import Gate
-from mapcontainer.config import read_yaml, validate_model
+from mapcontainer.host import HostSetup, add_host_args, host_setup_from_args
 from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Signer, Verifier, load_certificate, load_credentials
 from schemas import FusedState
 from schemas.codec import Rejection, peek, with_fields
@@ -56,13 +60,10 @@ FRAME_PERIOD_S = 0.1  # scenario seconds between camera frames: the host solves 
 
 
 class HostSettings(ServiceSettings):
-    scenario: str = "paper-urban"
-    seed: int = Field(0, ge=0, description="the run's seed: the HD map's error is drawn from it (as the world's)")
-    mode: Literal["distributed", "centralized"] = "distributed"
-    max_wait_s: float = Field(0.1, ge=0, le=2, description="wall seconds a frame waits for late senders")
-    known_senders: list[str] | None = None
-    local: list[str] = Field(default_factory=list, description="on-board sources read from their tx topic")
-    params: dict[str, Any] | None = Field(None, description="FusionParams fields (None: defaults)")
+    """The service's settings: transport and health here, the container's own set-up in ``host`` (its
+    ``max_wait_s`` in wall seconds; its ``local`` senders are read from their tx topic)."""
+
+    host: HostSetup
     inline: bool = False
     inbox: int = 2000
     time_scale: float = Field(
@@ -76,30 +77,22 @@ class HostSettings(ServiceSettings):
         1.0, gt=0, description="degraded when the fused output trails the world's clock by more (wall seconds)"
     )
 
-
-def _fusion_params(path: str | None) -> dict[str, Any] | None:
-    """The ``--params`` file's FusionParams fields, checked here: a bad file is a configuration error
-    at start, not a traceback in the fusion worker."""
-    from mapcontainer.fusion import FusionParams  # the solver's imports stay out of the host's main process
-
-    if path is None:
-        return None
-    data = read_yaml(Path(path))
-    validate_model(FusionParams, data, path)
-    return data
+    @model_validator(mode="after")
+    def _one_fleet(self) -> HostSettings:
+        if self.host.fleet != self.fleet:
+            raise ValueError(f"the container's fleet {self.host.fleet!r} is not the service's {self.fleet!r}")
+        if self.host.max_wait_s > 2:
+            raise ValueError(f"max_wait_s is at most 2 wall seconds, got {self.host.max_wait_s}")
+        if self.host.mode == "centralized" and self.host.map_file is None:
+            raise ValueError("the centralized host localizes the vehicles against an HD map: give --map FILE")
+        if self.host.map_file is not None and not Path(self.host.map_file).is_file():
+            raise ValueError(f"--map {self.host.map_file}: no such file")
+        return self
 
 
 def parse_args(argv: list[str] | None = None) -> HostSettings:
     p = argparse.ArgumentParser(prog="python -m services.host", description=__doc__.splitlines()[0])
-    p.add_argument("--scenario", default="paper-urban", help="scenario whose HD map the host carries")
-    p.add_argument(
-        "--seed", type=int, default=0, help="the run's seed (the world's): the HD map's error is drawn from it"
-    )
-    p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
-    p.add_argument("--max-wait", type=float, default=0.1, help="seconds a frame waits for all senders")
-    p.add_argument("--known-senders", default=None, help="comma-separated vehicle ids (default: anyone)")
-    p.add_argument("--local", action="append", default=[], help="on-board source, e.g. cv0 (repeatable)")
-    p.add_argument("--params", default=None, help="YAML file of FusionParams fields")
+    add_host_args(p)
     p.add_argument("--inline", action="store_true", help="run the solver in a thread, not a worker process")
     p.add_argument("--time-scale", type=float, default=1.0, help="the world's (senders' rates scale with it)")
     p.add_argument("--keys", default=None, help="directory of the fleet's keys (its CA): accept signed messages only")
@@ -110,15 +103,10 @@ def parse_args(argv: list[str] | None = None) -> HostSettings:
     )
     add_service_args(p, "host", default_id="host")
     a = p.parse_args(argv)
+    base = service_settings_from_args(a)
     return HostSettings(
-        **service_settings_from_args(a).model_dump(),
-        scenario=a.scenario,
-        seed=a.seed,
-        mode=a.mode,
-        max_wait_s=a.max_wait,
-        known_senders=[x for x in a.known_senders.split(",") if x] if a.known_senders else None,
-        local=a.local,
-        params=_fusion_params(a.params),
+        **base.model_dump(),
+        host=host_setup_from_args(a, base.fleet, base.id),
         inline=a.inline,
         time_scale=a.time_scale,
         standby_for=a.standby_for,
@@ -197,17 +185,6 @@ def _refused_since(rejects: dict[str, int], then: dict[str, int]) -> str:
 def main(s: HostSettings) -> int:
     log = setup_logging("host", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
-    spec = {
-        "scenario": s.scenario,
-        "seed": s.seed,  # with the scenario: the map the host carries, mapcontainer.sim.published_map
-        "mode": s.mode,
-        "fleet": s.fleet,
-        "host_id": s.id,  # the fused state's sender (a standby's own id: consumers accept either, signed)
-        "known_senders": s.known_senders,
-        "max_wait_s": s.max_wait_s,
-        "reference": s.local[0] if s.local else None,  # the frame gate solves at the on-board vehicle's clock
-        "params": s.params,
-    }
     hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
     verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
     signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # the fused state is signed too
@@ -216,12 +193,12 @@ def main(s: HostSettings) -> int:
     if s.inline:
         inbox: Any = queue.Queue(maxsize=s.inbox)
         outbox: Any = queue.Queue()
-        worker: Any = threading.Thread(target=fusion_loop, args=(spec, inbox, outbox), daemon=True, name="fusion")
+        worker: Any = threading.Thread(target=fusion_loop, args=(s.host, inbox, outbox), daemon=True, name="fusion")
     else:
         ctx = mp.get_context("spawn")
         inbox, outbox = ctx.Queue(maxsize=s.inbox), ctx.Queue()
         worker = ctx.Process(
-            target=fusion_process, args=(spec, inbox, outbox, os.getpid()), daemon=True, name=f"fusion-{s.id}"
+            target=fusion_process, args=(s.host, inbox, outbox, os.getpid()), daemon=True, name=f"fusion-{s.id}"
         )
     worker.start()
     first = None
@@ -334,9 +311,9 @@ def main(s: HostSettings) -> int:
 
             return cb
 
-        kind = "prior" if s.mode == "distributed" else "raw"
+        kind = "prior" if s.host.mode == "distributed" else "raw"
         svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet, dst=hid), subscriber(f"{kind}_rx"))
-        for src in s.local:
+        for src in s.host.local:
             svc.subscribe(topic(f"{kind}_tx").key(fleet=s.fleet, src=src), subscriber(f"{kind}_tx"))
 
         def drain() -> None:

@@ -147,6 +147,16 @@ def make_run_dir(s: LauncherSettings) -> Path:
     return run_dir.resolve()
 
 
+def write_host_map(path: Path, params: FleetParams) -> Path:
+    """The HD map the run's vehicles carry (the scenario's, with its seed's map error) as a file: the host
+    container reads its map from a file (``--map``), as a deployment with a real map does."""
+    from mapcontainer.hdmap.io import save_map
+    from mapcontainer.sim.config import load_scenario
+    from mapcontainer.sim.errors import published_map
+
+    return save_map(published_map(load_scenario(params.scenario), params.seed), path)
+
+
 def new_run_dir(runs_dir: str | Path, fleet: str) -> Path:
     base = Path(runs_dir) / f"{fleet}-{time.strftime('%Y%m%d-%H%M%S')}"
     d, i = base, 1
@@ -436,6 +446,7 @@ def run(s: LauncherSettings) -> int:
         if s.params.signing:
             ca = load_certificate(keys_dir(s.params, run_dir), CA_NAME)
             r.verifier = Verifier(ca, window_s=VERIFY_WINDOW_S)
+        write_host_map(run_dir / "map.geojson", s.params)
         write_json(
             run_dir / "config.json",
             {

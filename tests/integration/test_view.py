@@ -28,7 +28,7 @@ def _free_port() -> int:
 
 
 def _recording(path: Path) -> None:
-    from mapcontainer.fusion.container import fused_state
+    from mapcontainer.fusion.hostcore import fused_state
     from mapcontainer.recording import RecordingWriter
     from schemas import GroundTruth, HealthStatus, encode
 

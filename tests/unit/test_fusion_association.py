@@ -10,6 +10,7 @@ from mapcontainer.fusion.association import (
     Tracker,
     VehicleCandidate,
     cv_predict,
+    mahalanobis_logdet,
     mahalanobis_matrix,
     observations_to_map,
 )
@@ -117,6 +118,42 @@ def test_connected_vehicles_are_matched_to_their_reported_position():
     assert len(tr.tracks) == 1  # the other one starts a tentative track; the vehicle does not
     a, _ = tr.associate([_det([6.2, -3.4, 0.05], 0.1, cls=PED)], [cv])
     assert a == []  # a pedestrian is not a vehicle
+
+
+def test_mahalanobis_logdet_is_the_log_determinant_of_the_summed_covariances():
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(2, 3, 3))
+    S_m, S_c = A @ A.transpose(0, 2, 1) + np.eye(3), np.stack([np.diag([0.5, 2.0, 3.0])])
+    d2, ld = mahalanobis_logdet(rng.normal(size=(2, 3)), S_m, np.zeros((1, 3)), S_c)
+    np.testing.assert_allclose(ld[:, 0], np.linalg.slogdet(S_m + S_c[0])[1])
+    assert d2.shape == ld.shape == (2, 1)
+
+
+def test_a_wide_vehicle_does_not_capture_the_detection_of_a_tight_one_next_to_it():
+    """The traced failure: cv1, 5-7 m off its report with sigma 1.6 m, reported next to cv2; cv0's detections of
+    cv2 were nearer cv1 in Mahalanobis distance (its width makes every distance short) and were assigned to
+    cv1. The likelihood (distance plus the log-determinant) prefers cv2, which reported itself well."""
+    tr = Tracker(FusionParams())
+    cv2 = VehicleCandidate("cv2", np.array([20.4, 0.3, 0.0]), np.diag([0.1, 0.1, 0.05]) ** 2)
+    cv1 = VehicleCandidate("cv1", np.array([20.8, 0.8, 0.0]), np.diag([1.6, 1.6, 0.3]) ** 2)
+    det = _det([20.0, 0.0, 0.0], 0.0)
+    assert mahalanobis_matrix([det.p_map], [det.cov_map], [cv1.p_map], [cv1.cov])[0, 0] < mahalanobis_matrix(
+        [det.p_map], [det.cov_map], [cv2.p_map], [cv2.cov]
+    )[0, 0]  # by distance alone cv1 would win
+    a, _ = tr.associate([det], [cv1, cv2])
+    assert [(x.kind, x.target) for x in a] == [("vehicle", "cv2")]
+
+
+def test_a_detection_two_vehicles_explain_alike_constrains_neither():
+    """Two connected vehicles reported side by side with the same covariance, a detection between them: each
+    is it with probability ~1/2, so neither pose is constrained by it, and it starts no track."""
+    tr = Tracker(FusionParams())
+    cov = np.diag([1.0, 1.0, 0.2]) ** 2
+    a_, b_ = VehicleCandidate("a", np.array([20.0, 1.0, 0.0]), cov), VehicleCandidate("b", np.array([20.0, -1.0, 0]), cov)
+    a, _ = tr.associate([_det([20.0, 0.0, 0.0], 0.0)], [a_, b_])
+    assert a == [] and tr.counts["vehicle_ambiguous"] == 1 and not tr.tracks
+    a, _ = tr.associate([_det([20.0, 1.8, 0.0], 0.1)], [a_, b_])  # a, with probability 0.97
+    assert [(x.kind, x.target) for x in a] == [("vehicle", "a")]
 
 
 def test_unassigned_detection_close_to_an_untaken_track_starts_no_duplicate():

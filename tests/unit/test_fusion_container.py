@@ -452,3 +452,34 @@ def test_the_body_covariance_adds_the_error_every_frame_repeats():
     np.testing.assert_allclose(C[1, 1], POSE_COV[1, 1] + s16[0] ** 2, rtol=1e-3)  # along = +y
     np.testing.assert_allclose(C[0, 0], POSE_COV[0, 0] + s16[1] ** 2, rtol=1e-3)
     np.testing.assert_allclose(C[5, 5], POSE_COV[5, 5] + s16[5] ** 2, rtol=1e-3)
+
+
+def _vehicle(sender, k, pose, cov, objects=()):
+    p = np.array(objects, dtype=float).reshape(-1, 3)
+    msg = prior(sender=sender, seq=k, t=0.1 * k, pose=pose, objects=objects)
+    return msg.model_copy(
+        update={"pose_cov": upper_from_sym(cov), "objects": ObjectObservations.from_metres(p, _detector_cov(p), [2] * len(p))}
+    )
+
+
+def test_a_vehicle_far_off_with_a_wide_covariance_is_not_pinned_onto_another_vehicle():
+    """Regression of the traced failure: cv1, 7 m off its report with sigma 1.6 m, reports itself next to cv2;
+    cv0 sees cv2 every frame. The host assigned those detections to cv1 and pinned cv1's fused pose onto cv2's
+    position (0.01 m from it here, before the fix). They are cv2's: cv1 stays where it says it is (it is seen
+    by nobody), cv2 moves towards where cv0 sees it."""
+    tight = np.diag([0.1, 0.1, 0.05, *np.radians([0.3, 0.3, 0.3])]) ** 2
+    wide = np.diag([1.6, 1.6, 0.3, *np.radians([0.3, 0.3, 1.0])]) ** 2
+    box = Container(FusionParams(), "f", "host")
+    for k in range(30):
+        x = 0.5 * k  # every vehicle at 5 m/s along x; cv2 truly at cv0 + (20, 0)
+        for m in (
+            _vehicle("cv0", k, (x, 0, 0, 0, 0, 0), tight, [(20.0, 0.0, 0.0)]),
+            _vehicle("cv2", k, (x + 20.4, 0.3, 0, 0, 0, 0), tight),
+            _vehicle("cv1", k, (x + 20.8, 0.8, 0, 0, 0, 0), wide),
+        ):
+            assert box.ingest(encode(m), 0.1 * k).accepted
+        out = box.fuse(0.1 * k)
+    fused = {v: out.vehicle_pose[i, :2] - [0.5 * 29, 0.0] for i, v in enumerate(out.vehicle_ids)}
+    assert np.linalg.norm(fused["cv1"] - [20.8, 0.8]) < 0.1  # not pulled onto cv2 (it was at (20.01, 0.01))
+    assert np.linalg.norm(fused["cv2"] - [20.0, 0.0]) < np.linalg.norm([0.4, 0.3])  # towards where it is seen
+    assert box.stats()["association"]["matched_vehicle"] == 30 and box.stats()["cross_detections"] == 30

@@ -66,12 +66,6 @@ def test_refuses_bad_settings() -> None:
         FrameGate(None, active_s=0.0)
 
 
-def test_the_host_worker_still_offers_it() -> None:
-    from services.host import worker
-
-    assert worker.FrameGate is FrameGate
-
-
 def test_groups_messages_stamped_by_clocks_a_few_ms_apart() -> None:
     g = FrameGate({"cv0", "cv1", "cv2"}, reference="cv0")
     g.arrived("cv1", 1.004, now=1.0)

@@ -360,3 +360,24 @@ def test_sparse_solve_equals_the_exact_oracle_on_a_city_scene():
     for key in ("object_rmse_m", "object_anees", "vehicle_rmse_m"):
         assert sparse[key] == pytest.approx(exact[key], rel=1e-6), key
     assert exact["object_rmse_m"] < 0.5 and 0.3 < exact["object_anees"] < 6.0
+
+
+def test_cross_observations_are_robust_by_dynamic_covariance_scaling():
+    """A cross-observation residual far outside its covariance gets a weight that falls as 1/chi2^2 (DCS),
+    a track detection's Huber weight only as 1/chi; inside the noise both are 1."""
+    import gtsam
+
+    from mapcontainer.fusion.detections import DetectionRecord, robust_weights
+
+    values = gtsam.Values()
+    values.insert(1, gtsam.Pose3())
+    values.insert(2, gtsam.Pose3(gtsam.Rot3(), np.array([20.0, 0.0, 0.0])))
+    W = np.eye(3) / 0.2  # sigma 0.2 m
+    recs = [
+        DetectionRecord(1, 2, np.array([20.0 + e, 0.0, 0.0]), 0.04 * np.eye(3), 0.0, cross=True, W=W)
+        for e in (0.1, 2.0)
+    ]
+    w = robust_weights(recs, values, k=3.0, phi=11.34)
+    chi2 = (2.0 / 0.2) ** 2
+    np.testing.assert_allclose(w, [1.0, (2 * 11.34 / (11.34 + chi2)) ** 2])
+    np.testing.assert_allclose(robust_weights(recs, values, k=3.0, phi=None), [1.0, 3.0 / 10.0])

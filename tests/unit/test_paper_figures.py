@@ -254,3 +254,45 @@ def test_targets_pass_and_fail_honestly_at_each_density():
     assert not {t["target"]: t["pass"] for t in evaluate_targets(nan)}[
         "distributed bytes/message >= 10x smaller than centralized"
     ]
+
+
+def test_an_efficiency_is_valid_only_where_the_references_nees_is_in_its_band():
+    from mapcontainer.experiments.paper.figures import efficiency
+
+    fig = {
+        "per_vehicle_rmse_m": {"cv0": {"centralized": 0.2, "cooperative": 0.1}},
+        "vehicles_rmse_m": {"centralized": 6.14, "cooperative": 1.09},
+        "target_rmse_m": {"centralized": 0.3, "cooperative": 0.3},
+        "object_rmse_m": {"centralized": 0.29, "cooperative": 0.3},
+        "consistency": {
+            "vehicles_centralized_6dof": {"anees": 368.0, "band": [4.1, 8.3], "inside": False},
+            "objects_centralized_3d": {"anees": 3.1, "band": [1.7, 4.7], "inside": True},
+        },
+    }
+    rs = [{"tx_msgs_centralized": 10, "tx_bytes_centralized": 5000, "tx_msgs": 10, "tx_bytes": 500}]
+    eff = efficiency(fig, rs)
+    assert eff["valid"] == {"vehicles": False, "objects": True}
+    assert eff["reference_nees"]["vehicles"] == {"anees": 368.0, "band": [4.1, 8.3]}
+    # the traced suburban case: the distributed host "31.7 times as efficient" as a reference that collapsed
+    assert eff["all_vehicles"] == pytest.approx((6.14 / 1.09) ** 2, rel=1e-3)
+    sim = {"efficiency": eff, "consistency": {**fig["consistency"], "objects_cooperative_3d": {}}}
+    res = {"overlap": {}, "blindspot": {}, "simulation": {"suburban": sim}}
+    rows = {t["target"]: t for t in evaluate_targets(res)}
+    veh = next(t for k, t in rows.items() if k.startswith("suburban: distributed efficiency (centralized MSE"))
+    assert not veh["pass"] and "not valid" in veh["target"]
+    obj = rows["suburban: distributed efficiency, objects >= 0.9"]
+    assert obj["pass"] and obj["value"] == pytest.approx((0.29 / 0.3) ** 2, rel=1e-3)
+
+
+def test_the_sensitivity_table_follows_the_fused_estimates_anees():
+    from mapcontainer.experiments.paper import _headline
+
+    f = {
+        "ego_rmse_m": {"onboard": 0.2, "map_matching": 0.3, "cooperative": 0.15},
+        "target_rmse_m": {"ego_only": 0.4, "cooperative": 0.3},
+        "objects": {"ego_only": {"coverage": 0.8}, "cooperative": {"coverage": 0.9}},
+        "consistency": {"vehicles_cooperative_6dof": {"anees": 22.8}, "objects_cooperative_3d": {"anees": 11.4}},
+    }
+    h = _headline({"urban": f, "suburban": {**f, "consistency": {}}}, {}, {"ii": {}, "iii": {}})
+    assert h["urban: fused vehicles ANEES (6-DoF)"] == 22.8 and h["urban: fused objects ANEES (3-D)"] == 11.4
+    assert math.isnan(h["suburban: fused objects ANEES (3-D)"])

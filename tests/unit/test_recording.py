@@ -18,7 +18,8 @@ from mcap.reader import make_reader
 
 from mapcontainer.recording import RecordingError, RecordingWriter, info, read_records
 from mapcontainer.recording.foxglove import SCENE_UPDATE, ellipsoid, map_scene, visualizer
-from mapcontainer.recording.replay import HostSetup, refuse, replay_plan, retarget, shift_attachment
+from mapcontainer.host import HostSetup
+from mapcontainer.recording.replay import refuse, replay_plan, retarget, shift_attachment
 from mapcontainer.security import Signer, issue, make_ca
 from schemas import FusedState, GroundTruth, decode, encode
 from schemas.codec import peek
@@ -234,9 +235,9 @@ def _host_run(tmp_path: Path, frames: int = 25, fakes: bool = False):
     ca = make_ca("ca", now=now - 60)
     signers = {v: Signer(issue(ca, v, 3600, now - 60)) for v in ("cv0", "cv1", "host", "world")}
     (tmp_path / "ca.cert.json").write_text(ca.certificate.model_dump_json())
-    spec = dict(scenario="overlap", mode="distributed", fleet="f", host_id="host", known_senders=["cv0", "cv1"])
+    setup = HostSetup(fleet="f", known_senders=("cv0", "cv1"))
     inbox, outbox = queue.Queue(), queue.Queue()
-    th = threading.Thread(target=fusion_loop, args=(spec, inbox, outbox), daemon=True)
+    th = threading.Thread(target=fusion_loop, args=(setup, inbox, outbox), daemon=True)
     th.start()
     assert outbox.get(timeout=60)[0] == "ready"
     path = tmp_path / "host.mcap"
@@ -276,7 +277,7 @@ def test_refusing_with_the_recorded_parameters_reproduces_the_fused_states_byte_
     """The host publishes the input set of every solve; re-fusion ingests exactly those and solves at the same
     times, so the states are the same bytes (no tolerance: the container is deterministic)."""
     path, fused = _host_run(tmp_path)
-    setup = HostSetup(fleet="f", scenario="overlap", known_senders=["cv0", "cv1"])
+    setup = HostSetup(fleet="f", known_senders=("cv0", "cv1"))
     res = refuse(path, setup=setup)
     assert res.signatures_verified and res.signature_refused == 0 and res.ingested == 50
     assert res.compared == len(fused) == 25 and res.identical == 25 and res.max_abs_diff == 0.0
@@ -304,19 +305,25 @@ def test_replay_unwraps_verified_signed_messages_onto_the_target_fleet(tmp_path:
 
 
 def test_the_recorded_host_setup_comes_from_the_runs_config(tmp_path: Path) -> None:
+    """Read back with the host's own flags; the service's transport flags and those of older hosts
+    (``--scenario``, ``--seed``) are not the container's."""
     from mapcontainer.recording.replay import host_setup
 
-    argv = ["python", "-m", "services.host", "--scenario", "overlap", "--seed", "7", "--mode", "distributed",
-            "--local", "cv0", "--known-senders", "cv0,cv1", "--fleet", "run1", "--id", "host"]  # fmt: skip
+    (tmp_path / "p.yaml").write_text("window_s: 0.5\n")
+    argv = ["python", "-m", "services.host", "--scenario", "overlap", "--seed", "7", "--mode", "centralized",
+            "--map", "run/map.geojson", "--local", "cv0", "--known-senders", "cv0,cv1", "--fleet", "run1",
+            "--id", "host", "--connect", "tcp/127.0.0.1:7447", "--params", str(tmp_path / "p.yaml")]  # fmt: skip
     standby = [*argv, "--standby-for", "host"]
     config = {"processes": [{"role": "host", "argv": standby}, {"role": "host", "argv": argv}]}
     path = tmp_path / "c.mcap"
     w = RecordingWriter(path, metadata={"fleet": "run1"}, files={"config.json": json.dumps(config).encode()})
     w.close()
     s = host_setup(path)
-    assert (s.fleet, s.host_id, s.scenario, s.seed, s.local, s.known_senders) == (
-        "run1", "host", "overlap", 7, ["cv0"], ["cv0", "cv1"]
+    assert (s.fleet, s.host_id, s.mode, s.map_file, s.local, s.known_senders, s.params.window_s) == (
+        "run1", "host", "centralized", "run/map.geojson", ("cv0",), ("cv0", "cv1"), 0.5
     )  # fmt: skip
+    with pytest.raises(RecordingError, match="needs its HD map"):  # the run's map is not where it was
+        refuse(path)
     bare = tmp_path / "bare.mcap"
     RecordingWriter(bare).close()
     with pytest.raises(RecordingError, match="which fleet"):

@@ -340,6 +340,7 @@ def test_the_fusion_loop_survives_a_payload_that_breaks_the_core(monkeypatch) ->
     import queue
 
     from mapcontainer.fusion import Container
+    from mapcontainer.host import HostSetup
     from schemas import encode
     from services.host.worker import fusion_loop
     from unit.test_fusion_container import prior
@@ -352,9 +353,9 @@ def test_the_fusion_loop_survives_a_payload_that_breaks_the_core(monkeypatch) ->
         return real(self, payload, t_recv)
 
     monkeypatch.setattr(Container, "ingest", ingest)
-    spec = dict(scenario="overlap", mode="distributed", fleet="f", host_id="host", known_senders=["cv0"])
+    setup = HostSetup(fleet="f", known_senders=("cv0",))
     inbox, outbox = queue.Queue(), queue.Queue()
-    th = threading.Thread(target=fusion_loop, args=(spec, inbox, outbox), daemon=True)
+    th = threading.Thread(target=fusion_loop, args=(setup, inbox, outbox), daemon=True)
     th.start()
     assert outbox.get(timeout=60)[0] == "ready"
     inbox.put(("ingest", b"boom", 0.0))

@@ -84,6 +84,9 @@ def _headline(sim: dict, overlap: dict, blindspot: dict) -> dict[str, float]:
         for m in ("ego_only", "cooperative"):
             out[f"{key}: targets {m.replace('_', ' ')}"] = f["target_rmse_m"][m]
             out[f"{key}: target coverage {m.replace('_', ' ')}"] = f["objects"][m].get("coverage", float("nan"))
+        cons = f.get("consistency", {})  # does the estimator know its error with this source on or off?
+        out[f"{key}: fused vehicles ANEES (6-DoF)"] = cons.get("vehicles_cooperative_6dof", {}).get("anees", float("nan"))
+        out[f"{key}: fused objects ANEES (3-D)"] = cons.get("objects_cooperative_3d", {}).get("anees", float("nan"))
     if "dense" in overlap:
         out["overlap: fused obstacle"] = overlap["dense"]["fused_m"]
     for key in BLINDSPOT_SCENARIOS:
