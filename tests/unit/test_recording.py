@@ -399,7 +399,7 @@ def test_a_fake_fused_state_on_the_hosts_key_is_refused_by_every_reader_of_the_r
 
     frames = 8
     path, fused = _host_run(tmp_path, frames=frames, fakes=True)
-    setup = HostSetup(fleet="f", scenario="overlap", known_senders=["cv0", "cv1"])
+    setup = HostSetup(fleet="f", known_senders=("cv0", "cv1"))
     res = refuse(path, setup=setup)
     assert res.signature_refused == frames and res.compared == frames and res.identical == frames
     assert res.scores["recorded"] == res.scores["refused"]
