@@ -18,4 +18,9 @@ def limit_blas_threads(n: int = 1) -> None:
     """Use at most ``n`` BLAS threads in this process from now on."""
     if n < 1:
         raise ValueError(f"n must be at least 1, got {n}")
+    # threadpoolctl limits the libraries loaded so far: load numpy's and scipy's BLAS first (a process that
+    # calls this before anything imported them, such as a fresh experiment worker, had no BLAS to limit)
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
+
     threadpool_limits(limits=n, user_api="blas")
