@@ -15,7 +15,7 @@ import numpy as np
 from ..geometry import wrap_angle
 
 if TYPE_CHECKING:
-    from .localizer import GnssMeasurement, LocalizerParams, OdometryMeasurement
+    from .params import GnssMeasurement, LocalizerParams, OdometryMeasurement
     from .matcher import MatchResult
 
 __all__ = [

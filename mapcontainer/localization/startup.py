@@ -39,7 +39,7 @@ from .matcher import CameraFrame, MapMatcher, MatchResult
 from .search import PoseSearch, SearchOutcome
 
 if TYPE_CHECKING:
-    from .localizer import GnssMeasurement, LocalizerParams, OdometryMeasurement
+    from .params import GnssMeasurement, LocalizerParams, OdometryMeasurement
 
 __all__ = ["StartupMachine", "Phase", "UNIFORM_YAW_VAR"]
 
