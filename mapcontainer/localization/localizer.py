@@ -44,18 +44,20 @@ Start-up (and after :meth:`Localizer.reset`), in this order:
 4. the HD map: the driving directions of the centre lines within 3 sigma of the GNSS fix. One
    direction (a one-way road) is the heading, with the directions' spread as its uncertainty.
    Two (a two-way road): the camera decides, by the global pose search (:mod:`.search`) over both
-   directions and the GNSS region. One clear solution starts the track; otherwise its candidate
-   basins are tracked as hypotheses (prediction, local match, accumulated score, distinct
-   landmarks counted) until one is well constrained and beats the others by a margin. While a
-   lone hypothesis has not won, the search runs again on every frame and its new basins join as
-   rivals (a weakly supported wrong basin would otherwise hold the start for good). The first
-   search waits for a frame that could decide (:meth:`.PoseSearch.can_accept`: enough landmark
-   detections for the search's rules, were all of them inliers): the basins of a frame with one
-   pole are mostly wrong, and searching such frames cost 0.2-0.6 s of CPU each.
+   directions and the GNSS region. One basin holding at least ``1 - search.accept_epsilon`` of the
+   posterior mass starts the track; otherwise its candidate basins are tracked as hypotheses
+   (prediction, local match, accumulated evidence, the newest fix through a heavy-tailed likelihood,
+   and *elsewhere* for a basin the search did not reach: :mod:`.hypotheses`) until one holds that
+   mass: a pole seen over a baseline of travel with the lanes is enough, one pole in one frame is
+   not. While a lone hypothesis has not won, the search runs again on every frame with landmarks and
+   its new basins join as rivals (a weakly supported wrong basin would otherwise hold the start).
 
 Until then the result is the GNSS fix with a yaw variance of pi^2 / 3 (uniform), ``initialized``
-False, mode "fallback". Whenever the prediction is too wide for one local solve (horizontal
-1-sigma above ``search_sigma_m``, yaw above ``search_sigma_yaw_rad``: start-up, long fallback,
+False, mode "fallback". While an initialised localizer is searching (phase SEARCHING), the result's
+pose and covariance are the moment-matched Gaussian of its hypotheses and the GNSS + odometry
+estimate, each by its posterior mass (wide and honest: never one basin among rivals).
+
+Whenever the prediction is too wide for one local solve (horizontal 1-sigma above ``search_sigma_m``, yaw above ``search_sigma_yaw_rad``: start-up, long fallback,
 repeated jumps) the same search and hypotheses decide the basin; until they do, mode "fallback".
 A match is never taken from a wide prediction on three constraints alone: that is how a wrong
 lane, a wrong lamp post or the opposite heading used to be accepted with a confident covariance.
@@ -289,7 +291,8 @@ class Localizer:
         cov = np.diag([1e6, 1e6, 1e6, 1.0, 1.0, UNIFORM_YAW_VAR])
         if gnss is not None:
             pose[:3] = gnss.p_map
-            cov[0, 0] = cov[1, 1] = p.gnss_bias_sigma_m**2 + ekf.gnss_white_var(gnss, p)
+            # as the initial state's: the bias, the white noise and a multipath jump the fix may carry
+            cov[0, 0] = cov[1, 1] = p.gnss_bias_sigma_m**2 + ekf.gnss_white_var(gnss, p) + p.init_extra_sigma_m**2
             cov[2, 2] = gnss.sigma_v_m**2
             cov[3, 3] = cov[4, 4] = p.ground_roll_pitch_sigma_rad**2
         return LocalizationResult(t, pose, cov, np.zeros(3), "fallback", False, reason=reason)
@@ -318,6 +321,9 @@ class Localizer:
                 converged=attempt.converged,
             )
         pose_f, cov_cam = self.y[:6].copy(), self.P[:6, :6].copy()
+        searching = self.startup.mixture(self.y, self.P) if mode == "fallback" else None
+        if searching is not None:  # ambiguous: the hypotheses' moment-matched Gaussian, never one basin
+            pose_f, cov_cam = searching
         cov_f = cov_cam + bias_cov(self.params.match_bias_sigma, pose_f[5])  # the error every frame repeats
         pose, cov = pose_f, cov_f
         frame_pose = frame_cov = None
