@@ -133,7 +133,10 @@ TAGS: dict[str, int] = {
     # VehiclePrior (added in schema_version 4)
     "pose_filtered": 95,
     "pose_bias_sigma": 96,
-    # new fields: next tag 97
+    # VehiclePrior (added, still schema_version 4: optional)
+    "protection_level_m": 97,
+    "integrity_risk": 98,
+    # new fields: next tag 99
 }
 
 

@@ -62,6 +62,12 @@ repeated jumps) the same search and hypotheses decide the basin; until they do, 
 A match is never taken from a wide prediction on three constraints alone: that is how a wrong
 lane, a wrong lamp post or the opposite heading used to be accepted with a confident covariance.
 
+Integrity: a map-matched result carries ``protection_level`` (lateral, longitudinal, m): K sigma of
+its filtered covariance in the vehicle frame at ``integrity_risk`` per axis. A fix that the GNSS gate
+refuses while the state is map matched (its innovation chi^2 beyond ``gnss_gate_chi2``) is a detected
+fault: that frame states no protection level (the vehicle does not claim integrity); detections
+inconsistent with the map are excluded by the matcher's inlier gate.
+
 What to send on: ``pose``/``cov`` are the tracker's posterior by default (``report="filtered"``),
 the best estimate of the vehicle's pose now; ``cov_filtered`` includes the error every frame repeats
 (``match_bias_sigma``: calibration, the map's survey drift) and ``cov_camera`` is the same without it,
@@ -78,6 +84,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+from scipy.stats import norm
 
 from schemas import bias_cov
 
@@ -241,7 +248,22 @@ class Localizer:
             y, P = ekf.ground_update(y, P, self._ground_height(y), p)
         self.y, self.P = y, P
         self._last = self._result(t, mode, odometry, match, self.startup.attempt, reason, gnss_outcome == "used")
+        if mode == "map_matching":
+            if gnss_outcome == "rejected":  # the fix and the map-matched state disagree beyond the gate: a fault
+                self._count("integrity fault")
+                self._last = replace(self._last, reason="integrity: GNSS innovation beyond the gate")
+            else:
+                self._last = replace(self._last, protection_level=self.protection_level(self._last))
         return self._last
+
+    def protection_level(self, res: LocalizationResult) -> np.ndarray:
+        """(lateral, longitudinal) protection levels (m) of a result: K sigma of its filtered covariance in the
+        vehicle frame, K the two-sided Gaussian quantile of ``integrity_risk`` (3.29 at 1e-3)."""
+        k = float(norm.isf(0.5 * self.params.integrity_risk))
+        c, s = np.cos(res.pose_filtered[5]), np.sin(res.pose_filtered[5])
+        along, across = np.array([c, s]), np.array([-s, c])
+        C = res.cov_filtered[:2, :2]
+        return k * np.sqrt(np.array([across @ C @ across, along @ C @ along]))
 
     # ------------------------------------------------------------------ inputs
 

@@ -109,6 +109,13 @@ class LocalizerParams(BaseModel):
         "measured on development seeds 1-5 (paper-urban, every error source on): RMS of each vehicle's mean "
         "error 0.09, 0.10, 0.04 m, 0.19, 0.37, 0.21 deg",
     )
+    integrity_risk: float = Field(
+        1e-3,
+        gt=0,
+        lt=0.5,
+        description="probability per axis that the true error exceeds the protection level the vehicle states "
+        "(lateral, longitudinal: K sigma of the filtered covariance with K the two-sided Gaussian quantile)",
+    )
     # Fallback ground constraint (the matcher's r_n when there is no match).
     ground_sigma_m: float = Field(0.2, gt=0, description="1-sigma of the height above the road in fallback (m)")
     ground_roll_pitch_sigma_rad: float = Field(0.02, gt=0, description="1-sigma of roll, pitch in fallback (rad)")
@@ -185,6 +192,9 @@ class LocalizationResult:
     pose_frame: np.ndarray | None = None
     cov_frame: np.ndarray | None = None
     bad_input: bool = False  # the step's input was refused (``reason`` says why): the state did not move
+    # (lateral, longitudinal) protection levels (m) at LocalizerParams.integrity_risk, in the vehicle frame; None
+    # while the vehicle does not claim integrity (not map matching, or a fault detected: ``reason``)
+    protection_level: np.ndarray | None = None
 
     def quality(self) -> dict[str, Any]:
         """The fields of schemas.LocalizationQuality."""
