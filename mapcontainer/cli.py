@@ -220,7 +220,13 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
     print(
         jsonout.dumps(
             bench_localization(
-                args.scenario, args.seeds, args.duration, args.warmup, ideal=args.ideal, seed0=args.seed0
+                args.scenario,
+                args.seeds,
+                args.duration,
+                args.warmup,
+                ideal=args.ideal,
+                seed0=args.seed0,
+                stanford_png=args.stanford,
             )
         )
     )
@@ -482,6 +488,7 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument(
         "--ideal", action="store_true", help="every simulator error source off (exact map, calibration, clocks)"
     )
+    bl.add_argument("--stanford", default=None, help="draw the Stanford diagram (error against protection level) here")
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
     bf.add_argument("--vehicles", type=positive_int, default=4)
