@@ -212,6 +212,12 @@ class LocalizationQuality(_Model):
     n_poles: int = Field(0, ge=0, description="pole landmark inliers")
     n_lane: int = Field(0, ge=0, description="lane samples within the distance cap")
     cost: float = Field(0.0, ge=0, description="final normalised cost (chi^2 per residual)")
+    lock: Literal["full", "lateral"] | None = Field(
+        None,
+        description="while map_matching, what the camera fixed: 'full' (landmarks and lanes: the whole pose), "
+        "'lateral' (the lanes alone: lateral position and heading; the along-road position is GNSS and odometry's, "
+        "and pose_cov says so). Absent: not said (fallback, or an older sender)",
+    )
 
 
 # ------------------------------------------------------------------------------ messages

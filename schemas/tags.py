@@ -136,7 +136,9 @@ TAGS: dict[str, int] = {
     # VehiclePrior (added, still schema_version 4: optional)
     "protection_level_m": 97,
     "integrity_risk": 98,
-    # new fields: next tag 99
+    # LocalizationQuality (added, optional)
+    "lock": 99,
+    # new fields: next tag 100
 }
 
 

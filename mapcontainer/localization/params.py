@@ -196,6 +196,14 @@ class LocalizationResult:
     # while the vehicle does not claim integrity (not map matching, or a fault detected: ``reason``)
     protection_level: np.ndarray | None = None
 
+    @property
+    def lock(self) -> Literal["full", "lateral"] | None:
+        """While map matching, what the camera fixed: 'full' (a landmark inlier with the lanes: the whole pose) or
+        'lateral' (the lanes alone: lateral position and heading; along the road, GNSS and odometry); else None."""
+        if self.mode != "map_matching":
+            return None
+        return "full" if self.n_points + self.n_poles > 0 else "lateral"
+
     def quality(self) -> dict[str, Any]:
         """The fields of schemas.LocalizationQuality."""
         return {
@@ -204,4 +212,5 @@ class LocalizationResult:
             "n_poles": self.n_poles,
             "n_lane": self.n_lane,
             "cost": float(self.cost),
+            "lock": self.lock,
         }

@@ -50,3 +50,24 @@ def test_the_prior_carries_protection_levels_optionally():
         VehiclePrior(**{**old.model_dump(), "protection_level_m": [0.4, 1.2]})  # no risk stated
     with pytest.raises(ValidationError):
         VehiclePrior(**{**old.model_dump(), "protection_level_m": [-0.4, 1.2], "integrity_risk": 1e-3})
+
+
+def test_lanes_alone_are_a_lateral_lock_tight_across_and_wide_along():
+    """Tracking, then frames with the lane lines only: the mode stays map matching, the lock says 'lateral', and
+    the covariance is tight across the road and wide along it (the along-road position is GNSS and odometry's)."""
+    from mapcontainer.localization import CameraFrame
+
+    def lanes_only(f, k):
+        if k < 15:
+            return f
+        return CameraFrame(f.intr, f.T_body_cam, np.zeros((0, 2)), np.zeros(0, np.uint8), np.zeros((0, 4)), f.lane_mask)
+
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT), initial_yaw=pose_on(150.0)[5])
+    out = _run(loc, 35, s0=150.0, seed=2, frames=lanes_only)
+    assert out[14][1].lock == "full"
+    for truth, res in out[20:]:
+        assert res.mode == "map_matching" and res.lock == "lateral"
+        pl_lat, pl_lon = res.protection_level
+        assert pl_lon > 2.0 * pl_lat
+    first, last = out[15][1].protection_level, out[-1][1].protection_level
+    assert last[1] > first[1]  # along the road the uncertainty grows with the distance driven on odometry
