@@ -44,20 +44,26 @@ Start-up (and after :meth:`Localizer.reset`), in this order:
 4. the HD map: the driving directions of the centre lines within 3 sigma of the GNSS fix. One
    direction (a one-way road) is the heading, with the directions' spread as its uncertainty.
    Two (a two-way road): the camera decides, by the global pose search (:mod:`.search`) over both
-   directions and the GNSS region. One basin holding at least ``1 - search.accept_epsilon`` of the
-   posterior mass starts the track; otherwise its candidate basins are tracked as hypotheses
-   (prediction, local match, accumulated evidence, the newest fix through a heavy-tailed likelihood,
-   and *elsewhere* for a basin the search did not reach: :mod:`.hypotheses`) until one holds that
-   mass: a pole seen over a baseline of travel with the lanes is enough, one pole in one frame is
-   not. While a lone hypothesis has not won, the search runs again on every frame with landmarks and
-   its new basins join as rivals (a weakly supported wrong basin would otherwise hold the start).
+   directions and the GNSS region. Its candidate basins are tracked as hypotheses (prediction, local
+   match, accumulated evidence) until one is accepted, by the rule ``search.accept``:
+   ``"landmarks"`` (the default): one is well constrained (``search.min_constraints``, distinct map
+   landmarks counted, at least ``search.min_landmarks``) and beats the others by ``search.margin``;
+   the first search waits for a frame that could decide (:meth:`.PoseSearch.can_accept`).
+   ``"posterior"`` (opt-in; on suburban roads it accepts lone-pole starts metres off along the road,
+   see docs/localization.md): one holds at least ``1 - search.accept_epsilon`` of the posterior mass
+   (the newest fix through a heavy-tailed likelihood, and *elsewhere* for a basin the search did not
+   reach: :mod:`.hypotheses`); a pole seen over a baseline of travel with the lanes is enough. Under
+   either rule the posterior mass is tracked. While a lone hypothesis has not won, the search runs
+   again on every frame and its new basins join as rivals (a weakly supported wrong basin would
+   otherwise hold the start).
 
 Until then the result is the GNSS fix with a yaw variance of pi^2 / 3 (uniform), ``initialized``
 False, mode "fallback". While an initialised localizer is searching (phase SEARCHING), the result's
 pose and covariance are the moment-matched Gaussian of its hypotheses and the GNSS + odometry
 estimate, each by its posterior mass (wide and honest: never one basin among rivals).
 
-Whenever the prediction is too wide for one local solve (horizontal 1-sigma above ``search_sigma_m``, yaw above ``search_sigma_yaw_rad``: start-up, long fallback,
+Whenever the prediction is too wide for one local solve (horizontal 1-sigma above ``search_sigma_m``,
+yaw above ``search_sigma_yaw_rad``: start-up, long fallback,
 repeated jumps) the same search and hypotheses decide the basin; until they do, mode "fallback".
 A match is never taken from a wide prediction on three constraints alone: that is how a wrong
 lane, a wrong lamp post or the opposite heading used to be accepted with a confident covariance.

@@ -17,7 +17,12 @@ fit it exactly. The search makes that choice explicit:
    with the real prediction as the prior; each converged solution is solved once more from itself
    with its own covariance (lane samples and weights chosen at the solution, not at a start up to a
    metre off), so that the scores of different basins compare like with like.
-3. **Decide.** Each converged solution is a basin; its -2 log-likelihood (:mod:`.hypotheses`) is the
+3. **Decide** (``accept``). Rule ``"landmarks"`` (the default): each solution's score is the matcher's
+   (its robust cost plus ``inlier_chi2`` for every detection it leaves unexplained); the best is
+   accepted if it is well constrained (``min_constraints`` on x, y, yaw: 2 per point inlier, 1 per
+   pole inlier, 2 for the lanes; ``min_landmarks``) and no distinct solution (farther than
+   ``distinct_m`` or ``distinct_rad``) scores within ``margin`` of it. Rule ``"posterior"`` (opt-in):
+   each converged solution is a basin; its -2 log-likelihood (:mod:`.hypotheses`) is the
    matcher's score without the prediction prior, with the Laplace volume term, plus a heavy-tailed
    (Student-t, ``prior_t_dof``) prior on its position around the prediction's: a GNSS fix several
    metres off under multipath must not decide between basins. Beside them stands *elsewhere* (a basin
@@ -32,6 +37,7 @@ Everything here is pure and deterministic.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -63,15 +69,28 @@ class PoseSearchParams(BaseModel):
     margin: float = Field(
         9.0,
         ge=0,
-        description="a distinct solution that scores this much better than a verified start's local match "
+        description="rule 'landmarks': the best solution's score must beat every distinct one by this much; "
+        "either rule: a distinct solution that scores this much better than a verified start's local match "
         "rejects it (about one detection explained better)",
     )
+    accept: Literal["landmarks", "posterior"] = Field(
+        "landmarks",
+        description="how the start-up accepts a basin: 'landmarks' (the default) when it is well constrained "
+        "(min_constraints, min_landmarks: distinct map landmarks counted over its frames) and beats every "
+        "distinct one by the margin; 'posterior' (opt-in) when it holds 1 - accept_epsilon of the posterior "
+        "mass (see localization/hypotheses.py; on suburban evaluation seeds it accepts lone-pole starts "
+        "1-2 m off along the road: docs/localization.md). Either way the basins' posterior is tracked",
+    )
+    min_constraints: int = Field(
+        5, ge=3, description="rule 'landmarks': constraints on (x, y, yaw) a solution needs: the 3 unknowns and 2 more"
+    )
+    min_landmarks: int = Field(2, ge=1, description="... of which at least this many landmark inliers")
     accept_epsilon: float = Field(
         1e-3,
         gt=0,
         lt=0.5,
-        description="a basin is accepted once it holds at least 1 - this of the posterior mass (the other "
-        "basins found and 'elsewhere')",
+        description="rule 'posterior': a basin is accepted once it holds at least 1 - this of the posterior "
+        "mass (the other basins found and 'elsewhere')",
     )
     view_baseline_m: float = Field(
         5.0,
@@ -158,6 +177,14 @@ class PoseSearch:
             return SearchOutcome(None, best.reason, **out)
         nll, null = self.camera_nll(sols, P0)
         out.update(nll=tuple(nll), null_nll=null)
+        if p.accept == "landmarks":
+            if not best.converged:
+                return SearchOutcome(None, best.reason, **out)
+            if best.constraints < p.min_constraints or best.n_points + best.n_poles < p.min_landmarks:
+                return SearchOutcome(None, f"too few features ({best.constraints} constraints)", **out)
+            if runner - best_score < p.margin:
+                return SearchOutcome(None, f"ambiguous: {runner - best_score:.1f} < margin {p.margin}", **out)
+            return SearchOutcome(replace(best, reason=""), "", **out)
         S = P0[:2, :2]
         prior = [self.prior_nll(r.pose_filtered[:2] - fd.x_prior[:2], S) for r in sols]
         mass = hyp.masses([*(np.add(nll, prior)), null + self.prior_nll(None, S)])
@@ -185,11 +212,16 @@ class PoseSearch:
             d = np.linalg.cholesky(S) @ np.ones(2)
         return hyp.student_t_nll(d, S, self.params.prior_t_dof)
 
-    @staticmethod
-    def can_accept(frame: CameraFrame) -> bool:
-        """Whether a search of this frame could find a basin worth tracking: a landmark detection (lanes alone
-        repeat along the road). Cheap: counts only."""
-        return np.size(frame.points_uv) // 2 + np.size(frame.poles_uv) // 4 >= 1
+    def can_accept(self, frame: CameraFrame) -> bool:
+        """Whether a search of this frame could accept a solution or find a basin worth tracking (cheap: counts
+        only). Rule 'landmarks': enough landmark detections for ``min_landmarks`` and, were every one an inlier
+        and the lanes matched too, for ``min_constraints``. Rule 'posterior': a landmark detection (lanes alone
+        repeat along the road)."""
+        p = self.params
+        n_points, n_poles = np.size(frame.points_uv) // 2, np.size(frame.poles_uv) // 4
+        if p.accept == "posterior":
+            return n_points + n_poles >= 1
+        return n_points + n_poles >= p.min_landmarks and 2 * n_points + n_poles + 2 >= p.min_constraints
 
     def distinct(self, a, b) -> bool:
         """Poses a, b lie in different basins (farther apart than distinct_m or distinct_rad)."""

@@ -72,22 +72,47 @@ class _Course:
 
 @dataclass
 class _Hypothesis:
-    """One candidate track (a basin the pose search found), with its evidence since (see :mod:`.hypotheses`).
+    """One candidate track (a basin the pose search found), with its evidence since, kept for both start-up
+    rules (``search.accept``).
 
-    ``nll``: the camera's -2 log-likelihood of the frames since it was found (its first frame without
-    the search's prior, the later ones with its own odometry prediction as the prior, so that the
-    prior rows score how well it follows the motion). ``y_pred``/``P_pred``: the state predicted to the
-    last frame, before its match ``last`` (``last_nll`` that match's share of ``nll``).
+    ``nll`` (rule 'posterior', and the published mixture): the camera's -2 log-likelihood of the frames
+    since it was found (its first frame without the search's prior, the later ones with its own odometry
+    prediction as the prior, so that the prior rows score how well it follows the motion; see
+    :mod:`.hypotheses`). ``score``, ``points``, ``poles``, ``lanes`` (rule 'landmarks'): the matcher's
+    scores summed, and the distinct map landmarks matched: seeing one pole ten times is still one pole.
+    ``y_pred``/``P_pred``: the state predicted to the last frame, before its match ``last`` (``last_nll``
+    that match's share of ``nll``).
     """
 
     y: np.ndarray
     P: np.ndarray
     nll: float
+    score: float = 0.0
+    points: set[int] = field(default_factory=set)  # map landmarks matched so far (indices of the map's points, poles)
+    poles: set[int] = field(default_factory=set)
+    lanes: bool = False  # the lanes matched at least once
     misses: int = 0
     y_pred: np.ndarray | None = None
     P_pred: np.ndarray | None = None
     last: MatchResult | None = None
     last_nll: float = 0.0
+
+    def add(self, m: MatchResult, nll: float) -> None:
+        """Fold in a converged match and its share of the camera's -2 log-likelihood."""
+        self.nll += nll
+        self.score += m.score
+        self.points.update(m.point_pairs[:, 0].tolist())
+        self.poles.update(m.pole_pairs[:, 0].tolist())
+        self.lanes |= m.constraints > 2 * m.n_points + m.n_poles
+        self.last, self.last_nll, self.misses = m, nll, 0
+
+    @property
+    def landmarks(self) -> int:
+        return len(self.points) + len(self.poles)
+
+    @property
+    def constraints(self) -> int:
+        return 2 * len(self.points) + len(self.poles) + 2 * self.lanes
 
 
 class StartupMachine:
@@ -142,6 +167,11 @@ class StartupMachine:
         self.attempt: MatchResult | None = None
         self.fix: GnssMeasurement | None = None  # this step's GNSS fix: it weighs the hypotheses
 
+    @property
+    def posterior(self) -> bool:
+        """The start-up accepts by posterior mass (``search.accept == 'posterior'``), not by landmarks counted."""
+        return self.params.search.accept == "posterior"
+
     def _set_hyps(self, hyps: list[_Hypothesis]) -> None:
         """Replace the hypotheses; once initialised (and not verifying), SEARCHING while there are any."""
         self.hyps = hyps
@@ -170,9 +200,10 @@ class StartupMachine:
         self.attempt, self.fix = None, gnss
         if self.init_match is not None:
             match, self.attempt, self.init_match = self.init_match, self.init_match, None
-        elif (self.hyps and self.phase is Phase.SEARCHING) or self._wide(P_pred[:6, :6]):
-            # Hypotheses decide until one wins, even if the GNSS + odometry estimate narrows meanwhile: a local
-            # match from it would pick a basin the hypotheses have not told apart.
+        elif (self.hyps and self.phase is Phase.SEARCHING and self.posterior) or self._wide(P_pred[:6, :6]):
+            # Rule 'posterior': hypotheses decide until one wins, even if the GNSS + odometry estimate narrows
+            # meanwhile (a local match from it would pick a basin they have not told apart). Rule 'landmarks':
+            # a narrow prediction ends the search with a local match.
             match, reason, y_pred, P_pred = self._recover(frame, y_pred, P_pred, dt, odo_a, odo_b)
         elif frame is None:
             reason = "no camera frame"
@@ -487,8 +518,9 @@ class StartupMachine:
         hyps = []
         for sol, nll in zip(out.solutions, out.nll, strict=False):
             if sol.converged and np.isfinite(nll):
-                y, P = ekf.match_update(y0, P0, sol)
-                hyps.append(_Hypothesis(y, P, nll, last=sol, last_nll=nll))
+                h = _Hypothesis(*ekf.match_update(y0, P0, sol), 0.0)
+                h.add(sol, nll)
+                hyps.append(h)
         self._set_hyps(hyps)
         if hyps:
             self.null_nll = out.null_nll
@@ -561,28 +593,31 @@ class StartupMachine:
                 return None
             if res.converged:
                 h.y, h.P = ekf.match_update(h.y_pred, h.P_pred, res)
-                h.last_nll = hyp.frame_nll(res.score, res.cov_filtered, h.P_pred[:6, :6])
-                h.nll += h.last_nll
-                h.last, h.misses = res, 0
+                h.add(res, hyp.frame_nll(res.score, res.cov_filtered, h.P_pred[:6, :6]))
                 if best is None or h.last_nll < best[0]:
                     best = (h.last_nll, res)
             else:  # nothing explained: every detection costs like an outlier
                 h.nll += p.matcher.inlier_chi2 * n_det
+                h.score += p.matcher.inlier_chi2 * n_det
                 h.misses += 1
         if lead is not None and lead.last is not None:
             best = (lead.last_nll, lead.last)
         if n_det:
             self.null_nll += p.matcher.inlier_chi2 * n_det if best is None else self._null_increment(*best)
-        # Merge hypotheses that reached one basin (their masses add); drop the hopeless and the lost.
-        self.hyps.sort(key=lambda h: h.nll)
+        # Merge hypotheses that reached one basin; drop the hopeless and the lost. Rule 'posterior': their masses
+        # add, the states moment-match (both places stay in the covariance); rule 'landmarks': the better one
+        # stays, by the matcher's summed score.
+        posterior = self.posterior
+        rank = (lambda h: h.nll) if posterior else (lambda h: h.score)
+        self.hyps.sort(key=rank)
         kept: list[_Hypothesis] = []
         for h in self.hyps:
-            if h.misses >= 3 or h.nll > self.hyps[0].nll + 5.0 * sp.margin:
+            if h.misses >= 3 or rank(h) > rank(self.hyps[0]) + 5.0 * sp.margin:
                 continue
             same = next((k for k in kept if not self.search.distinct(h.y, k.y)), None)
             if same is None:
                 kept.append(h)
-            else:  # one basin: the masses add, the states moment-match (both places stay in the covariance)
+            elif posterior:
                 w = hyp.masses([same.nll, h.nll])
                 same.y, same.P = hyp.mixture([same.y, h.y], [same.P, h.P], w)
                 same.nll = -2.0 * np.logaddexp(-0.5 * same.nll, -0.5 * h.nll)
@@ -590,17 +625,27 @@ class StartupMachine:
         if not kept:
             return None
         self.mass = self._masses()
-        i = int(np.argmax(self.mass[:-1]))
+        if posterior:
+            i = int(np.argmax(self.mass[:-1]))
+            won = self.mass[i] >= 1.0 - sp.accept_epsilon
+        else:  # well constrained by distinct landmarks, and better than every rival by the margin
+            i = 0
+            runner = kept[1].score if len(kept) > 1 else np.inf
+            won = (
+                kept[0].constraints >= sp.min_constraints
+                and kept[0].landmarks >= sp.min_landmarks
+                and runner - kept[0].score >= sp.margin
+            )
         win = kept[i]
-        if win.last is None or self.mass[i] < 1.0 - sp.accept_epsilon:
+        if win.last is None or not won:
             if len(kept) == 1 and n_det:
-                return self._rivals(search)
+                return self._rivals(search, n_det)
             return None
         self._count("hypothesis accepted")
         self._set_hyps([])
         return win
 
-    def _rivals(self, search) -> _Hypothesis | None:
+    def _rivals(self, search, n_det: int) -> _Hypothesis | None:
         """Search again while a lone hypothesis has not won; the winner if the search accepts a solution.
 
         A lone hypothesis has no rival but *elsewhere*: a wrong basin from a frame that showed one pole
@@ -622,7 +667,7 @@ class StartupMachine:
         y0, P0, out = found
         if out.match is not None:
             self._set_hyps([])
-            return _Hypothesis(y0, P0, 0.0, y_pred=y0, P_pred=P0, last=out.match)
+            return _Hypothesis(y0, P0, 0.0, out.match.score, y_pred=y0, P_pred=P0, last=out.match)
         # This frame's evidence compares solutions of one search (one prior): a rival's is its own relative to
         # the lone hypothesis' basin (to the best solution if the search did not reach that basin).
         found = [(sol, nll) for sol, nll in zip(out.solutions, out.nll, strict=False) if np.isfinite(nll)]
@@ -630,10 +675,13 @@ class StartupMachine:
             return None
         ref = next((nll for sol, nll in found if not self.search.distinct(sol.pose_filtered, lone.y)), None)
         ref = min(nll for _, nll in found) if ref is None else ref
+        earlier = lone.score - (lone.last.score if lone.last is not None else self.params.matcher.inlier_chi2 * n_det)
         for sol, nll in found:
             if self.search.distinct(sol.pose_filtered, lone.y):
-                y, P = ekf.match_update(y0, P0, sol)
-                self.hyps.append(_Hypothesis(y, P, lone.nll + nll - ref, last=sol, last_nll=nll - ref))
+                h = _Hypothesis(*ekf.match_update(y0, P0, sol), lone.nll - ref, earlier)
+                h.add(sol, nll)
+                h.last_nll = nll - ref
+                self.hyps.append(h)
         if len(self.hyps) > 1:
             self.mass = self._masses()
         return None

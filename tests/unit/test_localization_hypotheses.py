@@ -1,4 +1,5 @@
-"""The multi-hypothesis start-up (mapcontainer.localization.hypotheses and the start-up machine's use of it):
+"""The multi-hypothesis start-up (mapcontainer.localization.hypotheses and the start-up machine's use of it, rule
+``search.accept = "posterior"``, opt-in):
 the posterior machinery against closed forms, and the traced cases on the synthetic map of test_localization
 (a lone pole with the lanes accepted; a basin ambiguous along the road not accepted until resolved; a GNSS
 multipath jump survived; relocalization after a kidnap)."""
@@ -12,10 +13,12 @@ from scipy import stats
 from mapcontainer import geometry as geo
 from mapcontainer.localization import CameraFrame, GnssMeasurement, Localizer, LocalizerParams, OdometryMeasurement
 from mapcontainer.localization import hypotheses as hyp
-from mapcontainer.localization.search import SearchOutcome
+from mapcontainer.localization.search import PoseSearchParams, SearchOutcome
 from mapcontainer.localization.startup import Phase
 
 from .test_localization import EXACT, HDMAP, pose_error, pose_on, synth_frame
+
+POSTERIOR = dict(search=PoseSearchParams(accept="posterior"))  # the rule under test here (opt-in; default 'landmarks')
 
 # --------------------------------------------------------------------------- closed forms
 
@@ -110,7 +113,7 @@ def test_a_lone_pole_with_the_lanes_is_accepted():
     lane lines and rejected it as 'too few features' (5 constraints and 2 landmarks required), while the vehicle
     published a GNSS-grade fallback 1-2 m off. Seen over a baseline of travel, one pole with the lanes holds the
     posterior mass (each view of the pole counts once per view_baseline_m of travel): accepted, and right."""
-    loc = Localizer(HDMAP, LocalizerParams(**EXACT))
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT, **POSTERIOR))
     out = _run(loc, 30, s0=170.0, seed=3, frames=lambda f, k: _one_pole(f))
     k = _first_lock(out)
     assert k is not None and k <= 20, [r.reason for _, r in out[:21]]  # the first basin at 1.2 s, then 5 m of travel
@@ -124,13 +127,15 @@ def test_a_lone_pole_with_the_lanes_is_accepted():
 def _machine_with_two_basins(offset_m: float, seed: int = 0):
     """A tracking localizer at s = 170 whose machine is handed two basins: the true one and one ``offset_m`` m
     along the road (a lamp spacing), with equal evidence."""
-    loc = Localizer(HDMAP, LocalizerParams(**EXACT), initial_yaw=pose_on(170.0)[5])
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT, **POSTERIOR), initial_yaw=pose_on(170.0)[5])
     _run(loc, 12, s0=158.0, seed=seed)
     m = loc.startup
     truth = pose_on(170.0)
-    res = m.matcher.match(synth_frame(truth, np.random.default_rng(seed), sigma_px=1.0)[0], truth, np.diag(
-        [0.3**2, 0.3**2, 0.05**2, 0.005**2, 0.005**2, np.radians(0.5) ** 2]
-    ))
+    res = m.matcher.match(
+        synth_frame(truth, np.random.default_rng(seed), sigma_px=1.0)[0],
+        truth,
+        np.diag([0.3**2, 0.3**2, 0.05**2, 0.005**2, 0.005**2, np.radians(0.5) ** 2]),
+    )
     from dataclasses import replace
 
     along = np.r_[np.cos(truth[5]), np.sin(truth[5])] * offset_m
@@ -152,11 +157,17 @@ def test_an_ambiguity_along_the_road_is_published_wide_and_not_accepted_until_re
     pose, cov = m.mixture(loc.y, loc.P)
     heading = np.r_[np.cos(truth[5]), np.sin(truth[5])]
     assert heading @ cov[:2, :2] @ heading >= 3.0**2 * 0.9
+
     # Frames with the lanes only (they repeat along the road) do not resolve it: searching, published wide.
     # Then frames with landmarks do: the wrong basin explains them worse, the true one wins.
     def lanes_only(f, k):
-        return _one_pole(f) if k >= 3 else CameraFrame(f.intr, f.T_body_cam, np.zeros((0, 2)), np.zeros(0, np.uint8),
-                                                        np.zeros((0, 4)), f.lane_mask)
+        return (
+            _one_pole(f)
+            if k >= 3
+            else CameraFrame(
+                f.intr, f.T_body_cam, np.zeros((0, 2)), np.zeros(0, np.uint8), np.zeros((0, 4)), f.lane_mask
+            )
+        )
 
     out = _run(loc, 10, s0=171.0, seed=1, t0=1.2, frames=lanes_only)
     k = _first_lock(out)
@@ -189,7 +200,7 @@ def test_a_multipath_jump_while_searching_keeps_the_published_pose_honest():
     """The traced start: a 7 m multipath jump during the search dragged the GNSS-grade fallback 5.4 m off with a
     NEES of 38 while the rejected lone hypothesis sat 0.1 m from the truth. Now the lone pole and lanes win through
     the jump, and every published pose before is honest."""
-    loc = Localizer(HDMAP, LocalizerParams(**EXACT))
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT, **POSTERIOR))
     jump = np.array([5.0, -5.0])
     out = _run(loc, 25, s0=170.0, seed=4, frames=lambda f, k: _one_pole(f), gnss_jump=lambda k: jump if k < 20 else 0)
     k = _first_lock(out)
@@ -206,7 +217,7 @@ def test_relocalization_after_a_kidnap():
     not know): the fixes disagree, the localizer starts again and the same machinery finds it within a second.
     Until the fixes have disagreed long enough, only the lanes match (they look the same 40 m along): no landmark
     confirms the old place, and the vehicle says its lock is lateral only."""
-    loc = Localizer(HDMAP, LocalizerParams(**EXACT), initial_yaw=pose_on(150.0)[5])
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT, **POSTERIOR), initial_yaw=pose_on(150.0)[5])
     out = _run(loc, 40, s0=150.0, seed=6, where=lambda k, s: s + (40.0 if k >= 20 else 0.0))
     assert all(r.mode == "map_matching" and _err(t, r) < 0.3 for t, r in out[5:20])
     after = out[20:]
@@ -228,7 +239,7 @@ def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes():
     from mapcontainer.vehicle import VehicleAgent
 
     with World(load_scenario("paper-urban"), seed=1) as world:
-        agent = VehicleAgent(world.hdmap, "cv2", world.fleet)
+        agent = VehicleAgent(world.hdmap, "cv2", world.fleet, params=LocalizerParams(**POSTERIOR))
         rows = []
         for tick in world.run(3.5):
             agent.handle(tick.t, tick.frames["cv2"])

@@ -65,7 +65,7 @@ def test_lanes_alone_are_a_lateral_lock_tight_across_and_wide_along():
     loc = Localizer(HDMAP, LocalizerParams(**EXACT), initial_yaw=pose_on(150.0)[5])
     out = _run(loc, 35, s0=150.0, seed=2, frames=lanes_only)
     assert out[14][1].lock == "full"
-    for truth, res in out[20:]:
+    for _truth, res in out[20:]:
         assert res.mode == "map_matching" and res.lock == "lateral"
         pl_lat, pl_lon = res.protection_level
         assert pl_lon > 2.0 * pl_lat
