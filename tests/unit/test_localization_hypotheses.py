@@ -124,6 +124,22 @@ def test_a_lone_pole_with_the_lanes_is_accepted():
     assert any(r.reason.startswith("search: ambiguous") for _, r in out[:k]), [r.reason for _, r in out[:k]]
 
 
+def test_the_default_rule_decides_the_lone_pole_case_as_main_did():
+    """The same lone-pole drive under the default rule ('landmarks'): exactly the decisions of main's start-up, traced
+    frame by frame from main before the rule became a parameter (the same reasons, the same counters): one pole and
+    the lanes are never searched (too few features for min_constraints 5, min_landmarks 2), fallback throughout."""
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT))
+    out = _run(loc, 30, s0=170.0, seed=3, frames=lambda f, k: _one_pole(f))
+    assert [r.reason for _, r in out] == ["initialising: no heading yet"] * 13 + ["too few features to search"] * 17
+    assert all(r.mode == "fallback" for _, r in out)
+    assert dict(loc.stats) == {
+        "initialising: too few features to search": 13,
+        "initialised": 1,
+        "too few features to search": 17,
+        "fallback": 17,
+    }
+
+
 def _machine_with_two_basins(offset_m: float, seed: int = 0):
     """A tracking localizer at s = 170 whose machine is handed two basins: the true one and one ``offset_m`` m
     along the road (a lamp spacing), with equal evidence."""
@@ -230,23 +246,32 @@ def test_relocalization_after_a_kidnap():
 
 
 @pytest.mark.slow
-def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes():
+@pytest.mark.parametrize("rule", ["landmarks", "posterior"])
+def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes(rule):
     """Development seed 1 of paper-urban, every error source on, cv2 from a cold start: the search found the true
     basin from one pole and the lanes at 2.0 s (0.3 m along, 0.2 m across) and rejected it as 'too few features
-    (3 constraints)'; the vehicle published a GNSS-grade fallback 1.1-1.3 m off until 3.0 s. By its posterior mass
-    it now locks at 0.5 s (0.5 m along at 1.5 sigma) and is within 0.3 m 0.2 s later."""
+    (3 constraints)'; the vehicle published a GNSS-grade fallback 1.1-1.3 m off until 3.0 s. Rule 'landmarks' (the
+    default) still does exactly that (main's decisions, traced frame by frame: first lock at 3.0 s, 0.11 m off).
+    By its posterior mass (rule 'posterior') it locks at 0.5 s (0.5 m along at 1.5 sigma) and is within 0.3 m 0.2 s
+    later."""
     from mapcontainer.sim import World, load_scenario
     from mapcontainer.vehicle import VehicleAgent
 
     with World(load_scenario("paper-urban"), seed=1) as world:
-        agent = VehicleAgent(world.hdmap, "cv2", world.fleet, params=LocalizerParams(**POSTERIOR))
+        params = LocalizerParams(search=PoseSearchParams(accept=rule))
+        agent = VehicleAgent(world.hdmap, "cv2", world.fleet, params=params)
         rows = []
         for tick in world.run(3.5):
             agent.handle(tick.t, tick.frames["cv2"])
             r = agent.last_result
             err = np.hypot(*(r.pose_filtered - tick.states["cv2"].pose)[:2]) if r.pose_filtered is not None else np.inf
-            rows.append((tick.t, r.mode, err))
-    first = next(t for t, mode, _ in rows if mode == "map_matching")
-    assert first <= 1.0, rows
-    assert all(mode == "map_matching" and err < 0.6 for t, mode, err in rows if t >= first), rows
-    assert all(err < 0.3 for t, _, err in rows if t >= first + 0.3), rows  # the pole's bearing, over travel
+            rows.append((tick.t, r.mode, err, r.reason))
+    first = next(t for t, mode, _, _ in rows if mode == "map_matching")
+    if rule == "landmarks":
+        assert first == pytest.approx(3.0), rows
+        assert sum(reason == "too few features to search" for *_, reason in rows) == 7, rows
+        assert all(reason == "searching: 1 hypotheses" for t, *_, reason in rows if 2.0 - 1e-9 < t < first), rows
+    else:
+        assert first <= 1.0, rows
+    assert all(mode == "map_matching" and err < 0.6 for t, mode, err, _ in rows if t >= first), rows
+    assert all(err < 0.3 for t, _, err, _ in rows if t >= first + 0.3), rows  # the pole's bearing, over travel
