@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 import numpy as np
 
 from schemas import body_pose_cov, encode
 
 from . import geometry as geo
+from .localization import LocalizerParams
+from .localization.search import PoseSearchParams
 from .metrics import percentile, rmse
 from .seeds import seed_kind
 from .sim import World, load_scenario
@@ -29,6 +32,7 @@ def bench_localization(
     ideal: bool = False,
     seed0: int = 0,
     stanford_png: str | None = None,
+    startup_accept: Literal["landmarks", "posterior"] = "landmarks",
 ) -> dict:
     """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes (seeds
     ``seed0`` ... ``seed0 + seeds - 1``; development seeds are below :data:`~mapcontainer.seeds.EVAL_SEED0`).
@@ -55,20 +59,22 @@ def bench_localization(
     localizes on (steady state, whatever its start). ``startup``: the cold start from GNSS of every vehicle, from
     t = 0, as the paper experiment scores it (:func:`mapcontainer.experiments.paper.figures.startup_summary`:
     time to localize, gross errors after it, those the vehicle did not announce). ``integrity``: see
-    :func:`integrity_summary`; ``stanford_png``: draw its Stanford diagram there.
+    :func:`integrity_summary`; ``stanford_png``: draw its Stanford diagram there. ``startup_accept``: the
+    localizer's start-up acceptance rule (``PoseSearchParams.accept``: 'landmarks', the default, or 'posterior').
     """
     from .experiments.paper.figures import startup_summary
 
     if seeds < 1 or not duration_s > warmup_s:
         raise ValueError(f"need seeds >= 1 and duration_s > warmup_s, got {seeds}, {duration_s}, {warmup_s}")
     acc: dict[str, list] = {k: [] for k in _ACC}
+    params = LocalizerParams(search=PoseSearchParams(accept=startup_accept))
     sc = load_scenario(scenario)
     if ideal:
         sc = with_error_sources(sc, ())
     runs = []
     for seed in range(seed0, seed0 + seeds):
         with World(sc, seed=seed) as world:
-            runs.append({"locks": _episode(world, duration_s, warmup_s, acc)})
+            runs.append({"locks": _episode(world, duration_s, warmup_s, acc, params)})
     (e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes) = (
         acc[k] for k in _ACC[:-4]
     )
@@ -78,6 +84,7 @@ def bench_localization(
         "seeds": seeds,
         "seed0": seed0,
         "seed_kind": seed_kind(seed0),
+        "startup_accept": startup_accept,
         "duration_s": duration_s,
         "warmup_s": warmup_s,
         "frames": len(matched),
@@ -116,13 +123,16 @@ _ACC = (
 ALERT_LIMIT_M = 0.5  # lateral protection level at most this: the frame is available (local streets)
 
 
-def _episode(world: World, duration_s: float, warmup_s: float, acc: dict[str, list]) -> list[list[float]]:
-    """Every vehicle of one episode localized frame by frame; the scored frames' figures appended to ``acc`` (lists
-    named in :data:`_ACC`); returns the cold-start rows [t, vehicle index, says map_matching, horizontal error]."""
+def _episode(
+    world: World, duration_s: float, warmup_s: float, acc: dict[str, list], params: LocalizerParams
+) -> list[list[float]]:
+    """Every vehicle of one episode localized frame by frame (with ``params``); the scored frames' figures appended
+    to ``acc`` (lists named in :data:`_ACC`); returns the cold-start rows [t, vehicle index, says map_matching,
+    horizontal error]."""
     e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes = (
         acc[k] for k in _ACC[:-4]
     )
-    agents = {v: VehicleAgent(world.hdmap, v, world.fleet) for v in world.vehicle_ids}
+    agents = {v: VehicleAgent(world.hdmap, v, world.fleet, params=params) for v in world.vehicle_ids}
     index = {v: i for i, v in enumerate(world.vehicle_ids)}
     locks: list[list[float]] = []
     for tick in world.run(duration_s):

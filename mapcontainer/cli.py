@@ -227,6 +227,7 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
                 ideal=args.ideal,
                 seed0=args.seed0,
                 stanford_png=args.stanford,
+                startup_accept=args.startup_accept,
             )
         )
     )
@@ -489,6 +490,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--ideal", action="store_true", help="every simulator error source off (exact map, calibration, clocks)"
     )
     bl.add_argument("--stanford", default=None, help="draw the Stanford diagram (error against protection level) here")
+    bl.add_argument(
+        "--startup-accept",
+        choices=("landmarks", "posterior"),
+        default="landmarks",
+        help="the start-up acceptance rule (LocalizerParams.search.accept): 'landmarks' (default: enough distinct "
+        "landmarks and a margin) or 'posterior' (opt-in: posterior mass over basins; see docs/localization.md)",
+    )
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")
     bf.add_argument("--vehicles", type=positive_int, default=4)
