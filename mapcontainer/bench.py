@@ -3,19 +3,22 @@
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 import numpy as np
 
 from schemas import body_pose_cov, encode
 
 from . import geometry as geo
+from .localization import LocalizerParams
+from .localization.search import PoseSearchParams
 from .metrics import percentile, rmse
 from .seeds import seed_kind
 from .sim import World, load_scenario
 from .sim.errors import enabled_error_sources, with_error_sources
 from .vehicle import VehicleAgent
 
-__all__ = ["WARMUP_S", "bench_localization"]
+__all__ = ["ALERT_LIMIT_M", "WARMUP_S", "bench_localization", "integrity_summary"]
 
 
 WARMUP_S = 2.0  # seconds of an episode not scored (initialisation from GNSS)
@@ -28,6 +31,8 @@ def bench_localization(
     warmup_s: float = WARMUP_S,
     ideal: bool = False,
     seed0: int = 0,
+    stanford_png: str | None = None,
+    startup_accept: Literal["landmarks", "posterior"] = "landmarks",
 ) -> dict:
     """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes (seeds
     ``seed0`` ... ``seed0 + seeds - 1``; development seeds are below :data:`~mapcontainer.seeds.EVAL_SEED0`).
@@ -36,7 +41,9 @@ def bench_localization(
     :func:`mapcontainer.sim.errors.with_error_sources`); otherwise the scenario's own (realistic) ones.
 
     The vehicle's estimate is the localizer's filtered pose (what the vehicle knows of itself);
-    position errors are horizontal, lateral / longitudinal along the true heading. The map-matching
+    position errors are horizontal, lateral / longitudinal along the true heading (the vehicle frame:
+    ``lateral_*``, ``longitudinal_*`` beside each horizontal figure, with the 95th percentiles of their
+    magnitudes). The map-matching
     figures (``mapmatch_*``, ``lateral_*``, ``longitudinal_*``, ``yaw_*``) are over the frames the
     vehicle reports map matching (``converged_fraction`` of them); ``all_frames_*`` include the
     GNSS + odometry fallback frames (start-up, blind stretches). NEES is over the six pose parameters
@@ -51,22 +58,25 @@ def bench_localization(
     matching, message build). ``after_localized_rmse_m``: every vehicle's horizontal RMSE from the frame it
     localizes on (steady state, whatever its start). ``startup``: the cold start from GNSS of every vehicle, from
     t = 0, as the paper experiment scores it (:func:`mapcontainer.experiments.paper.figures.startup_summary`:
-    time to localize, gross errors after it, those the vehicle did not announce).
+    time to localize, gross errors after it, those the vehicle did not announce). ``integrity``: see
+    :func:`integrity_summary`; ``stanford_png``: draw its Stanford diagram there. ``startup_accept``: the
+    localizer's start-up acceptance rule (``PoseSearchParams.accept``: 'landmarks', the default, or 'posterior').
     """
     from .experiments.paper.figures import startup_summary
 
     if seeds < 1 or not duration_s > warmup_s:
         raise ValueError(f"need seeds >= 1 and duration_s > warmup_s, got {seeds}, {duration_s}, {warmup_s}")
     acc: dict[str, list] = {k: [] for k in _ACC}
+    params = LocalizerParams(search=PoseSearchParams(accept=startup_accept))
     sc = load_scenario(scenario)
     if ideal:
         sc = with_error_sources(sc, ())
     runs = []
     for seed in range(seed0, seed0 + seeds):
         with World(sc, seed=seed) as world:
-            runs.append({"locks": _episode(world, duration_s, warmup_s, acc)})
+            runs.append({"locks": _episode(world, duration_s, warmup_s, acc, params)})
     (e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes) = (
-        acc[k] for k in _ACC[:-1]
+        acc[k] for k in _ACC[:-4]
     )
     return {
         "scenario": scenario,
@@ -74,6 +84,7 @@ def bench_localization(
         "seeds": seeds,
         "seed0": seed0,
         "seed_kind": seed_kind(seed0),
+        "startup_accept": startup_accept,
         "duration_s": duration_s,
         "warmup_s": warmup_s,
         "frames": len(matched),
@@ -85,6 +96,11 @@ def bench_localization(
         "yaw_rmse_deg": round(rmse(e_yaw), 3),
         "converged_fraction": round(float(np.mean(matched)), 4),
         "all_frames_rmse_m": round(rmse(e_all), 3),
+        "all_frames_lateral_rmse_m": round(rmse(acc["e_all_lat"]), 3),
+        "all_frames_longitudinal_rmse_m": round(rmse(acc["e_all_lon"]), 3),
+        "all_frames_lateral_p95_m": round(percentile(np.abs(np.ravel(acc["e_all_lat"])), 95), 3),
+        "all_frames_longitudinal_p95_m": round(percentile(np.abs(np.ravel(acc["e_all_lon"])), 95), 3),
+        "lateral_p95_m": round(percentile(np.abs(np.ravel(e_lat)), 95), 3),
         "all_frames_yaw_rmse_deg": round(rmse(e_all_yaw), 3),
         "nees_mean": round(float(np.mean(nees)), 2),
         "nees_axes_mean": dict(zip(_AXES, np.round(np.mean(nees_axes, axis=0), 2).tolist(), strict=True)),
@@ -94,6 +110,7 @@ def bench_localization(
         "prior_rmse_m": round(rmse(e_prior), 3),
         "prior_nees_mean": round(float(np.mean(nees_prior)), 2),
         "after_localized_rmse_m": round(_after_localized_rmse(runs), 3),
+        "integrity": integrity_summary(acc["integrity"], stanford_png),
         "startup": startup_summary(runs, duration_s),
     }
 
@@ -101,17 +118,21 @@ def bench_localization(
 _AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 _ACC = (
     "e_pos", "e_lat", "e_lon", "e_yaw", "e_gnss", "nees", "ms", "sizes", "matched", "e_prior", "nees_prior", "e_all",
-    "e_all_yaw", "nees_axes", "no_pose",
+    "e_all_yaw", "nees_axes", "no_pose", "e_all_lat", "e_all_lon", "integrity",
 )  # fmt: skip
+ALERT_LIMIT_M = 0.5  # lateral protection level at most this: the frame is available (local streets)
 
 
-def _episode(world: World, duration_s: float, warmup_s: float, acc: dict[str, list]) -> list[list[float]]:
-    """Every vehicle of one episode localized frame by frame; the scored frames' figures appended to ``acc`` (lists
-    named in :data:`_ACC`); returns the cold-start rows [t, vehicle index, says map_matching, horizontal error]."""
+def _episode(
+    world: World, duration_s: float, warmup_s: float, acc: dict[str, list], params: LocalizerParams
+) -> list[list[float]]:
+    """Every vehicle of one episode localized frame by frame (with ``params``); the scored frames' figures appended
+    to ``acc`` (lists named in :data:`_ACC`); returns the cold-start rows [t, vehicle index, says map_matching,
+    horizontal error]."""
     e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes = (
-        acc[k] for k in _ACC[:-1]
+        acc[k] for k in _ACC[:-4]
     )
-    agents = {v: VehicleAgent(world.hdmap, v, world.fleet) for v in world.vehicle_ids}
+    agents = {v: VehicleAgent(world.hdmap, v, world.fleet, params=params) for v in world.vehicle_ids}
     index = {v: i for i, v in enumerate(world.vehicle_ids)}
     locks: list[list[float]] = []
     for tick in world.run(duration_s):
@@ -132,13 +153,20 @@ def _episode(world: World, duration_s: float, warmup_s: float, acc: dict[str, li
                 continue
             err = _pose_error(res.pose_filtered, truth)
             e_all.append(err[:2])
+            e_body = geo.rot_z(truth[5]).T[:2, :2] @ err[:2]  # along, across the true heading
+            acc["e_all_lon"].append(e_body[:1])
+            acc["e_all_lat"].append(e_body[1:])
+            pl = res.protection_level
+            claimed = pl is not None
+            acc["integrity"].append(
+                [float(claimed), *(pl if claimed else (np.inf, np.inf)), abs(e_body[1]), abs(e_body[0])]
+            )
             e_all_yaw.append(np.degrees(err[5:]))
             e_gnss.append(np.asarray(frame.gnss.p_map[:2], float) - truth[:2])
             nees.append(float(err @ np.linalg.solve(res.cov_filtered, err)))
             nees_axes.append(err**2 / np.diag(res.cov_filtered))
             matched.append(prior.quality.mode == "map_matching")
             if matched[-1]:
-                e_body = geo.rot_z(truth[5]).T[:2, :2] @ err[:2]
                 e_pos.append(err[:2])
                 e_lon.append(e_body[:1])
                 e_lat.append(e_body[1:])
@@ -147,6 +175,57 @@ def _episode(world: World, duration_s: float, warmup_s: float, acc: dict[str, li
             e_prior.append(err_p[:2])
             nees_prior.append(float(err_p @ np.linalg.solve(body_pose_cov(prior), err_p)))
     return locks
+
+
+def integrity_summary(rows, stanford_png: str | None = None) -> dict:
+    """Integrity of the scored frames' protection levels; rows [claimed, PL lateral, PL longitudinal, |error|
+    lateral, |error| longitudinal] (the vehicle frame; PL inf where the vehicle claimed none).
+
+    ``availability``: the fraction of frames the vehicle claims integrity with a lateral protection level of at
+    most :data:`ALERT_LIMIT_M`. HMI (hazardously misleading information): a frame the vehicle claims integrity
+    whose true error exceeds its protection level on an axis; ``hmi_rate`` is per claimed frame (the integrity
+    risk stated is per axis). ``stanford_png``: error against protection level, lateral and longitudinal."""
+    a = np.asarray(rows, dtype=float).reshape(-1, 5)
+    claimed = a[:, 0] > 0
+    hmi = claimed & ((a[:, 3] > a[:, 1]) | (a[:, 4] > a[:, 2]))
+    out = {
+        "alert_limit_m": ALERT_LIMIT_M,
+        "frames": len(a),
+        "claimed_fraction": round(float(claimed.mean()), 4) if len(a) else float("nan"),
+        "availability": round(float((claimed & (a[:, 1] <= ALERT_LIMIT_M)).mean()), 4) if len(a) else float("nan"),
+        "hmi_frames": int(hmi.sum()),
+        "hmi_rate": float(hmi.sum() / claimed.sum()) if claimed.any() else float("nan"),
+        "pl_lateral_p50_m": round(percentile(a[claimed, 1], 50), 3),
+        "pl_longitudinal_p50_m": round(percentile(a[claimed, 2], 50), 3),
+    }
+    if stanford_png:
+        _stanford(a[claimed], stanford_png)
+    return out
+
+
+def _stanford(a: np.ndarray, path: str) -> None:
+    """Stanford diagram: |error| (x) against protection level (y), lateral and longitudinal, with the diagonal
+    (below it: misleading) and the alert limit."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
+    panels = (("lateral", a[:, 1], a[:, 3]), ("longitudinal", a[:, 2], a[:, 4]))
+    for ax, (name, pl, err) in zip(axes, panels, strict=True):
+        top = max(1.0, float(np.max(np.r_[pl, err], initial=1.0)) * 1.05)
+        ax.plot([0, top], [0, top], "k-", lw=0.8)
+        if name == "lateral":
+            ax.axhline(ALERT_LIMIT_M, color="r", lw=0.8, ls="--")
+        bad = err > pl
+        ax.scatter(err[~bad], pl[~bad], s=3, alpha=0.4, label=f"PL >= error ({int((~bad).sum())})")
+        ax.scatter(err[bad], pl[bad], s=6, color="r", label=f"misleading ({int(bad.sum())})")
+        ax.set(xlim=(0, top), ylim=(0, top), xlabel=f"|{name} error| (m)", ylabel=f"{name} protection level (m)")
+        ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _after_localized_rmse(runs: list[dict]) -> float:

@@ -109,7 +109,14 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
     print(
         jsonout.dumps(
             bench_localization(
-                args.scenario, args.seeds, args.duration, args.warmup, ideal=args.ideal, seed0=args.seed0
+                args.scenario,
+                args.seeds,
+                args.duration,
+                args.warmup,
+                ideal=args.ideal,
+                seed0=args.seed0,
+                stanford_png=args.stanford,
+                startup_accept=args.startup_accept,
             )
         )
     )
@@ -337,6 +344,14 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--duration", type=seconds, default=20.0, help="seconds per episode (the first 2 are not scored)")
     bl.add_argument(
         "--ideal", action="store_true", help="every simulator error source off (exact map, calibration, clocks)"
+    )
+    bl.add_argument("--stanford", default=None, help="draw the Stanford diagram (error against protection level) here")
+    bl.add_argument(
+        "--startup-accept",
+        choices=("landmarks", "posterior"),
+        default="landmarks",
+        help="the start-up acceptance rule (LocalizerParams.search.accept): 'landmarks' (default: enough distinct "
+        "landmarks and a margin) or 'posterior' (opt-in: posterior mass over basins; see docs/localization.md)",
     )
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")

@@ -120,9 +120,19 @@ class VehicleAgent:
             objects=obs.objects,
             pose_filtered=True,
             pose_bias_sigma=np.asarray(self.localizer.params.match_bias_sigma, np.float16) if res.initialized else None,
+            **self._integrity(res),
         )
         self.last = prior
         return prior
+
+    def _integrity(self, res: LocalizationResult) -> dict:
+        """The prior's protection levels and their risk, while the localizer claims integrity (else neither)."""
+        if res.protection_level is None:
+            return {}
+        return {
+            "protection_level_m": np.asarray(res.protection_level, np.float32),
+            "integrity_risk": float(self.localizer.params.integrity_risk),
+        }
 
     def handle(self, t: float, frame: Observations) -> VehiclePrior | RawObservations | Rejection:
         """The V2X message for one sensor frame, sent at time t (a Rejection if the frame is refused)."""

@@ -227,6 +227,12 @@ class LocalizationQuality(_Model):
     n_poles: int = Field(0, ge=0, description="pole landmark inliers")
     n_lane: int = Field(0, ge=0, description="lane samples within the distance cap")
     cost: float = Field(0.0, ge=0, description="final normalised cost (chi^2 per residual)")
+    lock: Literal["full", "lateral"] | None = Field(
+        None,
+        description="while map_matching, what the camera fixed: 'full' (landmarks and lanes: the whole pose), "
+        "'lateral' (the lanes alone: lateral position and heading; the along-road position is GNSS and odometry's, "
+        "and pose_cov says so). Absent: not said (fallback, or an older sender)",
+    )
 
 
 # ------------------------------------------------------------------------------ messages
@@ -328,6 +334,15 @@ class VehiclePrior(Envelope):
         "the vehicle's detections share it with the pose, so they sit right in the map from pose. Body pose "
         "covariance = pose_cov + R(yaw) diag(sigma^2) R(yaw)^T (schemas.body_pose_cov)",
     )
+    protection_level_m: F32(2) | None = Field(
+        None,
+        description="(lateral, longitudinal) protection levels of the body position in the vehicle frame (m): the "
+        "true error exceeds each with probability at most integrity_risk. Present only while the vehicle claims "
+        "integrity (map matched, no fault detected); absent: it does not",
+    )
+    integrity_risk: float | None = Field(
+        None, gt=0, lt=1, description="the per-axis probability protection_level_m is stated at"
+    )
     # pose_cov is positive definite: checked by its type (Cov, schemas.arrays.CovSpec)
 
     @model_validator(mode="after")
@@ -339,6 +354,10 @@ class VehiclePrior(Envelope):
             _check_bound("pose_bias_sigma", self.pose_bias_sigma, MAX_COORD_M)
             if np.any(self.pose_bias_sigma < 0):
                 raise ValueError("pose_bias_sigma must be non-negative")
+        if self.protection_level_m is not None:
+            _check_bound("protection_level_m", self.protection_level_m, MAX_COORD_M)
+            if np.any(self.protection_level_m < 0) or self.integrity_risk is None:
+                raise ValueError("protection_level_m must be non-negative and come with integrity_risk")
         return self
 
 

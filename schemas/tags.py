@@ -137,7 +137,12 @@ TAGS: dict[str, int] = {
     "epoch_wall_ns": 97,
     "time_scale": 98,
     "t_next": 99,
-    # new fields: next tag 100
+    # VehiclePrior (added, still schema_version 4: optional)
+    "protection_level_m": 100,
+    "integrity_risk": 101,
+    # LocalizationQuality (added, optional)
+    "lock": 102,
+    # new fields: next tag 103
 }
 
 

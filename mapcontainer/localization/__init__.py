@@ -1,6 +1,7 @@
 """Self-localization by HD-map matching (the paper's "Map-matching Localization"), with a GNSS +
 odometry fallback. Pure core: no I/O, deterministic.
 
+* :mod:`.params` -- the localizer's inputs, result and parameters (shared by the modules below).
 * :mod:`.matcher` -- one Levenberg-Marquardt solve for one camera frame (D_P, D_L, EDT lane
   residual, r_n, GNSS and prediction priors).
 * :mod:`.localizer` -- tracking over frames: odometry prediction, failure detection, fallback, recovery.
@@ -8,8 +9,9 @@ odometry fallback. Pure core: no I/O, deterministic.
 * :mod:`.startup` -- the localizer's phases (uninitialised, verifying, searching, tracking) as a state machine.
 """
 
-from .localizer import GnssMeasurement, LocalizationResult, Localizer, LocalizerParams, OdometryMeasurement
+from .localizer import Localizer
 from .matcher import CameraFrame, MapMatcher, MatcherParams, MatchResult, lane_distance_transform
+from .params import GnssMeasurement, LocalizationResult, LocalizerParams, OdometryMeasurement
 
 __all__ = [
     "CameraFrame",

@@ -15,8 +15,8 @@ import numpy as np
 from ..geometry import wrap_angle
 
 if TYPE_CHECKING:
-    from .localizer import GnssMeasurement, LocalizerParams, OdometryMeasurement
     from .matcher import MatchResult
+    from .params import GnssMeasurement, LocalizerParams, OdometryMeasurement
 
 __all__ = [
     "GB",

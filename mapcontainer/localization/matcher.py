@@ -259,6 +259,13 @@ class MatchResult:
     gnss_used: bool = False
     point_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))  # (map index, detection index)
     pole_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
+    prior_chi2: float = 0.0  # the prediction prior's part of ``score``
+    pair_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))  # chi^2 of point_pairs, then pole_pairs
+
+    def inliers(self, inlier_chi2: float) -> list[tuple[tuple[str, int], float]]:
+        """((kind 'point' or 'pole', map index), chi^2) of every landmark inlier."""
+        keys = [("point", int(i)) for i in self.point_pairs[:, 0]] + [("pole", int(i)) for i in self.pole_pairs[:, 0]]
+        return [(k, float(c)) for k, c in zip(keys, self.pair_chi2, strict=False) if c <= inlier_chi2]
 
 
 def lane_distance_transform(mask: np.ndarray) -> np.ndarray | None:
@@ -1114,6 +1121,8 @@ class MapMatcher:
             gnss_used=fd.gnss is not None,
             point_pairs=np.column_stack([rd.pt_map, rd.pt_det]).astype(int).reshape(-1, 2),
             pole_pairs=np.column_stack([rd.pole_map, rd.pole_det]).astype(int).reshape(-1, 2),
+            prior_chi2=float(ev.e[-6:] @ ev.e[-6:]),
+            pair_chi2=np.concatenate([ev.pt_chi2, ev.pole_chi2]),
         )
 
 

@@ -17,11 +17,19 @@ fit it exactly. The search makes that choice explicit:
    with the real prediction as the prior; each converged solution is solved once more from itself
    with its own covariance (lane samples and weights chosen at the solution, not at a start up to a
    metre off), so that the scores of different basins compare like with like.
-3. **Decide.** Each solution's score is the matcher's: its robust cost plus ``inlier_chi2`` for every
-   detection it leaves unexplained. The best is accepted if it is well constrained
-   (``min_constraints`` on x, y, yaw: 2 per point inlier, 1 per pole inlier, 2 for the lanes) and no
-   distinct solution (farther than ``distinct_m`` or ``distinct_rad``) scores within ``margin`` of it.
-   Otherwise the result says "ambiguous" (or why not), and the caller waits for the next frame.
+3. **Decide** (``accept``). Rule ``"landmarks"`` (the default): each solution's score is the matcher's
+   (its robust cost plus ``inlier_chi2`` for every detection it leaves unexplained); the best is
+   accepted if it is well constrained (``min_constraints`` on x, y, yaw: 2 per point inlier, 1 per
+   pole inlier, 2 for the lanes; ``min_landmarks``) and no distinct solution (farther than
+   ``distinct_m`` or ``distinct_rad``) scores within ``margin`` of it. Rule ``"posterior"`` (opt-in):
+   each converged solution is a basin; its -2 log-likelihood (:mod:`.hypotheses`) is the
+   matcher's score without the prediction prior, with the Laplace volume term, plus a heavy-tailed
+   (Student-t, ``prior_t_dof``) prior on its position around the prediction's: a GNSS fix several
+   metres off under multipath must not decide between basins. Beside them stands *elsewhere* (a basin
+   the search did not reach, which explains none of the best one's landmarks). The best is accepted if
+   it holds at least ``1 - accept_epsilon`` of the posterior mass. Otherwise the result says why
+   ("ambiguous", with the mass) and the caller tracks the basins over the next frames
+   (:mod:`.startup`), where the evidence of a pole seen over a baseline of travel accumulates.
 
 Everything here is pure and deterministic.
 """
@@ -29,11 +37,13 @@ Everything here is pure and deterministic.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..geometry import project_points_grid, wrap_angle
+from . import hypotheses as hyp
 from .matcher import CameraFrame, FrameData, MapMatcher, MatchResult
 
 __all__ = ["PoseSearch", "PoseSearchParams", "SearchOutcome"]
@@ -59,13 +69,41 @@ class PoseSearchParams(BaseModel):
     margin: float = Field(
         9.0,
         ge=0,
-        description="the best solution's score must beat every distinct one by this much (about one "
-        "detection explained better)",
+        description="rule 'landmarks': the best solution's score must beat every distinct one by this much; "
+        "either rule: a distinct solution that scores this much better than a verified start's local match "
+        "rejects it (about one detection explained better)",
+    )
+    accept: Literal["landmarks", "posterior"] = Field(
+        "landmarks",
+        description="how the start-up accepts a basin: 'landmarks' (the default) when it is well constrained "
+        "(min_constraints, min_landmarks: distinct map landmarks counted over its frames) and beats every "
+        "distinct one by the margin; 'posterior' (opt-in) when it holds 1 - accept_epsilon of the posterior "
+        "mass (see localization/hypotheses.py; on suburban evaluation seeds it accepts lone-pole starts "
+        "1-2 m off along the road: docs/localization.md). Either way the basins' posterior is tracked",
     )
     min_constraints: int = Field(
-        5, ge=3, description="constraints on (x, y, yaw) a solution needs: the 3 unknowns and 2 more"
+        5, ge=3, description="rule 'landmarks': constraints on (x, y, yaw) a solution needs: the 3 unknowns and 2 more"
     )
     min_landmarks: int = Field(2, ge=1, description="... of which at least this many landmark inliers")
+    accept_epsilon: float = Field(
+        1e-3,
+        gt=0,
+        lt=0.5,
+        description="rule 'posterior': a basin is accepted once it holds at least 1 - this of the posterior "
+        "mass (the other basins found and 'elsewhere')",
+    )
+    view_baseline_m: float = Field(
+        5.0,
+        gt=0,
+        description="a landmark explained again counts as new evidence against 'elsewhere' once the vehicle has "
+        "travelled this far since it last counted (views from nearly one place are not independent)",
+    )
+    prior_t_dof: float = Field(
+        4.0,
+        gt=0,
+        description="degrees of freedom of the Student-t position prior (GNSS, a widened prediction) that "
+        "weighs basins: heavy tails for multipath jumps of several metres",
+    )
     grid_detections: int = Field(
         64,
         ge=2,
@@ -84,6 +122,8 @@ class SearchOutcome:
     solutions: tuple[MatchResult, ...] = ()  # the distinct solutions, best first
     best_score: float = np.inf
     runner_up_score: float = np.inf
+    nll: tuple[float, ...] = ()  # the camera's -2 log-likelihood of each solution (see PoseSearch.camera_nll)
+    null_nll: float = np.inf  # ... and of 'elsewhere'
 
 
 class PoseSearch:
@@ -133,21 +173,54 @@ class PoseSearch:
         best, best_score = sols[0], sols[0].score
         runner = sols[1].score if len(sols) > 1 else np.inf
         out = dict(hypotheses=scores.size, solutions=tuple(sols), best_score=best_score, runner_up_score=runner)
-        constraints = best.constraints
-        if not best.converged:
+        if not any(r.converged for r in sols):
             return SearchOutcome(None, best.reason, **out)
-        if constraints < p.min_constraints or best.n_points + best.n_poles < p.min_landmarks:
-            return SearchOutcome(None, f"too few features ({constraints} constraints)", **out)
-        if runner - best_score < p.margin:
-            return SearchOutcome(None, f"ambiguous: {runner - best_score:.1f} < margin {p.margin}", **out)
-        return SearchOutcome(replace(best, reason=""), "", **out)
+        nll, null = self.camera_nll(sols, P0)
+        out.update(nll=tuple(nll), null_nll=null)
+        if p.accept == "landmarks":
+            if not best.converged:
+                return SearchOutcome(None, best.reason, **out)
+            if best.constraints < p.min_constraints or best.n_points + best.n_poles < p.min_landmarks:
+                return SearchOutcome(None, f"too few features ({best.constraints} constraints)", **out)
+            if runner - best_score < p.margin:
+                return SearchOutcome(None, f"ambiguous: {runner - best_score:.1f} < margin {p.margin}", **out)
+            return SearchOutcome(replace(best, reason=""), "", **out)
+        S = P0[:2, :2]
+        prior = [self.prior_nll(r.pose_filtered[:2] - fd.x_prior[:2], S) for r in sols]
+        mass = hyp.masses([*(np.add(nll, prior)), null + self.prior_nll(None, S)])
+        i = int(np.argmax(mass[:-1]))
+        if mass[i] < 1.0 - p.accept_epsilon:
+            return SearchOutcome(None, f"ambiguous: best basin holds {mass[i]:.3f} of the mass", **out)
+        return SearchOutcome(replace(sols[i], reason=""), "", **out)
+
+    def camera_nll(self, sols, P_prior) -> tuple[list[float], float]:
+        """The camera's -2 log-likelihood of each solution of one frame (inf if not converged): its score
+        without the prediction prior, with the Laplace volume term against ``P_prior`` (the pose's); and that
+        of *elsewhere* (see :mod:`.hypotheses`). Needs a converged solution."""
+        out = [
+            hyp.frame_nll(r.score - r.prior_chi2, r.cov_filtered, P_prior[:6, :6]) if r.converged else np.inf
+            for r in sols
+        ]
+        best = sols[int(np.argmin(out))]
+        inlier_chi2 = self.matcher.params.inlier_chi2
+        return out, hyp.null_increment(min(out), [c for _, c in best.inliers(inlier_chi2)], inlier_chi2)
+
+    def prior_nll(self, d, S) -> float:
+        """-2 log of the heavy-tailed position prior (Student-t, ``prior_t_dof``, scale S) at the offset d;
+        d None: at the prior's expected spread (Mahalanobis^2 = 2), where *elsewhere* is."""
+        if d is None:
+            d = np.linalg.cholesky(S) @ np.ones(2)
+        return hyp.student_t_nll(d, S, self.params.prior_t_dof)
 
     def can_accept(self, frame: CameraFrame) -> bool:
-        """Whether a search of this frame could accept a solution: enough landmark detections for
-        ``min_landmarks`` and, were every one an inlier and the lanes matched too, for ``min_constraints``.
-        A frame that fails this cannot decide a start alone (cheap: counts only)."""
+        """Whether a search of this frame could accept a solution or find a basin worth tracking (cheap: counts
+        only). Rule 'landmarks': enough landmark detections for ``min_landmarks`` and, were every one an inlier
+        and the lanes matched too, for ``min_constraints``. Rule 'posterior': a landmark detection (lanes alone
+        repeat along the road)."""
         p = self.params
         n_points, n_poles = np.size(frame.points_uv) // 2, np.size(frame.poles_uv) // 4
+        if p.accept == "posterior":
+            return n_points + n_poles >= 1
         return n_points + n_poles >= p.min_landmarks and 2 * n_points + n_poles + 2 >= p.min_constraints
 
     def distinct(self, a, b) -> bool:

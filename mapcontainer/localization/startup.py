@@ -15,11 +15,16 @@ in. Its phases (:class:`Phase`)::
                                     are still tracked as hypotheses
     TRACKING      -> SEARCHING      a wide prediction (or jump_reset_after jumps): the search left
                                     candidate basins
-    SEARCHING     -> TRACKING       a hypothesis won, all were dropped, or a local match was tried
+    SEARCHING     -> TRACKING       a hypothesis won or all were dropped
     any           -> UNINITIALISED  reset: a gap > max_gap_s, GNSS divergence, Localizer.reset
 
 Before the state exists (UNINITIALISED) on a two-way road, the candidate basins of the start-up
 search are tracked as hypotheses as well (``hyps``); a winner initialises the state.
+
+Hypotheses are weighed by their posterior mass (:mod:`.hypotheses`: the camera's evidence over the
+frames since they were found, the newest GNSS fix through a heavy-tailed likelihood, and *elsewhere*
+for a basin the search did not reach); one wins when it holds ``1 - search.accept_epsilon`` of it.
+While none does, :meth:`StartupMachine.mixture` is the moment-matched pose the vehicle publishes.
 """
 
 from __future__ import annotations
@@ -35,11 +40,12 @@ from scipy.spatial import cKDTree
 from ..geometry import circular_mean, wrap_angle
 from ..hdmap.model import HDMap
 from . import ekf
+from . import hypotheses as hyp
 from .matcher import CameraFrame, MapMatcher, MatchResult
 from .search import PoseSearch, SearchOutcome
 
 if TYPE_CHECKING:
-    from .localizer import GnssMeasurement, LocalizerParams, OdometryMeasurement
+    from .params import GnssMeasurement, LocalizerParams, OdometryMeasurement
 
 __all__ = ["StartupMachine", "Phase", "UNIFORM_YAW_VAR"]
 
@@ -66,29 +72,39 @@ class _Course:
 
 @dataclass
 class _Hypothesis:
-    """One candidate start-up track (a basin the pose search found), scored over the frames since.
+    """One candidate track (a basin the pose search found), with its evidence since, kept for both start-up
+    rules (``search.accept``).
 
-    ``y_pred``/``P_pred``: the state predicted to the last frame, before its match ``last``. Its
-    constraints count distinct map landmarks: seeing one pole ten times is still one pole.
+    ``nll`` (rule 'posterior', and the published mixture): the camera's -2 log-likelihood of the frames
+    since it was found (its first frame without the search's prior, the later ones with its own odometry
+    prediction as the prior, so that the prior rows score how well it follows the motion; see
+    :mod:`.hypotheses`). ``score``, ``points``, ``poles``, ``lanes`` (rule 'landmarks'): the matcher's
+    scores summed, and the distinct map landmarks matched: seeing one pole ten times is still one pole.
+    ``y_pred``/``P_pred``: the state predicted to the last frame, before its match ``last`` (``last_nll``
+    that match's share of ``nll``).
     """
 
     y: np.ndarray
     P: np.ndarray
-    score: float
-    points: set[int]  # map landmarks matched so far (indices of the map's points, poles)
-    poles: set[int]
+    nll: float
+    score: float = 0.0
+    points: set[int] = field(default_factory=set)  # map landmarks matched so far (indices of the map's points, poles)
+    poles: set[int] = field(default_factory=set)
     lanes: bool = False  # the lanes matched at least once
     misses: int = 0
     y_pred: np.ndarray | None = None
     P_pred: np.ndarray | None = None
     last: MatchResult | None = None
+    last_nll: float = 0.0
 
-    def add(self, m: MatchResult) -> None:
+    def add(self, m: MatchResult, nll: float) -> None:
+        """Fold in a converged match and its share of the camera's -2 log-likelihood."""
+        self.nll += nll
         self.score += m.score
         self.points.update(m.point_pairs[:, 0].tolist())
         self.poles.update(m.pole_pairs[:, 0].tolist())
         self.lanes |= m.constraints > 2 * m.n_points + m.n_poles
-        self.last, self.misses = m, 0
+        self.last, self.last_nll, self.misses = m, nll, 0
 
     @property
     def landmarks(self) -> int:
@@ -139,16 +155,29 @@ class StartupMachine:
         self.initial_yaw = initial_yaw
         self.course = _Course()
         self.hyps: list[_Hypothesis] = []
+        self.null_nll = np.inf  # the camera's -2 log-likelihood of 'elsewhere' over the hypotheses' frames
+        self.mass: np.ndarray = np.zeros(0)  # the hypotheses' posterior masses (and elsewhere's, last)
+        self.odometer = 0.0  # distance travelled while searching (m)
+        self.credited: dict[tuple[str, int], float] = {}  # landmark -> odometer when it last counted against elsewhere
         self.init_match: MatchResult | None = None  # the match that initialised the state, for the first step
         self.verify_left = 0  # frames left to verify a known start pose by the search (see _verify_start)
         self.agree = 0  # frames in which the local match was the search's best basin (see _verify_start)
         self.jumps = 0  # converged matches rejected as jumps in a row
         self.far = 0  # GNSS fixes in a row farther than gnss_divergence_m from the state
         self.attempt: MatchResult | None = None
+        self.fix: GnssMeasurement | None = None  # this step's GNSS fix: it weighs the hypotheses
+
+    @property
+    def posterior(self) -> bool:
+        """The start-up accepts by posterior mass (``search.accept == 'posterior'``), not by landmarks counted."""
+        return self.params.search.accept == "posterior"
 
     def _set_hyps(self, hyps: list[_Hypothesis]) -> None:
         """Replace the hypotheses; once initialised (and not verifying), SEARCHING while there are any."""
         self.hyps = hyps
+        if not hyps:
+            self.null_nll, self.mass = np.inf, np.zeros(0)
+            self.odometer, self.credited = 0.0, {}
         if self.phase in (Phase.TRACKING, Phase.SEARCHING):
             self.phase = Phase.SEARCHING if hyps else Phase.TRACKING
 
@@ -168,10 +197,13 @@ class StartupMachine:
         a winning hypothesis brings its own prediction. Sets ``attempt``."""
         p = self.params
         match, reason = None, ""
-        self.attempt = None
+        self.attempt, self.fix = None, gnss
         if self.init_match is not None:
             match, self.attempt, self.init_match = self.init_match, self.init_match, None
-        elif self._wide(P_pred[:6, :6]):
+        elif (self.hyps and self.phase is Phase.SEARCHING and self.posterior) or self._wide(P_pred[:6, :6]):
+            # Rule 'posterior': hypotheses decide until one wins, even if the GNSS + odometry estimate narrows
+            # meanwhile (a local match from it would pick a basin they have not told apart). Rule 'landmarks':
+            # a narrow prediction ends the search with a local match.
             match, reason, y_pred, P_pred = self._recover(frame, y_pred, P_pred, dt, odo_a, odo_b)
         elif frame is None:
             reason = "no camera frame"
@@ -271,11 +303,11 @@ class StartupMachine:
         is verified, every frame is also matched by the global pose search over the prediction's own
         covariance (3 sigma in position and heading):
 
-        * the search accepts a solution (the strict start-up rules: min_constraints, min_landmarks,
-          margin): it is taken, the start is verified;
+        * the search accepts a solution (one basin holds 1 - accept_epsilon of the posterior mass):
+          it is taken, the start is verified;
         * a distinct solution of the search beats the local one by the margin: the local one is a
           wrong basin; the search's basins are tracked as hypotheses (fallback until one wins);
-        * otherwise (too few features for the search to decide alone): the local match as usual; when it
+        * otherwise (the frame too poor for the search to decide alone): the local match as usual; when it
           lies in the basin of the search's best converged solution in ``verify_agree_frames`` frames,
           the start is verified (the search found nothing better over the whole 3-sigma region).
 
@@ -417,7 +449,7 @@ class StartupMachine:
 
     def _initialise(self, frame, gnss, dt, odo_a, odo_b):
         p = self.params
-        self.init_match = None
+        self.init_match, self.fix = None, gnss
         if gnss is None:
             return None
         if self.initial_pose is not None:
@@ -480,23 +512,75 @@ class StartupMachine:
     # ------------------------------------------------------------------ hypotheses
 
     def _spawn(self, y0, P0, out: SearchOutcome) -> None:
-        """Hypotheses from the search's converged solutions (each folded into (y0, P0))."""
+        """Hypotheses from the search's converged solutions (each folded into (y0, P0)), with the camera's
+        evidence of the search's frame; *elsewhere* starts with its own."""
         self._set_hyps([])
-        for sol in out.solutions:
-            if sol.converged:
-                h = _Hypothesis(*ekf.match_update(y0, P0, sol), 0.0, set(), set())
-                h.add(sol)
-                self.hyps.append(h)
-        self._set_hyps(self.hyps)
+        hyps = []
+        for sol, nll in zip(out.solutions, out.nll, strict=False):
+            if sol.converged and np.isfinite(nll):
+                h = _Hypothesis(*ekf.match_update(y0, P0, sol), 0.0)
+                h.add(sol, nll)
+                hyps.append(h)
+        self._set_hyps(hyps)
+        if hyps:
+            self.null_nll = out.null_nll
+            best = out.solutions[int(np.argmin(out.nll))]
+            self.credited = {k: 0.0 for k, _ in best.inliers(self.params.matcher.inlier_chi2)}
+            self.mass = self._masses()
+
+    def _null_increment(self, best_nll: float, best: MatchResult) -> float:
+        """This frame's evidence of *elsewhere* against the best match: its landmark inliers count, each once per
+        ``search.view_baseline_m`` of travel (see :mod:`.hypotheses`)."""
+        inlier_chi2, baseline = self.params.matcher.inlier_chi2, self.params.search.view_baseline_m
+        new = []
+        for key, chi2 in best.inliers(inlier_chi2):
+            if key not in self.credited or self.odometer - self.credited[key] >= baseline:
+                self.credited[key] = self.odometer
+                new.append(chi2)
+        # Elsewhere follows the odometry exactly: a lone basin that explains its landmarks only by drifting
+        # against the odometry (a wrong lane sliding along a pole) loses to it.
+        return hyp.null_increment(best_nll - best.prior_chi2, new, inlier_chi2)
+
+    def _gnss_nll(self, xy) -> float:
+        """-2 log of the newest fix given the position xy (None: at the fix's expected spread, for *elsewhere*):
+        a Student-t (``search.prior_t_dof``) over the receiver's whole error (bias, white, a multipath margin).
+        Only the newest fix counts: its errors are correlated for a minute. 0 without a fix."""
+        g, p = self.fix, self.params
+        if g is None:
+            return 0.0
+        S = np.eye(2) * (p.gnss_bias_sigma_m**2 + ekf.gnss_white_var(g, p) + p.init_extra_sigma_m**2)
+        return self.search.prior_nll(None if xy is None else g.p_map[:2] - np.asarray(xy)[:2], S)
+
+    def _masses(self) -> np.ndarray:
+        """The posterior masses of the hypotheses and of *elsewhere* (last): camera evidence + the newest fix."""
+        nll = [h.nll + self._gnss_nll(h.y) for h in self.hyps]
+        return hyp.masses([*nll, self.null_nll + self._gnss_nll(None)])
+
+    def mixture(self, y: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """While searching: the moment-matched Gaussian (pose, 6x6) of the hypotheses and of *elsewhere*,
+        the latter as (y, P) (the GNSS + odometry estimate), each by its mass; None without hypotheses."""
+        if not self.hyps or len(self.mass) != len(self.hyps) + 1:
+            return None
+        means = [h.y[:6] for h in self.hyps] + [y[:6]]
+        covs = [h.P[:6, :6] for h in self.hyps] + [P[:6, :6]]
+        return hyp.mixture(means, covs, self.mass)
 
     def _advance_hypotheses(self, frame, dt: float, odo_a, odo_b, search) -> _Hypothesis | None:
-        """Predict and match every hypothesis with this frame; the winner, if one has won (it ends the search).
+        """Predict and match every hypothesis with this frame; the winner, if one has won (it ends the search):
+        it holds at least 1 - ``search.accept_epsilon`` of the posterior mass (see :mod:`.hypotheses`).
 
         ``search()`` runs the global pose search on this frame: (y0, P0, outcome) or None (see
         :meth:`_rivals`, for a lone hypothesis that has not won).
         """
         p, sp = self.params, self.params.search
         n_det = 0 if frame is None or frame.is_empty() else len(frame.points_uv) + len(frame.poles_uv)
+        speeds = [abs(o.speed) for o in (odo_a, odo_b) if o is not None]
+        self.odometer += float(np.mean(speeds)) * max(dt, 0.0) if speeds else 0.0
+        # Elsewhere's evidence rides on the leading hypothesis' (the most probable so far, if it matched this
+        # frame; else the best match of the frame): riding on whichever fits a frame best would hand it the
+        # frame-to-frame noise of the lanes' cost between basins.
+        lead = self.hyps[int(np.argmax(self.mass[:-1]))] if len(self.mass) == len(self.hyps) + 1 else None
+        best: tuple[float, MatchResult] | None = None
         for h in self.hyps:
             h.y_pred, h.P_pred = ekf.predict(h.y, h.P, dt, odo_a, odo_b, p)
             h.y, h.P, h.last = h.y_pred, h.P_pred, None
@@ -509,42 +593,64 @@ class StartupMachine:
                 return None
             if res.converged:
                 h.y, h.P = ekf.match_update(h.y_pred, h.P_pred, res)
-                h.add(res)
+                h.add(res, hyp.frame_nll(res.score, res.cov_filtered, h.P_pred[:6, :6]))
+                if best is None or h.last_nll < best[0]:
+                    best = (h.last_nll, res)
             else:  # nothing explained: every detection costs like an outlier
+                h.nll += p.matcher.inlier_chi2 * n_det
                 h.score += p.matcher.inlier_chi2 * n_det
                 h.misses += 1
-        # Merge hypotheses that reached one basin; drop the hopeless and the lost.
-        self.hyps.sort(key=lambda h: h.score)
+        if lead is not None and lead.last is not None:
+            best = (lead.last_nll, lead.last)
+        if n_det:
+            self.null_nll += p.matcher.inlier_chi2 * n_det if best is None else self._null_increment(*best)
+        # Merge hypotheses that reached one basin; drop the hopeless and the lost. Rule 'posterior': their masses
+        # add, the states moment-match (both places stay in the covariance); rule 'landmarks': the better one
+        # stays, by the matcher's summed score.
+        posterior = self.posterior
+        rank = (lambda h: h.nll) if posterior else (lambda h: h.score)
+        self.hyps.sort(key=rank)
         kept: list[_Hypothesis] = []
         for h in self.hyps:
-            if h.misses >= 3 or h.score > self.hyps[0].score + 5.0 * sp.margin:
+            if h.misses >= 3 or rank(h) > rank(self.hyps[0]) + 5.0 * sp.margin:
                 continue
-            if all(self.search.distinct(h.y, k.y) for k in kept):
+            same = next((k for k in kept if not self.search.distinct(h.y, k.y)), None)
+            if same is None:
                 kept.append(h)
+            elif posterior:
+                w = hyp.masses([same.nll, h.nll])
+                same.y, same.P = hyp.mixture([same.y, h.y], [same.P, h.P], w)
+                same.nll = -2.0 * np.logaddexp(-0.5 * same.nll, -0.5 * h.nll)
         self._set_hyps(kept)
         if not kept:
             return None
-        best = kept[0]
-        runner = kept[1].score if len(kept) > 1 else np.inf
-        if (
-            best.last is None
-            or best.constraints < sp.min_constraints
-            or best.landmarks < sp.min_landmarks
-            or runner - best.score < sp.margin
-        ):
+        self.mass = self._masses()
+        if posterior:
+            i = int(np.argmax(self.mass[:-1]))
+            won = self.mass[i] >= 1.0 - sp.accept_epsilon
+        else:  # well constrained by distinct landmarks, and better than every rival by the margin
+            i = 0
+            runner = kept[1].score if len(kept) > 1 else np.inf
+            won = (
+                kept[0].constraints >= sp.min_constraints
+                and kept[0].landmarks >= sp.min_landmarks
+                and runner - kept[0].score >= sp.margin
+            )
+        win = kept[i]
+        if win.last is None or not won:
             if len(kept) == 1 and n_det:
                 return self._rivals(search, n_det)
             return None
+        self._count("hypothesis accepted")
         self._set_hyps([])
-        return best
+        return win
 
     def _rivals(self, search, n_det: int) -> _Hypothesis | None:
         """Search again while a lone hypothesis has not won; the winner if the search accepts a solution.
 
-        A lone hypothesis has no rival to beat, only too few constraints: a wrong basin from a frame
-        that showed one pole (urban seed 0: 7 m across, 10 degrees off, one pole and the lanes) keeps
-        converging on its pole and the lanes frame after frame, never wins, and held the vehicle in
-        fallback for the whole episode while the true basin came into view. So the search runs on
+        A lone hypothesis has no rival but *elsewhere*: a wrong basin from a frame that showed one pole
+        (urban seed 0: 7 m across, 10 degrees off, one pole and the lanes) keeps converging on its pole
+        and the lanes frame after frame while the true basin comes into view. So the search runs on
         every such frame: a solution it accepts wins at once (as at a cold start); its other converged
         solutions distinct from the hypothesis join it as rivals, scored as if they had explained the
         earlier frames as well as it did (only this frame's evidence tells them apart).
@@ -561,11 +667,21 @@ class StartupMachine:
         y0, P0, out = found
         if out.match is not None:
             self._set_hyps([])
-            return _Hypothesis(y0, P0, out.match.score, set(), set(), y_pred=y0, P_pred=P0, last=out.match)
+            return _Hypothesis(y0, P0, 0.0, out.match.score, y_pred=y0, P_pred=P0, last=out.match)
+        # This frame's evidence compares solutions of one search (one prior): a rival's is its own relative to
+        # the lone hypothesis' basin (to the best solution if the search did not reach that basin).
+        found = [(sol, nll) for sol, nll in zip(out.solutions, out.nll, strict=False) if np.isfinite(nll)]
+        if not found:
+            return None
+        ref = next((nll for sol, nll in found if not self.search.distinct(sol.pose_filtered, lone.y)), None)
+        ref = min(nll for _, nll in found) if ref is None else ref
         earlier = lone.score - (lone.last.score if lone.last is not None else self.params.matcher.inlier_chi2 * n_det)
-        for sol in out.solutions:
-            if sol.converged and self.search.distinct(sol.pose_filtered, lone.y):
-                h = _Hypothesis(*ekf.match_update(y0, P0, sol), earlier, set(), set())
-                h.add(sol)
+        for sol, nll in found:
+            if self.search.distinct(sol.pose_filtered, lone.y):
+                h = _Hypothesis(*ekf.match_update(y0, P0, sol), lone.nll - ref, earlier)
+                h.add(sol, nll)
+                h.last_nll = nll - ref
                 self.hyps.append(h)
+        if len(self.hyps) > 1:
+            self.mass = self._masses()
         return None

@@ -128,12 +128,16 @@ def test_bench_localization_prints_accuracy_consistency_and_speed():
         assert _finite(result[key]), key
     assert set(result["nees_axes_mean"]) == {"x", "y", "z", "roll", "pitch", "yaw"}
     assert result["error_sources"] == list(ERROR_SOURCES)  # the scenario's realistic errors, all on
+    assert result["startup_accept"] == "landmarks"  # the default start-up rule
     # with them, seed 0's vehicles lock on in about half of the scored frames (the cold-start search
     # misses with map and calibration errors: issue 20), and where they do, they beat GNSS
     assert result["converged_fraction"] > 0.3 and result["mapmatch_rmse_m"] < 0.3 < result["gnss_rmse_m"]
-    proc = _mapc("bench", "localization", "--scenario", "paper-urban", "--seeds", "1", "--duration", "4", "--ideal")
+    proc = _mapc(
+        "bench", "localization", "--scenario", "paper-urban", "--seeds", "1", "--duration", "4", "--ideal",
+        "--startup-accept", "posterior",
+    )  # fmt: skip
     ideal = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert ideal["error_sources"] == []
+    assert ideal["error_sources"] == [] and ideal["startup_accept"] == "posterior"
     # exact map and sensors: where it locks (0.61 of the frames: the traffic drawn for seed 0 keeps a vehicle
     # searching, issue 20) map matching beats GNSS by more than an order of magnitude
     assert ideal["converged_fraction"] > 0.5 and ideal["mapmatch_rmse_m"] < 0.1 < 0.3 < ideal["gnss_rmse_m"]

@@ -548,25 +548,60 @@ def test_the_grid_search_of_a_frame_with_4096_detections_stays_small():
 
 
 @pytest.mark.parametrize(
-    ("n_points", "n_poles", "decidable"),
-    [(0, 2, False), (1, 0, False), (2, 0, True), (1, 1, True), (0, 3, True)],
+    ("rule", "n_points", "n_poles", "decidable"),
+    [
+        ("landmarks", 0, 2, False),
+        ("landmarks", 1, 0, False),
+        ("landmarks", 2, 0, True),
+        ("landmarks", 1, 1, True),
+        ("landmarks", 0, 3, True),
+        ("posterior", 0, 0, False),
+        ("posterior", 0, 1, True),
+        ("posterior", 1, 0, True),
+        ("posterior", 2, 0, True),
+        ("posterior", 0, 3, True),
+    ],
 )
-def test_search_knows_which_frames_cannot_decide(n_points, n_poles, decidable):
-    """min_constraints 5 (2 per point, 1 per pole, 2 for the lanes) and min_landmarks 2: a frame that cannot
-    meet them even were every detection an inlier is not worth a start-up search."""
+def test_search_knows_which_frames_cannot_decide(rule, n_points, n_poles, decidable):
+    """Rule 'landmarks' (the default): min_constraints 5 (2 per point, 1 per pole, 2 for the lanes) and min_landmarks
+    2: a frame that cannot meet them even were every detection an inlier is not worth a start-up search. Rule
+    'posterior': a frame with a landmark detection is (one pole with the lanes, explained frame after frame, can
+    decide a start by its posterior mass); the lanes alone repeat along the road."""
     rng = np.random.default_rng(7)
     truth = pose_on(30.0)
     frame, _ = synth_frame(truth, rng)
     pts, poles = np.zeros((n_points, 2)), np.tile([[600.0, 500.0, 600.0, 300.0]], (n_poles, 1))
     some = CameraFrame(frame.intr, frame.T_body_cam, pts, np.zeros(n_points, int), poles, frame.lane_mask)
-    assert PoseSearch(MapMatcher(HDMAP)).can_accept(some) is decidable
+    assert PoseSearch(MapMatcher(HDMAP), PoseSearchParams(accept=rule)).can_accept(some) is decidable
 
 
-@pytest.mark.parametrize(("seed", "s0", "min_matched"), [(11, 170.0, 30), (12, 190.0, 30), (13, 55.0, 0)])
-def test_cold_start_is_never_confidently_wrong(seed, s0, min_matched):
+@pytest.mark.parametrize(
+    ("rule", "seed", "s0", "min_matched"),
+    [
+        ("landmarks", 11, 170.0, 30),
+        ("landmarks", 12, 190.0, 30),
+        ("landmarks", 13, 55.0, 0),
+        ("posterior", 11, 170.0, 30),
+        ("posterior", 12, 190.0, 30),
+        pytest.param(
+            "posterior",
+            13,
+            55.0,
+            0,
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="known regression of the posterior-mass start-up: one distant pole on lanes that repeat "
+                "about a metre across holds the mass after a baseline of travel and locks 0.9 m across at 4 sigma "
+                "(the lanes' cost is not a calibrated likelihood; see docs/localization.md)",
+            ),
+        ),
+    ],
+)
+def test_cold_start_is_never_confidently_wrong(rule, seed, s0, min_matched):
     """No heading, GNSS metres off: until the camera settles it the result says fallback (honestly); after,
     it is right. From s = 55 m the landmarks are too sparse to settle it within 4 s: fallback throughout."""
-    _, out = _drive(40, seed=seed, initial_yaw=False, s0=s0)
+    params = LocalizerParams(**EXACT, search=PoseSearchParams(accept=rule))
+    _, out = _drive(40, seed=seed, initial_yaw=False, s0=s0, params=params)
     matched = [(truth, r) for truth, r in out if r.mode == "map_matching"]
     assert len(matched) >= min_matched
     for truth, r in matched:

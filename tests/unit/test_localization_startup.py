@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 from mapcontainer.localization import GnssMeasurement, Localizer, LocalizerParams, OdometryMeasurement
-from mapcontainer.localization.search import SearchOutcome
+from mapcontainer.localization.search import PoseSearchParams, SearchOutcome
 from mapcontainer.localization.startup import Phase, StartupMachine
 
 from .test_localization import EXACT, HDMAP, P_TRACK, _drive, pose_error, pose_on, synth_frame
 
 ODO = OdometryMeasurement(10.0, 0.0)
+POSTERIOR = dict(search=PoseSearchParams(accept="posterior"))  # the opt-in start-up rule
 
 
 def _fix(truth, rng=None, sigma=0.8):
@@ -31,17 +32,22 @@ def _phases(loc, steps):
     return out
 
 
-def test_initial_yaw_waits_for_gnss_then_tracks():
+def _first_steps(params):
     truth = pose_on(40.0)
-    loc = Localizer(HDMAP, LocalizerParams(**EXACT), initial_yaw=truth[5])
+    loc = Localizer(HDMAP, params, initial_yaw=truth[5])
     assert loc.phase is Phase.UNINITIALISED
     res = loc.step(0.0, None, ODO, None)
     assert loc.phase is Phase.UNINITIALISED and res.reason == "initialising: no GNSS fix"
     rng = np.random.default_rng(0)
     frame, _ = synth_frame(truth, rng)
     res = loc.step(0.1, frame, ODO, _fix(truth))
-    # The GNSS position is too wide for one local solve: the search runs, and leaves its basins as hypotheses.
     assert res.initialized and loc.stats["initialised"] == 1 and loc.stats["search"] == 1
+    return loc, res, truth, rng
+
+
+def test_initial_yaw_waits_for_gnss_then_tracks():
+    loc, res, _, rng = _first_steps(LocalizerParams(**EXACT))
+    # The GNSS position is too wide for one local solve: the search runs, and leaves its basins as hypotheses.
     assert loc.phase is Phase.SEARCHING and res.mode == "fallback" and res.reason.startswith("search: ")
     assert res.reason == "search: too few features (3 constraints)" and len(loc.startup.hyps) == 1
     # The lone hypothesis has not won on the next frame: the search runs again for rivals.
@@ -52,6 +58,18 @@ def test_initial_yaw_waits_for_gnss_then_tracks():
     res = loc.step(0.3, frame, ODO, _fix(pose_on(42.0)))
     assert loc.phase is Phase.TRACKING and res.mode == "map_matching"  # the hypothesis won
     assert loc.startup.hyps == [] and np.hypot(*pose_error(res.pose, pose_on(42.0))[:2]) < 0.2
+
+
+def test_initial_yaw_waits_for_gnss_then_tracks_by_posterior_mass():
+    loc, res, truth, rng = _first_steps(LocalizerParams(**EXACT, **POSTERIOR))
+    # The GNSS position is too wide for one local solve: the search runs. A point and a pole explained (three
+    # constraints on x, y, yaw) and no rival basin: the basin holds the posterior mass, it is taken at once.
+    assert loc.phase is Phase.TRACKING and res.mode == "map_matching" and loc.startup.hyps == []
+    assert np.hypot(*pose_error(res.pose, truth)[:2]) < 0.2
+    frame, _ = synth_frame(pose_on(41.0), rng)
+    res = loc.step(0.2, frame, ODO, _fix(pose_on(41.0)))
+    assert loc.phase is Phase.TRACKING and res.mode == "map_matching"
+    assert np.hypot(*pose_error(res.pose, pose_on(41.0))[:2]) < 0.2
 
 
 def test_the_phase_is_uninitialised_exactly_while_there_is_no_state():
@@ -141,9 +159,9 @@ def test_a_gap_starts_again():
     assert (loc.phase is Phase.UNINITIALISED) == (not res.initialized)
 
 
-def _machine_tracking_at(s):
+def _machine_tracking_at(s, **params):
     """A tracking localizer's machine on the synthetic map, and a converged match of a frame at s."""
-    loc = Localizer(HDMAP, LocalizerParams(**EXACT), initial_yaw=pose_on(s)[5])
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT, **params), initial_yaw=pose_on(s)[5])
     truth = pose_on(s)
     frame, _ = synth_frame(truth, np.random.default_rng(0))
     loc.step(0.0, frame, ODO, _fix(truth))
@@ -153,22 +171,31 @@ def _machine_tracking_at(s):
     return loc, loc.startup, frame, match
 
 
-def test_hypotheses_enter_and_leave_searching():
-    loc, m, frame, match = _machine_tracking_at(170.0)
+def _one_basin(match, reason):
+    return SearchOutcome(None, reason, 1, (match,), nll=(0.0,), null_nll=0.0)
+
+
+@pytest.mark.parametrize("rule", ["landmarks", "posterior"])
+def test_hypotheses_enter_and_leave_searching(rule):
+    loc, m, frame, match = _machine_tracking_at(170.0, search=PoseSearchParams(accept=rule))
     y, P = loc.y.copy(), loc.P.copy()
     # A search that found nothing converged leaves nothing to track.
-    m._spawn(y, P, SearchOutcome(None, "no", 1, (replace(match, converged=False),)))
+    m._spawn(y, P, SearchOutcome(None, "no", 1, (replace(match, converged=False),), nll=(np.inf,)))
     assert m.phase is Phase.TRACKING and m.hyps == []
-    m._spawn(y, P, SearchOutcome(None, "too few features", 1, (match,)))
+    m._spawn(y, P, _one_basin(match, "too few features"))
     assert m.phase is Phase.SEARCHING and len(m.hyps) == 1
-    # A narrow prediction and a frame with features: the local match is tried, the hypotheses are dropped.
+    # A narrow prediction and a frame with features. Rule 'landmarks': the local match is tried, the hypotheses
+    # are dropped (no search). Rule 'posterior': the hypotheses decide (the search runs again for rivals and, the
+    # frame rich in landmarks, accepts). Either way the machine tracks again with a match.
     P_narrow = P.copy()
     P_narrow[:6, :6] = P_TRACK
+    n_search = loc.stats.get("search", 0)
     got, reason, _, _ = m.match(frame, y, P_narrow, 0.1, ODO, ODO, None)
     assert m.phase is Phase.TRACKING and m.hyps == []
     assert got is not None and reason == ""
+    assert loc.stats.get("search", 0) == n_search + (rule == "posterior")
     # A wide prediction with hypotheses: they are advanced with the frame; without features they are kept.
-    m._spawn(y, P, SearchOutcome(None, "too few features", 1, (match,)))
+    m._spawn(y, P, _one_basin(match, "too few features"))
     P_wide = P.copy()
     P_wide[0, 0] = P_wide[1, 1] = 4.0
     got, reason, _, _ = m.match(None, y, P_wide, 0.1, ODO, ODO, None)
@@ -176,11 +203,11 @@ def test_hypotheses_enter_and_leave_searching():
 
 
 def test_a_lone_well_constrained_hypothesis_wins_at_once():
-    """A lone hypothesis has no rival to beat: matched again on a frame rich in landmarks it wins (no new search);
-    the machine goes back to TRACKING with the winner's prediction and match."""
+    """Rule 'landmarks': a lone hypothesis has no rival to beat: matched again on a frame rich in landmarks it wins
+    (no new search); the machine goes back to TRACKING with the winner's prediction and match."""
     loc, m, frame, match = _machine_tracking_at(170.0)
     y, P = loc.y.copy(), loc.P.copy()
-    m._spawn(y, P, SearchOutcome(None, "too few features", 1, (match,)))
+    m._spawn(y, P, _one_basin(match, "too few features"))
     hyp = m.hyps[0]
     P_wide = P.copy()
     P_wide[0, 0] = P_wide[1, 1] = 4.0
@@ -189,6 +216,23 @@ def test_a_lone_well_constrained_hypothesis_wins_at_once():
     assert loc.stats.get("search", 0) == n_search
     assert got is hyp.last and m.attempt is got and reason == ""
     assert y_pred is hyp.y_pred and P_pred is hyp.P_pred
+    assert m.phase is Phase.TRACKING and m.hyps == []
+    assert np.hypot(*pose_error(got.pose_filtered, pose_on(170.0))[:2]) < 0.2
+
+
+def test_a_lone_hypothesis_wins_by_posterior_mass_only_on_new_evidence():
+    """Rule 'posterior': a lone hypothesis has no rival but *elsewhere*: the same frame again from the same place is
+    no new evidence, so the search runs again on it and, the frame rich in landmarks, accepts its basin at once;
+    the machine goes back to TRACKING with the winner's match."""
+    loc, m, frame, match = _machine_tracking_at(170.0, **POSTERIOR)
+    y, P = loc.y.copy(), loc.P.copy()
+    m._spawn(y, P, _one_basin(match, "ambiguous"))
+    P_wide = P.copy()
+    P_wide[0, 0] = P_wide[1, 1] = 4.0
+    n_search = loc.stats.get("search", 0)
+    got, reason, _, _ = m.match(frame, y, P_wide, 0.0, ODO, ODO, None)
+    assert loc.stats.get("search", 0) == n_search + 1
+    assert got is not None and m.attempt is got and reason == ""
     assert m.phase is Phase.TRACKING and m.hyps == []
     assert np.hypot(*pose_error(got.pose_filtered, pose_on(170.0))[:2]) < 0.2
 
