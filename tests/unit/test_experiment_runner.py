@@ -1,0 +1,176 @@
+"""The experiment runner: executors (here, a local pool, Dask), results in task order whatever ran them, the task
+store (resume, refuse other settings), failures reported with their seed and traceback, the progress line."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapcontainer.experiments.executors import Executor
+from mapcontainer.experiments.progress import Progress
+from mapcontainer.experiments.runner import TasksFailed, run_all, task_key, timing_doc
+from mapcontainer.experiments.store import SettingsChanged, TaskStore
+
+TASKS = [(seed,) for seed in range(6)]
+
+
+def draw(task: tuple) -> dict:
+    """A task of the kind experiments run: numbers from its own seed's stream (numpy types, a NaN, a tuple)."""
+    (seed,) = task
+    rng = np.random.default_rng(seed)
+    return {"seed": seed, "x": rng.normal(size=3), "mean": np.float64(rng.random()), "none": float("nan"), "t": (1, 2)}
+
+
+CALLS: list[tuple] = []  # the tasks draw_counted ran in this process
+
+
+def draw_counted(task: tuple) -> dict:
+    CALLS.append(task)
+    return draw(task)
+
+
+def draw_but_three(task: tuple) -> dict:
+    if task[0] == 3:
+        raise RuntimeError("seed 3 is broken")
+    return draw(task)
+
+
+def die_once(task: tuple) -> dict:
+    """Kills its worker process the first time it runs (a marker file says it did): Dask must run it again."""
+    marker, seed = task
+    if not Path(marker).exists():
+        Path(marker).touch()
+        os._exit(1)
+    return draw((seed,))
+
+
+def _describe(task: tuple) -> str:
+    return f"seed {task[-1]}"
+
+
+def _same(a: list, b: list) -> bool:
+    return json.dumps(a) == json.dumps(b)  # NaN != NaN: compare the JSON text, as the experiments write it
+
+
+def _expected() -> list[dict]:
+    return [json.loads(json.dumps(draw(t), default=lambda o: o.tolist())) for t in TASKS]
+
+
+def test_results_come_in_task_order_through_json_here_and_in_a_local_pool():
+    here = run_all(draw, TASKS, "t", _describe, Executor(workers=1), progress=False)
+    pool = run_all(draw, TASKS, "t", _describe, Executor(workers=2), progress=False)
+    assert _same(here.results, _expected()) and _same(pool.results, _expected())
+    r = here.results[0]
+    assert isinstance(r["x"], list) and r["t"] == [1, 2] and math.isnan(r["none"]) and type(r["mean"]) is float
+    assert [t["task"] for t in pool.timing] == [f"seed {i}" for i in range(6)]
+    assert all(t["cpu_s"] >= 0 and t["worker"] for t in pool.timing)
+    assert len({t["worker"] for t in here.timing}) == 1  # one process ran them all
+
+
+@pytest.mark.slow
+def test_local_pool_runs_with_one_blas_thread():
+    (info,) = run_all(eval, ["__import__('threadpoolctl').threadpool_info()"], "t", str, progress=False).results
+    blas = [lib["num_threads"] for lib in info if lib["user_api"] == "blas"]
+    assert blas and all(n == 1 for n in blas)
+
+
+def test_executor_refuses_what_does_not_fit():
+    with pytest.raises(ValueError, match="workers"):
+        Executor(workers=0)
+    with pytest.raises(ValueError, match="executor must be one of"):
+        Executor("slurm")
+    with pytest.raises(ValueError, match="needs executor 'dask'"):
+        Executor("local", scheduler="tcp://127.0.0.1:8786")
+    with pytest.raises(ValueError, match="same task twice"):
+        run_all(draw, [(1,), (1,)], "t", _describe, Executor(workers=1), progress=False)
+
+
+def test_a_rerun_skips_the_stored_tasks_and_says_so(tmp_path, capsys):
+    store = TaskStore(tmp_path, "toy", {"n": 6})
+    first = run_all(draw_counted, TASKS[:4], "t", _describe, Executor(workers=1), store, progress=False)
+    assert first.resumed == 0 and len(list(store.dir.glob("*.json"))) == 1 + 4  # settings.json + one per task
+    CALLS.clear()
+    again = run_all(draw_counted, TASKS, "t", _describe, Executor(workers=1), TaskStore(tmp_path, "toy", {"n": 6}))
+    assert CALLS == TASKS[4:] and again.resumed == 4 and _same(again.results, _expected())
+    assert [t["task"] for t in again.timing] == [f"seed {i}" for i in range(6)]  # the stored tasks' own timing
+    err = capsys.readouterr().err
+    assert "t: 4 of 6 tasks done earlier" in err and "not run again" in err
+    lines = err.strip().splitlines()
+    assert "4/6" in lines[0] and "eta --:--" in lines[0] and "6/6" in lines[-1]  # the ETA from this run's pace
+
+
+def test_the_store_refuses_other_settings_and_fresh_starts_over(tmp_path):
+    store = TaskStore(tmp_path, "toy", {"n": 6, "duration_s": 2.0})
+    run_all(draw, TASKS[:2], "t", _describe, Executor(workers=1), store, progress=False)
+    with pytest.raises(SettingsChanged, match="duration_s differ.*--fresh"):
+        TaskStore(tmp_path, "toy", {"n": 6, "duration_s": 3.0})
+    with pytest.raises(SettingsChanged, match="toy"):
+        TaskStore(tmp_path, "other", {"n": 6, "duration_s": 2.0})
+    fresh = TaskStore(tmp_path, "toy", {"n": 6, "duration_s": 3.0}, fresh=True)
+    assert fresh.load([task_key(draw, t) for t in TASKS]) == {}
+
+
+def test_a_failing_task_is_reported_with_its_seed_and_traceback_and_the_rest_are_saved(tmp_path):
+    store = TaskStore(tmp_path, "toy", {})
+    with pytest.raises(TasksFailed, match=r"1 of 6 tasks failed \(seed 3\).*rerun") as exc:
+        run_all(draw_but_three, TASKS, "toy", _describe, Executor(workers=1), store, progress=False)
+    ((what, tb),) = exc.value.failures
+    assert what == "seed 3" and "RuntimeError: seed 3 is broken" in tb and "draw_but_three" in tb
+    (failed,) = (store.dir / "failed").glob("*.txt")
+    assert failed.read_text().startswith("seed 3\n") and "seed 3 is broken" in failed.read_text()
+    assert len(store.load([task_key(draw_but_three, t) for t in TASKS])) == 5
+    # the rerun (say, the cause fixed in the environment) runs only seed 3 and clears its failure
+    store.fail(task_key(draw_but_three, (99,)), "another\n")  # (a failure of a task that is not run again stays)
+    calls = []
+    rerun = run_all(lambda t: calls.append(t) or draw(t), TASKS, "toy", _describe, Executor(workers=1), progress=False)
+    assert len(calls) == 6 and _same(rerun.results, _expected())  # no store: everything runs
+
+
+def test_failures_are_printed_at_once_and_counted_on_the_line():
+    buf = io.StringIO()
+    bar = Progress(4, "work", stream=buf)
+    bar.update(note="seed 0")
+    bar.status(running=2, retried=1)
+    bar.fail("work: seed 1 failed\nTraceback ...\nValueError: x")
+    bar.update(note="seed 2")
+    bar.close()
+    text = buf.getvalue()
+    assert "work: seed 1 failed\nTraceback ...\nValueError: x\n" in text
+    assert "running 2 failed 1 retried 1" in text.splitlines()[-1]
+
+
+def test_timing_is_kept_apart_per_phase_grouped_by_task_kind():
+    b = run_all(draw, TASKS[:2], "t", lambda t: f"draw seed {t[0]}", Executor(workers=1), progress=False)
+    doc = timing_doc(Executor(workers=1), {"runs": b}, 1.234)
+    assert doc["executor"] == "this process" and doc["wall_s"] == 1.2
+    phase = doc["phases"]["runs"]
+    assert phase["tasks"] == 2 and phase["resumed"] == 0 and list(phase["cpu_s_per_task"]) == ["draw"]
+    assert [t["task"] for t in phase["tasks_timing"]] == ["draw seed 0", "draw seed 1"]
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as c:
+        yield c
+
+
+@pytest.mark.slow
+def test_a_dask_cluster_gives_the_same_results_and_retries_a_task_whose_worker_died(cluster, tmp_path, capsys):
+    ex = Executor("dask", scheduler=cluster.scheduler_address)
+    b = run_all(draw, TASKS, "t", _describe, ex, progress=False)
+    assert _same(b.results, _expected()) and b.resumed == 0
+    assert {t["worker"] for t in b.timing} != {f"{os.uname().nodename}:{os.getpid()}"}  # not this process
+    capsys.readouterr()
+    got = run_all(die_once, [(str(tmp_path / "died"), 7)], "dies", _describe, ex, TaskStore(tmp_path, "toy", {}))
+    assert _same(got.results, [json.loads(json.dumps(draw((7,)), default=lambda o: o.tolist()))])
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "1/1" in last and "failed 0 retried 1" in last, last  # Dask ran it again on a live worker
