@@ -216,4 +216,3 @@ def _warn_threads(client) -> None:
     many = {w["name"]: w["nthreads"] for w in client.scheduler_info()["workers"].values() if w["nthreads"] > 1}
     if many:
         _log.warning("Dask workers with more than one thread (%s): start them with --nthreads 1", many)
-

@@ -279,7 +279,9 @@ def run_network_sweep(
     ]
     t0 = time.perf_counter()
     executor = executor or Executor()
-    store = TaskStore(out_dir, "network", {"tasks": tasks, "queue_s": QUEUE_S, "min_queue_bytes": MIN_QUEUE_BYTES}, fresh)
+    store = TaskStore(
+        out_dir, "network", {"tasks": tasks, "queue_s": QUEUE_S, "min_queue_bytes": MIN_QUEUE_BYTES}, fresh
+    )
     batch = run_all(_point_task, tasks, "experiment network", _describe_point, executor, store, progress)
     rows = batch.results
     rows.sort(key=lambda r: (r["mode"], -r["bandwidth_bps"], r["latency_ms"], r["loss"]))

@@ -1,4 +1,4 @@
-"""A tiny progress bar on stderr (no dependency): ``label [#####.....] k/N running r failed f retried t  elapsed  eta``."""
+"""A tiny progress bar on stderr (no dependency): ``label [####......] k/N running r failed f retried t  eta``."""
 
 from __future__ import annotations
 

@@ -70,8 +70,8 @@ def _plain(o: Any) -> Any:
 
 
 def _call(job: tuple[Callable[[Any], Any], Any]) -> dict:
-    """``fn(task)`` on a worker (``job``: (fn, task)): {"ok": True, "result": JSON text} or {"ok": False, "error": traceback},
-    with its wall and CPU time and the worker that ran it."""
+    """``fn(task)`` on a worker (``job``: (fn, task)): {"ok": True, "result": JSON text} or
+    {"ok": False, "error": traceback}, with its wall and CPU time and the worker that ran it."""
     fn, task = job
     t0, c0 = time.perf_counter(), time.process_time()
     try:

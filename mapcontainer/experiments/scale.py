@@ -49,8 +49,8 @@ from ..jsonout import rounded
 from ..pipeline import View, run_pipeline
 from ..sim import ScenarioConfig, load_scenario
 from ..sim.config import scale_scenario
-from .network import link_figures
 from .executors import Executor
+from .network import link_figures
 from .runner import run_all, write_timing
 from .store import TaskStore
 

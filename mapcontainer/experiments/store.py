@@ -50,11 +50,8 @@ class TaskStore:
         if meta.exists():
             old = json.loads(meta.read_text())
             if old.get("hash") != self.hash:
-                changed = sorted(
-                    k
-                    for k in set(old.get("settings", {})) | set(settings)
-                    if json.dumps(old.get("settings", {}).get(k), default=str) != json.dumps(settings.get(k), default=str)
-                )
+                was = old.get("settings", {})
+                changed = sorted(k for k in set(was) | set(settings) if digest(was.get(k)) != digest(settings.get(k)))
                 raise SettingsChanged(
                     f"{self.dir} holds tasks of {old.get('experiment')} with other settings "
                     f"({', '.join(changed) or 'the task format'} differ): use another output directory, "

@@ -142,7 +142,9 @@ def aggregate(results: list[dict], s: PaperSettings, bytes_figures: dict | None 
     return out
 
 
-def byte_figures(s: PaperSettings, executor: Executor | None = None, store: TaskStore | None = None) -> tuple[dict, Batch]:
+def byte_figures(
+    s: PaperSettings, executor: Executor | None = None, store: TaskStore | None = None
+) -> tuple[dict, Batch]:
     """Bytes per message and per second of both modes from real encoded messages of paper-urban runs (of the first
     given preset instead) (:func:`mapcontainer.experiments.bytes.measure_bytes`, the first min(runs, 5) seeds);
     ``ratio`` is the headline: centralized (lane mask at the matcher's resolution) over distributed, per message.
