@@ -38,7 +38,7 @@ from ..faults import FaultInjector
 from ..pipeline import SIGNING_EPOCH_S
 from ..sim import World, load_scenario
 from ..vehicle import VehicleAgent
-from .executors import Executor
+from .executors import Executor, Session
 from .runner import Batch, run_all
 from .store import TaskStore
 
@@ -152,7 +152,7 @@ def bytes_runs(
     seeds: tuple[int, ...] | list[int],
     duration_s: float,
     signing: bool = True,
-    executor: Executor | None = None,
+    executor: Executor | Session | None = None,
     store: TaskStore | None = None,
     progress: bool = False,
 ) -> Batch:

@@ -22,13 +22,13 @@ import logging
 import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from typing import Any
 
 from ..fusion.blas import limit_blas_threads
 
-__all__ = ["EXECUTORS", "Executor", "Pool", "open_pool"]
+__all__ = ["EXECUTORS", "Executor", "Pool", "Session", "open_pool"]
 
 EXECUTORS = ("local", "dask")
 _log = logging.getLogger(__name__)
@@ -169,7 +169,7 @@ class _Dask(Pool):
         now = self.client.run_on_scheduler(_suspicious, keys=[f.key for f in futures])
         for k, n in now.items():
             self._retried[k] = max(n, self._retried.get(k, 0))
-        return sum(self._retried.values())
+        return sum(self._retried.get(f.key, 0) for f in futures)
 
 
 @contextmanager
@@ -216,3 +216,25 @@ def _warn_threads(client) -> None:
     many = {w["name"]: w["nthreads"] for w in client.scheduler_info()["workers"].values() if w["nthreads"] > 1}
     if many:
         _log.warning("Dask workers with more than one thread (%s): start them with --nthreads 1", many)
+
+
+class Session:
+    """An executor opened once for all the phases of an experiment (the paper's runs, then its byte counts):
+    its pool or cluster starts at the first task that has to run (none when every task is stored) and stops
+    on leaving the ``with`` block."""
+
+    def __init__(self, executor: Executor):
+        self.executor = executor
+        self._stack = ExitStack()
+        self._pool: Pool | None = None
+
+    def pool(self) -> Pool:
+        if self._pool is None:
+            self._pool = self._stack.enter_context(open_pool(self.executor))
+        return self._pool
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from .executors import Executor, open_pool
+from .executors import Executor, Session
 from .progress import Progress
 from .store import TaskStore, digest
 
@@ -91,18 +91,19 @@ def run_all(
     tasks: Sequence,
     label: str,
     describe: Callable[[Any], str],
-    executor: Executor | None = None,
+    executor: Executor | Session | None = None,
     store: TaskStore | None = None,
     progress: bool = True,
 ) -> Batch:
-    """``fn(task)`` for every task on ``executor`` (default: a local pool of 2); results in task order.
+    """``fn(task)`` for every task on ``executor`` (default: a local pool of 2; a :class:`Session` to share one
+    pool between calls); results in task order.
 
     ``describe(task)`` names a task for people (its seed). With a ``store``, tasks done earlier are read
     from it and not run again, and every task is saved as it finishes. A task that raises is reported
     at once (its description and traceback on stderr and in the store) and the rest go on; at the end
     :class:`TasksFailed` names every failed task. ``fn`` must be importable (it runs in other processes).
     """
-    executor = executor or Executor()
+    session = executor if isinstance(executor, Session) else Session(executor or Executor())
     t0 = time.perf_counter()
     keys = [task_key(fn, t) for t in tasks]
     if len(set(keys)) != len(keys):
@@ -116,10 +117,11 @@ def run_all(
         bar.message(f"{label}: {len(records)} of {len(tasks)} tasks done earlier (in {store.dir}): not run again")
     failures: list[tuple[str, str]] = []
     try:
-        with open_pool(executor) if todo else nullcontext() as pool:
+        with nullcontext() if session is executor else session:
+            pool = session.pool() if todo else None  # (no pool when nothing is left to run)
             index = {pool.submit(_call, (fn, tasks[i]), f"{label}-{keys[i]}"): i for i in todo}
             pending = set(index)
-            while pending:  # (no pool when nothing is left to run)
+            while pending:
                 done, pending = pool.wait(pending, REFRESH_S)
                 for fut in done:
                     i = index[fut]
@@ -145,11 +147,13 @@ def run_all(
     return Batch(results, timing, len(records), time.perf_counter() - t0)
 
 
-def timing_doc(executor: Executor, phases: dict[str, Batch], wall_s: float) -> dict:
+def timing_doc(executor: Executor | Session, phases: dict[str, Batch], wall_s: float) -> dict:
     """What the runs cost and where they ran (``timing.json``): the one output that differs between two
     runs of the same command. Per phase: its tasks, how many were done earlier, its wall time, the CPU
     seconds of its tasks, the mean CPU seconds per task of each kind (a task's description less its seed),
     and every task's timing in task order."""
+    if isinstance(executor, Session):
+        executor = executor.executor
     doc: dict[str, Any] = {
         "executor": executor.describe(),
         "wall_s": round(wall_s, 1),
@@ -171,7 +175,7 @@ def timing_doc(executor: Executor, phases: dict[str, Batch], wall_s: float) -> d
     return doc
 
 
-def write_timing(out_dir: str | Path, executor: Executor, phases: dict[str, Batch], wall_s: float) -> Path:
+def write_timing(out_dir: str | Path, executor: Executor | Session, phases: dict[str, Batch], wall_s: float) -> Path:
     """``timing_doc`` into ``out_dir/timing.json``."""
     path = Path(out_dir) / "timing.json"
     path.write_text(json.dumps(timing_doc(executor, phases, wall_s), indent=1) + "\n")

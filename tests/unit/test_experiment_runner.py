@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapcontainer.experiments.executors import Executor
+from mapcontainer.experiments.executors import Executor, Session
 from mapcontainer.experiments.progress import Progress
 from mapcontainer.experiments.runner import TasksFailed, run_all, task_key, timing_doc
 from mapcontainer.experiments.store import SettingsChanged, TaskStore
@@ -174,3 +174,16 @@ def test_a_dask_cluster_gives_the_same_results_and_retries_a_task_whose_worker_d
     assert _same(got.results, [json.loads(json.dumps(draw((7,)), default=lambda o: o.tolist()))])
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "1/1" in last and "failed 0 retried 1" in last, last  # Dask ran it again on a live worker
+
+
+def test_a_session_opens_its_pool_once_and_only_when_a_task_runs(tmp_path):
+    store = TaskStore(tmp_path, "toy", {})
+    with Session(Executor(workers=1)) as session:
+        a = run_all(draw, TASKS[:2], "a", _describe, session, store, progress=False)
+        pool = session.pool()
+        b = run_all(draw, TASKS[2:], "b", _describe, session, store, progress=False)
+        assert session.pool() is pool
+    assert _same(a.results + b.results, _expected())
+    with Session(Executor("dask", workers=2)) as stored:  # everything stored: no cluster starts
+        again = run_all(draw, TASKS, "c", _describe, stored, store, progress=False)
+        assert stored._pool is None and again.resumed == 6

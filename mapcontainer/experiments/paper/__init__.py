@@ -30,7 +30,7 @@ from typing import Any
 
 from ... import jsonout
 from ...seeds import EVAL_SEED0, seed_kind
-from ..executors import Executor
+from ..executors import Executor, Session
 from ..runner import Batch, run_all, write_timing
 from ..store import TaskStore
 from .figures import (
@@ -143,7 +143,7 @@ def aggregate(results: list[dict], s: PaperSettings, bytes_figures: dict | None 
 
 
 def byte_figures(
-    s: PaperSettings, executor: Executor | None = None, store: TaskStore | None = None
+    s: PaperSettings, executor: Executor | Session | None = None, store: TaskStore | None = None
 ) -> tuple[dict, Batch]:
     """Bytes per message and per second of both modes from real encoded messages of paper-urban runs (of the first
     given preset instead) (:func:`mapcontainer.experiments.bytes.measure_bytes`, the first min(runs, 5) seeds);
@@ -177,8 +177,9 @@ def run_paper_experiment(
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     store = TaskStore(out, "paper", asdict(s), fresh=fresh)
-    runs = run_all(run_task, tasks(s), "experiment paper", describe, executor, store, progress)
-    bytes_figures, bytes_batch = byte_figures(s, executor, store)
+    with Session(executor) as session:  # one pool (or cluster) for both phases
+        runs = run_all(run_task, tasks(s), "experiment paper", describe, session, store, progress)
+        bytes_figures, bytes_batch = byte_figures(s, session, store)
     res = aggregate(runs.results, s, bytes_figures)
     (out / "results.json").write_text(jsonout.dumps(res, indent=2) + "\n")
     (out / "runs.csv").write_text(runs_csv(runs.results, s.burnin_s))
