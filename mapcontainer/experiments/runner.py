@@ -136,9 +136,10 @@ def run_all(
                             store.save(keys[i], timing[i], out["result"])
                         bar.update(note=describe(tasks[i]))
                     else:
-                        failures.append((describe(tasks[i]), out["error"]))
-                        where = f" (traceback: {store.fail(keys[i], describe(tasks[i]) + chr(10) + out['error'])})"
-                        bar.fail(f"{label}: {describe(tasks[i])} failed{where if store else ''}\n{out['error']}")
+                        what = describe(tasks[i])
+                        failures.append((what, out["error"]))
+                        where = f" (traceback: {store.fail(keys[i], what + chr(10) + out['error'])})" if store else ""
+                        bar.fail(f"{label}: {what} failed{where}\n{out['error']}")
                 bar.status(running=pool.running(pending), retried=pool.retried(list(index)))
     finally:
         bar.close()

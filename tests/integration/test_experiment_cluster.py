@@ -35,23 +35,14 @@ def reference(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as c:
-        yield c
-
-
 def _same_files(a: Path, b: Path) -> None:
     for name in SAME:
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
 
 
-def test_a_dask_cluster_and_a_local_pool_give_the_files_of_one_process_byte_for_byte(reference, cluster, tmp_path):
+def test_a_dask_cluster_and_a_local_pool_give_the_files_of_one_process_byte_for_byte(reference, dask_cluster, tmp_path):
     on_dask = run_paper_experiment(
-        tmp_path / "dask", SETTINGS, Executor("dask", scheduler=cluster.scheduler_address), progress=False
+        tmp_path / "dask", SETTINGS, Executor("dask", scheduler=dask_cluster.scheduler_address), progress=False
     )
     _same_files(reference, tmp_path / "dask")
     run_paper_experiment(tmp_path / "pool", SETTINGS, Executor(workers=2), progress=False)

@@ -35,9 +35,13 @@ def draw_counted(task: tuple) -> dict:
     return draw(task)
 
 
-def draw_but_three(task: tuple) -> dict:
-    if task[0] == 3:
-        raise RuntimeError("seed 3 is broken")
+BROKEN = {3}  # the seeds draw_but_broken fails on (in this process)
+
+
+def draw_but_broken(task: tuple) -> dict:
+    CALLS.append(task)
+    if task[0] in BROKEN:
+        raise RuntimeError(f"seed {task[0]} is broken")
     return draw(task)
 
 
@@ -116,20 +120,22 @@ def test_the_store_refuses_other_settings_and_fresh_starts_over(tmp_path):
     assert fresh.load([task_key(draw, t) for t in TASKS]) == {}
 
 
-def test_a_failing_task_is_reported_with_its_seed_and_traceback_and_the_rest_are_saved(tmp_path):
+def test_a_failing_task_is_reported_with_its_seed_and_traceback_the_rest_are_saved_and_a_rerun_retries_it(tmp_path):
     store = TaskStore(tmp_path, "toy", {})
     with pytest.raises(TasksFailed, match=r"1 of 6 tasks failed \(seed 3\).*rerun") as exc:
-        run_all(draw_but_three, TASKS, "toy", _describe, Executor(workers=1), store, progress=False)
+        run_all(draw_but_broken, TASKS, "toy", _describe, Executor(workers=1), store, progress=False)
     ((what, tb),) = exc.value.failures
-    assert what == "seed 3" and "RuntimeError: seed 3 is broken" in tb and "draw_but_three" in tb
+    assert what == "seed 3" and "RuntimeError: seed 3 is broken" in tb and "draw_but_broken" in tb
     (failed,) = (store.dir / "failed").glob("*.txt")
     assert failed.read_text().startswith("seed 3\n") and "seed 3 is broken" in failed.read_text()
-    assert len(store.load([task_key(draw_but_three, t) for t in TASKS])) == 5
-    # the rerun (say, the cause fixed in the environment) runs only seed 3 and clears its failure
-    store.fail(task_key(draw_but_three, (99,)), "another\n")  # (a failure of a task that is not run again stays)
-    calls = []
-    rerun = run_all(lambda t: calls.append(t) or draw(t), TASKS, "toy", _describe, Executor(workers=1), progress=False)
-    assert len(calls) == 6 and _same(rerun.results, _expected())  # no store: everything runs
+    assert len(store.load([task_key(draw_but_broken, t) for t in TASKS])) == 5
+    with pytest.raises(TasksFailed, match=r"failed \(seed 3\); the others"):  # without a store: no files named
+        run_all(draw_but_broken, TASKS, "toy", _describe, Executor(workers=1), progress=False)
+    BROKEN.clear()  # (what broke it is fixed) the rerun runs seed 3 alone and forgets its failure
+    CALLS.clear()
+    rerun = run_all(draw_but_broken, TASKS, "toy", _describe, Executor(workers=1), store, progress=False)
+    assert CALLS == [(3,)] and rerun.resumed == 5 and _same(rerun.results, _expected())
+    assert not failed.exists()
 
 
 def test_failures_are_printed_at_once_and_counted_on_the_line():
@@ -154,18 +160,9 @@ def test_timing_is_kept_apart_per_phase_grouped_by_task_kind():
     assert [t["task"] for t in phase["tasks_timing"]] == ["draw seed 0", "draw seed 1"]
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as c:
-        yield c
-
-
 @pytest.mark.slow
-def test_a_dask_cluster_gives_the_same_results_and_retries_a_task_whose_worker_died(cluster, tmp_path, capsys):
-    ex = Executor("dask", scheduler=cluster.scheduler_address)
+def test_a_dask_cluster_gives_the_same_results_and_retries_a_task_whose_worker_died(dask_cluster, tmp_path, capsys):
+    ex = Executor("dask", scheduler=dask_cluster.scheduler_address)
     b = run_all(draw, TASKS, "t", _describe, ex, progress=False)
     assert _same(b.results, _expected()) and b.resumed == 0
     assert {t["worker"] for t in b.timing} != {f"{os.uname().nodename}:{os.getpid()}"}  # not this process
