@@ -97,8 +97,9 @@ class Pool:
     def running(self, pending: set) -> int:
         raise NotImplementedError
 
-    def retried(self, futures: list) -> int:
-        """Task runs started again after their worker was lost (0 where the executor never retries)."""
+    def retried(self, keys: list[str]) -> int:
+        """Runs of the tasks named ``keys`` started again after their worker was lost (0 where the executor never
+        retries)."""
         return 0
 
 
@@ -148,6 +149,7 @@ class _Dask(Pool):
     def __init__(self, client):
         self.client = client
         self._retried: dict[str, int] = {}
+        self._done: set[str] = set()
 
     def submit(self, fn, task, key):
         return self.client.submit(_on_worker, fn, task, key=key, pure=False)
@@ -165,11 +167,18 @@ class _Dask(Pool):
         keys = {f.key for f in pending}
         return sum(k in keys for ks in self.client.processing().values() for k in ks)
 
-    def retried(self, futures):
-        now = self.client.run_on_scheduler(_suspicious, keys=[f.key for f in futures])
-        for k, n in now.items():
+    def _ask(self, keys: list[str]) -> None:
+        for k, n in self.client.run_on_scheduler(_suspicious, keys=keys).items():
             self._retried[k] = max(n, self._retried.get(k, 0))
-        return sum(self._retried.get(f.key, 0) for f in futures)
+
+    def retried(self, keys):
+        self._ask([k for k in keys if k not in self._done])
+        return sum(self._retried.get(k, 0) for k in keys)
+
+    def outcome(self, fut):
+        self._ask([fut.key])  # its last count, before it is let go and the scheduler forgets it
+        self._done.add(fut.key)
+        return fut.result()
 
 
 @contextmanager

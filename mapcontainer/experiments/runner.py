@@ -119,12 +119,13 @@ def run_all(
     try:
         with nullcontext() if session is executor else session:
             pool = session.pool() if todo else None  # (no pool when nothing is left to run)
-            index = {pool.submit(_call, (fn, tasks[i]), f"{label}-{keys[i]}"): i for i in todo}
+            names = [f"{label}-{keys[i]}" for i in todo]  # the executor's names of the tasks
+            index = {pool.submit(_call, (fn, tasks[i]), name): i for i, name in zip(todo, names, strict=True)}
             pending = set(index)
             while pending:
                 done, pending = pool.wait(pending, REFRESH_S)
                 for fut in done:
-                    i = index[fut]
+                    i = index.pop(fut)  # (a finished future let go: Dask frees the result on its worker)
                     try:
                         out = pool.outcome(fut)
                     except Exception as exc:  # the executor lost it (a dead worker, a broken pool)
@@ -140,7 +141,7 @@ def run_all(
                         failures.append((what, out["error"]))
                         where = f" (traceback: {store.fail(keys[i], what + chr(10) + out['error'])})" if store else ""
                         bar.fail(f"{label}: {what} failed{where}\n{out['error']}")
-                bar.status(running=pool.running(pending), retried=pool.retried(list(index)))
+                bar.status(running=pool.running(pending), retried=pool.retried(names))
     finally:
         bar.close()
     if failures:
