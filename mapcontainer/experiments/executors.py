@@ -247,3 +247,49 @@ class Session:
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
+
+
+# ------------------------------------------------------------------------ the executors' own cost per task
+
+
+def _payload(task: tuple) -> dict:
+    """A task that does almost nothing but return a paper run's worth of JSON (about 70 kB)."""
+    (seed,) = task
+    return {"seed": seed, "series": [[0.1 * i, 1.0 / (i + 1)] for i in range(2000)]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m mapcontainer.experiments.executors``: each executor's wall time per near-empty task (the cost
+    it adds to every task of an experiment), after 4 tasks that warm the workers up."""
+    import argparse
+    import time
+
+    from .runner import run_all
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--tasks", type=int, default=400)
+    ap.add_argument("--workers", type=int, default=2)
+    a = ap.parse_args(argv)
+    from distributed import LocalCluster
+
+    tasks = [(i,) for i in range(a.tasks)]
+    with LocalCluster(
+        n_workers=a.workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        executors = {
+            "this process": Executor(workers=1),
+            f"local pool of {a.workers} (its start included)": Executor(workers=a.workers),
+            f"Dask, a running LocalCluster of {a.workers}": Executor("dask", scheduler=cluster.scheduler_address),
+        }
+        for name, ex in executors.items():
+            run_all(_payload, tasks[:4], "warm-up", str, ex, progress=False)
+            t0 = time.perf_counter()
+            b = run_all(_payload, tasks, "tasks", str, ex, progress=False)
+            per_task_ms = 1e3 * (time.perf_counter() - t0) / a.tasks
+            cpu_ms = 1e3 * sum(t["cpu_s"] for t in b.timing) / a.tasks
+            print(f"{name}: {per_task_ms:.1f} ms per task, of which the task's own CPU {cpu_ms:.1f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
