@@ -206,7 +206,10 @@ def open_pool(executor: Executor) -> Iterator[Pool]:
                 _warn_threads(client)
                 yield _Dask(client)
         else:
+            import dask
+
             with (
+                dask.config.set({"distributed.worker.profile.enabled": False}),  # its sampling: 5 % of a task's CPU
                 LocalCluster(
                     n_workers=executor.workers,
                     threads_per_worker=1,
