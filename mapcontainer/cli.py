@@ -171,6 +171,62 @@ def _cmd_keys_init(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_executor_args(p: argparse.ArgumentParser, workers: int = 2) -> None:
+    """``--executor``, ``--scheduler``, ``--workers`` and ``--fresh``: where an experiment's tasks run, and
+    whether to start over in an output directory that holds finished tasks."""
+    p.add_argument(
+        "--executor",
+        choices=("local", "dask"),
+        default="local",
+        help="local worker processes (default) or Dask's distributed scheduler (the cluster extra)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="with --executor dask: a running Dask scheduler (tcp://host:8786); without it, a LocalCluster of "
+        "--workers processes on this machine",
+    )
+    p.add_argument(
+        "--workers",
+        type=positive_int,
+        default=workers,
+        help=f"local worker processes, or the LocalCluster's (default {workers}; 1: in this process)",
+    )
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="delete the finished tasks kept in OUT/tasks and start over (default: resume, running only what is "
+        "missing)",
+    )
+
+
+def _run_experiment(args: argparse.Namespace, experiment) -> int:
+    """``experiment(executor)`` on the executor of :func:`_add_executor_args`' options; the runner's refusals and
+    failures as people read them (the finished tasks stay in OUT/tasks for the next run)."""
+    from .experiments.executors import Executor
+    from .experiments.runner import TasksFailed
+    from .experiments.store import SettingsChanged
+
+    try:
+        executor = Executor(args.executor, args.workers, args.scheduler)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    try:
+        return experiment(executor)
+    except SettingsChanged as exc:
+        raise ConfigError(str(exc)) from None
+    except TasksFailed as exc:
+        print(f"mapc: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(
+            f"mapc: interrupted; the finished tasks are kept in {args.out / 'tasks'}: the same command resumes",
+            file=sys.stderr,
+        )
+        return 130
+
+
 def _cmd_experiment_paper(args: argparse.Namespace) -> int:
     from .experiments.paper import PaperSettings, run_paper_experiment
     from .sim.config import load_scenario
@@ -182,7 +238,6 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
             scenarios=tuple(args.scenario or ()),
             runs=args.runs,
             seed=args.seed,
-            workers=args.workers,
             duration_s=args.duration,
             burnin_s=args.burnin,
             rv_runs=args.rv_runs,
@@ -192,9 +247,14 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"mapc: {exc}", file=sys.stderr)
         return 2
-    res = run_paper_experiment(args.out, settings, progress=not args.quiet)
+    res = _run_experiment(
+        args, lambda ex: run_paper_experiment(args.out, settings, ex, progress=not args.quiet, fresh=args.fresh)
+    )
+    if isinstance(res, int):
+        return res
     targets = {t["target"]: "PASS" if t["pass"] else "FAIL" for t in res["targets"]}
-    print(jsonout.dumps({"out": str(args.out), "wall_s": res["wall_s"], "runs": res["runs"], "targets": targets}))
+    summary = {"out": str(args.out), "wall_s": res["wall_s"], "resumed": res["resumed"], "runs": res["runs"]}
+    print(jsonout.dumps({**summary, "targets": targets}))
     return 1 if args.check and "FAIL" in targets.values() else 0
 
 
@@ -220,15 +280,21 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     if args.duration is not None and args.duration <= 1.0:
         print(f"mapc: --duration must exceed the 1 s warm-up, got {args.duration}", file=sys.stderr)
         return 2
-    rows = run_network_sweep(
-        args.out,
-        quick=args.quick,
-        seed=args.seed,
-        workers=args.workers,
-        duration=args.duration,
-        scenario=args.scenario,
-        progress=not args.quiet,
+    rows = _run_experiment(
+        args,
+        lambda ex: run_network_sweep(
+            args.out,
+            quick=args.quick,
+            seed=args.seed,
+            executor=ex,
+            duration=args.duration,
+            scenario=args.scenario,
+            progress=not args.quiet,
+            fresh=args.fresh,
+        ),
     )
+    if isinstance(rows, int):
+        return rows
     doc = {"out": str(args.out), "points": len(rows)}
     if args.quick:
         doc["smoke_test"] = "short cold-started points: they show the sweep runs, not what the network does"
@@ -247,7 +313,7 @@ def _cmd_experiment_radio(args: argparse.Namespace) -> int:
 
 
 def _cmd_experiment_scale(args: argparse.Namespace) -> int:
-    from .experiments.scale import analyse, run_scale_experiment
+    from .experiments.scale import analyse, run_scale_experiment, scenario_with_connected
 
     if args.duration <= args.warmup:
         raise ConfigError(f"--duration ({args.duration:g} s) must exceed --warmup ({args.warmup:g} s)")
@@ -258,18 +324,25 @@ def _cmd_experiment_scale(args: argparse.Namespace) -> int:
     if not sizes or sizes[0] < 1:
         raise ConfigError(f"--sizes: vehicle counts of at least 1, got {args.sizes!r}")
     try:
-        rows = run_scale_experiment(
+        scenario_with_connected(args.scenario, max(sizes))  # a scenario that cannot scale fails before any run
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    rows = _run_experiment(
+        args,
+        lambda ex: run_scale_experiment(
             args.out,
             sizes=sizes,
             seed=args.seed,
             duration=args.duration,
             warmup_s=args.warmup,
             scenario=args.scenario,
-            workers=args.workers,
+            executor=ex,
             progress=not args.quiet,
-        )
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
+            fresh=args.fresh,
+        ),
+    )
+    if isinstance(rows, int):
+        return rows
     print(jsonout.dumps({"out": str(args.out), "points": len(rows), "analysis": analyse(rows)}))
     return 0
 
@@ -277,20 +350,25 @@ def _cmd_experiment_scale(args: argparse.Namespace) -> int:
 def _cmd_experiment_faults(args: argparse.Namespace) -> int:
     from .experiments.faults import run_fault_experiment
 
-    try:
-        res = run_fault_experiment(
-            args.out,
-            seeds=args.seeds,
-            seed0=args.seed0,
-            duration_s=args.duration,
-            scenario=args.scenario,
-            workers=args.workers,
-            faults=args.faults,
-            progress=not args.quiet,
-        )
-    except ValueError as exc:
-        print(f"mapc: {exc}", file=sys.stderr)
-        return 2
+    def run(ex):
+        try:
+            return run_fault_experiment(
+                args.out,
+                seeds=args.seeds,
+                seed0=args.seed0,
+                duration_s=args.duration,
+                scenario=args.scenario,
+                executor=ex,
+                faults=args.faults,
+                progress=not args.quiet,
+                fresh=args.fresh,
+            )
+        except ValueError as exc:  # the store's SettingsChanged is one, and exits 2 as well
+            raise ConfigError(str(exc)) from None
+
+    res = _run_experiment(args, run)
+    if isinstance(res, int):
+        return res
     print(jsonout.dumps({"out": str(args.out), **res["meta"], "summary": res["summary"]}))
     return 0
 
@@ -434,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=EVAL_SEED0,
         help=f"run i uses seed S + i (default {EVAL_SEED0}: the evaluation seeds; development uses seeds below)",
     )
-    ep.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    _add_executor_args(ep)
     ep.add_argument("--duration", type=seconds, default=10.0, help="simulated seconds per run, burn-in included")
     ep.add_argument(
         "--burnin", type=non_negative_seconds, default=3.0, help="seconds at the start of every run not scored"
@@ -478,7 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a smoke test: a 2 x 2 x 2 grid of 2.5 s cold-started points (1.5 s scored), too short for figures",
     )
     en.add_argument("--seed", type=non_negative_int, default=0)
-    en.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    _add_executor_args(en)
     en.add_argument("--duration", type=seconds, default=None, help="seconds per point (default 4, quick 2.5)")
     en.add_argument("--scenario", default="paper-urban")
     en.add_argument(
@@ -512,7 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--seed", type=non_negative_int, default=0)
     es.add_argument("--duration", type=seconds, default=10.0, help="seconds per run (cold start)")
     es.add_argument("--warmup", type=seconds, default=3.0, help="seconds before scoring")
-    es.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    _add_executor_args(es)
     es.add_argument("--quiet", action="store_true", help="no progress bar")
     es.set_defaults(func=_cmd_experiment_scale)
 
@@ -530,7 +608,7 @@ def build_parser() -> argparse.ArgumentParser:
     ef.add_argument("--duration", type=seconds, default=15.0, help="seconds per run (the fault starts at 5 s)")
     ef.add_argument("--scenario", default="paper-urban")
     ef.add_argument("--faults", type=lambda t: [x for x in t.split(",") if x], default=None, help="a,b,...")
-    ef.add_argument("--workers", type=positive_int, default=2, help="worker processes")
+    _add_executor_args(ef)
     ef.add_argument("--quiet", action="store_true", help="no progress bar")
     ef.set_defaults(func=_cmd_experiment_faults)
 

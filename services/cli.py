@@ -271,6 +271,8 @@ def _add_live_network_args(parser: argparse.ArgumentParser) -> None:
         given = [flag for dest, flag in live_only.items() if getattr(args, dest) is not None]
         if args.live and args.quick:
             en.error("--quick is a grid of the in-process sweep; with --live, choose --profiles and --duration")
+        if args.live and (args.executor != "local" or args.scheduler):
+            en.error("--executor/--scheduler: the in-process sweep's; the live fleet runs its own processes")
         if not args.live and given:
             en.error(f"{', '.join(given)}: for the live fleet only (add --live)")
         return _cmd_experiment_network_live(args) if args.live else core(args)

@@ -38,9 +38,11 @@ from ..faults import FaultInjector
 from ..pipeline import SIGNING_EPOCH_S
 from ..sim import World, load_scenario
 from ..vehicle import VehicleAgent
-from .runner import run_all
+from .executors import Executor, Session
+from .runner import Batch, run_all
+from .store import TaskStore
 
-__all__ = ["VARIANTS", "measure_bytes", "seed_bytes"]
+__all__ = ["VARIANTS", "bytes_runs", "measure_bytes", "seed_bytes", "summarize_bytes"]
 
 VARIANTS = ("distributed", "centralized", "centralized_no_lane_mask", "centralized_camera_resolution")
 _CAMERA_RESOLUTION = 1 << 30  # raw_mask_max_width_px that never pools
@@ -134,21 +136,41 @@ def measure_bytes(
     seeds: tuple[int, ...] | list[int] = (90000, 90001, 90002, 90003, 90004),
     duration_s: float = 10.0,
     signing: bool = True,
-    workers: int = 1,
+    executor: Executor | None = None,
     progress: bool = False,
 ) -> dict:
     """Bytes per message and per second of each variant over ``seeds`` (module docstring), and the
     centralized / distributed ratios with and without the lane mask. JSON-able (plain floats, ints,
-    strings and lists); ``per_seed`` holds every run's ratios so the spread is visible."""
+    strings and lists); ``per_seed`` holds every run's ratios so the spread is visible. The runs go to
+    ``executor`` (default: this process)."""
+    runs = bytes_runs(scenario, seeds, duration_s, signing, executor, progress=progress)
+    return summarize_bytes(runs.results, scenario, duration_s, signing)
+
+
+def bytes_runs(
+    scenario: str,
+    seeds: tuple[int, ...] | list[int],
+    duration_s: float,
+    signing: bool = True,
+    executor: Executor | Session | None = None,
+    store: TaskStore | None = None,
+    progress: bool = False,
+) -> Batch:
+    """:func:`seed_bytes` of every seed on ``executor`` (default: this process), kept in ``store``."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("seeds must not be empty")
     if not duration_s > 0:
         raise ValueError(f"duration_s must be positive, got {duration_s}")
     tasks = [(scenario, s, float(duration_s), bool(signing)) for s in seeds]
-    runs = sorted(
-        run_all(_seed_task, tasks, workers, "bytes", lambda r: f"seed {r['seed']}", progress), key=lambda r: r["seed"]
+    return run_all(
+        _seed_task, tasks, "bytes", lambda t: f"bytes seed {t[1]}", executor or Executor(workers=1), store, progress
     )
+
+
+def summarize_bytes(runs: list[dict], scenario: str, duration_s: float, signing: bool = True) -> dict:
+    """The figures of :func:`measure_bytes` from its runs (:func:`seed_bytes` of each seed, in seed order)."""
+    seeds = [r["seed"] for r in runs]
     sums = ["bytes", "bytes_signed"] if signing else ["bytes"]
     per_vehicle_s = float(duration_s) * sum(r["senders"] for r in runs)  # sender-seconds
     variants: dict[str, dict] = {}
@@ -218,9 +240,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="90000-90004", help="e.g. 90000-90004 or 1,2,5")
     ap.add_argument("--duration", type=float, default=10.0, help="scenario seconds per run")
     ap.add_argument("--unsigned", action="store_true", help="do not sign (no *_signed figures)")
-    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--workers", type=int, default=1, help="local worker processes (1: this process)")
     a = ap.parse_args(argv)
-    res = measure_bytes(a.scenario, _seed_range(a.seeds), a.duration, not a.unsigned, a.workers, progress=True)
+    ex = Executor(workers=a.workers)
+    res = measure_bytes(a.scenario, _seed_range(a.seeds), a.duration, not a.unsigned, ex, progress=True)
     print(jsonout.dumps(res, indent=1))
     return 0
 

@@ -61,7 +61,9 @@ from ..channel import NetworkProfile
 from ..evaluation import age_of_information, horizontal_sq_error, obstacle_errors, rmse_sq, vehicle_pose
 from ..jsonout import rounded
 from ..pipeline import PipelineResult, View, run_pipeline
-from .runner import run_all
+from .executors import Executor
+from .runner import run_all, write_timing
+from .store import TaskStore
 
 __all__ = [
     "BANDWIDTHS_BPS",
@@ -259,11 +261,16 @@ def _point_task(task: tuple) -> dict:
     )
 
 
+def _describe_point(task: tuple) -> str:
+    latency_ms, loss, bw, mode, seed, *_ = task
+    return f"{mode} {sweep_profile(latency_ms, loss, bw).name} seed {seed}"
+
+
 def run_network_sweep(
     out_dir: str | Path,
     quick: bool = False,
     seed: int = 0,
-    workers: int = 2,
+    executor: Executor | None = None,
     duration: float | None = None,
     scenario: str = "paper-urban",
     warmup_s: float = 1.0,
@@ -271,8 +278,10 @@ def run_network_sweep(
     latencies_ms: Sequence[float] | None = None,
     losses: Sequence[float] | None = None,
     bandwidths_bps: Sequence[float] | None = None,
+    fresh: bool = False,
 ) -> list[dict]:
-    """Run the grid (``quick``: the smoke test, 2 x 2 x 2 points of 2.5 s) in both modes and write the outputs."""
+    """Run the grid (``quick``: the smoke test, 2 x 2 x 2 points of 2.5 s) in both modes on ``executor`` and write
+    the outputs; finished points are kept in ``out_dir/tasks`` (a rerun resumes; ``fresh``: start over)."""
     grid = QUICK_GRID if quick else {"latencies_ms": LATENCIES_MS, "losses": LOSSES, "bandwidths_bps": BANDWIDTHS_BPS}
     lats = tuple(latencies_ms if latencies_ms is not None else grid["latencies_ms"])
     loss = tuple(losses if losses is not None else grid["losses"])
@@ -283,7 +292,12 @@ def run_network_sweep(
         for mode, bw, lat, ls in itertools.product(MODES, bws, lats, loss)
     ]
     t0 = time.perf_counter()
-    rows = run_all(_point_task, tasks, workers, "experiment network", lambda r: f"{r['mode']} {r['profile']}", progress)
+    executor = executor or Executor()
+    store = TaskStore(
+        out_dir, "network", {"tasks": tasks, "queue_s": QUEUE_S, "min_queue_bytes": MIN_QUEUE_BYTES}, fresh
+    )
+    batch = run_all(_point_task, tasks, "experiment network", _describe_point, executor, store, progress)
+    rows = batch.results
     rows.sort(key=lambda r: (r["mode"], -r["bandwidth_bps"], r["latency_ms"], r["loss"]))
     meta = {
         "seed": seed,
@@ -293,12 +307,11 @@ def run_network_sweep(
         "quick": quick,
         "smoke_test": quick,
         "start": "cold",
-        "workers": workers,
         "queue_s": QUEUE_S,
         "min_queue_bytes": MIN_QUEUE_BYTES,
-        "wall_s": round(time.perf_counter() - t0, 1),
     }
     write_network_outputs(rows, out_dir, meta)
+    write_timing(out_dir, executor, {"points": batch}, time.perf_counter() - t0)
     return rows
 
 

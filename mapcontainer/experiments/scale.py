@@ -49,8 +49,10 @@ from ..jsonout import rounded
 from ..pipeline import View, run_pipeline
 from ..sim import ScenarioConfig, load_scenario
 from ..sim.config import scale_scenario
+from .executors import Executor
 from .network import link_figures
-from .runner import run_all
+from .runner import run_all, write_timing
+from .store import TaskStore
 
 __all__ = [
     "SCALE_COLUMNS",
@@ -182,6 +184,11 @@ def _point_task(task: tuple) -> dict:
     return run_scale_point(n, mode, seed, duration, scenario=scenario, warmup_s=warmup_s)
 
 
+def _describe_point(task: tuple) -> str:
+    n, mode, seed, *_ = task
+    return f"{mode} {n} vehicles seed {seed}"
+
+
 def run_scale_experiment(
     out_dir: str | Path,
     sizes: Sequence[int] = SIZES,
@@ -189,15 +196,20 @@ def run_scale_experiment(
     duration: float = 10.0,
     warmup_s: float = 3.0,
     scenario: str = DEFAULT_SCENARIO,
-    workers: int = 2,
+    executor: Executor | None = None,
     progress: bool = True,
+    fresh: bool = False,
 ) -> list[dict]:
-    """Every size in both modes (the largest first, so that the pool ends with short runs); writes the
-    outputs (:func:`write_scale_outputs`) and returns the rows."""
+    """Every size in both modes (the largest first, so that the pool ends with short runs) on ``executor``;
+    writes the outputs (:func:`write_scale_outputs`) and returns the rows. Finished points are kept in
+    ``out_dir/tasks`` (a rerun resumes; ``fresh``: start over)."""
     scenario_with_connected(scenario, max(sizes))  # a scenario that cannot scale fails before the runs
     tasks = [(n, mode, seed, duration, scenario, warmup_s) for n in sorted(sizes, reverse=True) for mode in MODES]
     t0 = time.perf_counter()
-    rows = run_all(_point_task, tasks, workers, "experiment scale", lambda r: f"{r['mode']} {r['vehicles']}", progress)
+    executor = executor or Executor()
+    store = TaskStore(out_dir, "scale", {"tasks": tasks, "network": NETWORK}, fresh)
+    batch = run_all(_point_task, tasks, "experiment scale", _describe_point, executor, store, progress)
+    rows = batch.results
     rows.sort(key=lambda r: (MODES.index(r["mode"]), r["vehicles"]))
     meta = {
         "scenario": scenario,
@@ -206,10 +218,9 @@ def run_scale_experiment(
         "warmup_s": warmup_s,
         "network": NETWORK,
         "start": "cold",
-        "workers": workers,
-        "wall_s": round(time.perf_counter() - t0, 1),
     }
     write_scale_outputs(rows, out_dir, meta)
+    write_timing(out_dir, executor, {"points": batch}, time.perf_counter() - t0)
     return rows
 
 

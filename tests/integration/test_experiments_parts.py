@@ -122,20 +122,3 @@ def test_progress_bar_writes_deciles_to_a_file():
     silent = io.StringIO()
     Progress(3, stream=silent, enabled=False).update()
     assert silent.getvalue() == ""
-
-
-def test_run_all_runs_every_task_here_or_in_workers_with_one_blas_thread():
-    from mapcontainer.experiments.runner import run_all
-
-    tasks = [[("i", i)] for i in range(5)]
-
-    def label(r):
-        return str(r["i"])
-
-    assert run_all(dict, tasks, 1, "t", label, progress=False) == [{"i": i} for i in range(5)]
-    assert sorted(r["i"] for r in run_all(dict, tasks, 2, "t", label, progress=False)) == list(range(5))
-    (info,) = run_all(eval, ["__import__('threadpoolctl').threadpool_info()"], 2, "t", str, progress=False)
-    blas = [lib["num_threads"] for lib in info if lib["user_api"] == "blas"]
-    assert blas and all(n == 1 for n in blas)
-    with pytest.raises(ValueError, match="workers"):
-        run_all(dict, tasks, 0, "t", label, progress=False)

@@ -10,9 +10,10 @@ from dataclasses import asdict
 
 import pytest
 
+from mapcontainer.experiments.executors import Executor
 from mapcontainer.experiments.paper import PaperSettings
 from mapcontainer.experiments.paper.figures import sim_figures
-from mapcontainer.experiments.paper.runs import run_task
+from mapcontainer.experiments.paper.runs import describe, run_task
 from mapcontainer.experiments.runner import run_all
 
 pytestmark = pytest.mark.slow
@@ -24,7 +25,7 @@ SETTINGS = PaperSettings(runs=4, seed=1000, duration_s=8.0, burnin_s=3.0)
 def urban() -> dict:
     s = SETTINGS
     tasks = [("sim", "urban", "paper-urban", "all", s.seed + i, asdict(s)) for i in range(s.runs)]
-    runs = sorted(run_all(run_task, tasks, 2, "paper runs", lambda r: str(r["seed"]), False), key=lambda r: r["seed"])
+    runs = run_all(run_task, tasks, "paper runs", describe, Executor(workers=2), progress=False).results
     return sim_figures(runs, s.burnin_s)
 
 

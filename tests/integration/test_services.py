@@ -334,6 +334,9 @@ def test_bad_command_line_values_are_configuration_errors_before_any_work(tmp_pa
         ["bench", "fusion", "--ticks", "5", "--window", "10"],
         ["experiment", "network", "--mode", "both", "--out", str(tmp_path / "n")],  # live only, even the default
         ["experiment", "network", "--live", "--vehicles", "0", "--out", str(tmp_path / "n")],
+        ["experiment", "paper", "--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path / "p")],  # needs dask
+        ["experiment", "faults", "--workers", "0", "--out", str(tmp_path / "f")],
+        ["experiment", "network", "--live", "--executor", "dask", "--out", str(tmp_path / "n")],
         ["health", "--timeout", "-1"],
         ["fleet", "down", "--timeout", "0"],
     ):

@@ -116,16 +116,18 @@ def test_signed_messages_fuse_as_unsigned_ones_and_an_impostor_is_refused() -> N
 def test_the_fault_experiment_writes_its_table_and_figures(tmp_path) -> None:
     """mapc experiment faults on one development seed and two faults (cold start, realistic errors): a
     frozen clock is flagged within a second and the impostor's copies are refused by their signatures."""
+    from mapcontainer.experiments.executors import Executor
     from mapcontainer.experiments.faults import run_fault_experiment
 
+    here = Executor(workers=1)
     res = run_fault_experiment(
-        tmp_path, seeds=1, seed0=101, duration_s=8.0, faults=["frozen_clock", "impostor"], workers=1, progress=False
+        tmp_path, seeds=1, seed0=101, duration_s=8.0, faults=["frozen_clock", "impostor"], executor=here, progress=False
     )
     s = res["summary"]
     assert s["none"]["runs"] == 1
     assert s["frozen_clock"]["flagged_runs"] == 1 and s["frozen_clock"]["time_to_flag_s_max"] <= 1.0
     assert s["impostor"]["refused"].get("sender_mismatch", 0) > 10
-    for name in ("results.json", "faults.md", "faults.png"):
+    for name in ("results.json", "faults.md", "faults.png", "timing.json"):
         assert (tmp_path / name).stat().st_size > 0
     assert "| frozen_clock | 1/1 (1) |" in (tmp_path / "faults.md").read_text()
     with pytest.raises(ValueError, match="unknown fault"):

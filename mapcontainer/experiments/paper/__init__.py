@@ -23,7 +23,6 @@ of the whole run is drawn so that no window hides anything. Seeds come from the 
 
 from __future__ import annotations
 
-import platform
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -31,7 +30,9 @@ from typing import Any
 
 from ... import jsonout
 from ...seeds import EVAL_SEED0, seed_kind
-from ..runner import run_all
+from ..executors import Executor, Session
+from ..runner import Batch, run_all, write_timing
+from ..store import TaskStore
 from .figures import (
     ESTIMATES,
     TARGET_VIEWS,
@@ -44,7 +45,7 @@ from .figures import (
     startup_summary,
     time_series,
 )
-from .runs import VARIANTS, run_task, tasks
+from .runs import VARIANTS, describe, run_task, tasks
 from .settings import BLINDSPOT_SCENARIOS, DENSITIES, EGO, PAPER, SIM_SCENARIOS, PaperSettings
 
 __all__ = [
@@ -97,8 +98,9 @@ def _headline(sim: dict, overlap: dict, blindspot: dict) -> dict[str, float]:
     return out
 
 
-def aggregate(results: list[dict], s: PaperSettings, wall_s: float, bytes_figures: dict | None = None) -> dict:
-    """Every figure of the experiment from its runs (see the module docstring)."""
+def aggregate(results: list[dict], s: PaperSettings, bytes_figures: dict | None = None) -> dict:
+    """Every figure of the experiment from its runs (see the module docstring), in the runs' task order: a
+    function of the settings alone (what the runs cost is in timing.json, :func:`..runner.timing_doc`)."""
     by = group(results)
     b = s.burnin_s
     simulation = {}
@@ -120,12 +122,6 @@ def aggregate(results: list[dict], s: PaperSettings, wall_s: float, bytes_figure
                 if by.get(("sim", key, variant))
             }
             sensitivity[variant] = _headline(sim_v, *_rv(by, variant, b, sens_seeds))
-    walls: dict[str, list[float]] = {}
-    cpus: dict[str, list[float]] = {}
-    for r in results:
-        k = f"{r['kind']}:{r['key']}"
-        walls.setdefault(k, []).append(r["wall_s"])
-        cpus.setdefault(k, []).append(r["cpu_s"])
     out: dict[str, Any] = {
         "simulation": simulation,
         "overlap": overlap,
@@ -142,11 +138,6 @@ def aggregate(results: list[dict], s: PaperSettings, wall_s: float, bytes_figure
             "scenarios": s.sim_scenarios,
             "evaluation_seeds_from": EVAL_SEED0,
         },
-        "wall_s": round(wall_s, 1),
-        "cpu_s_per_run": {k: round(sum(v) / len(v), 2) for k, v in sorted(cpus.items())},
-        "wall_s_per_run": {k: round(sum(v) / len(v), 2) for k, v in sorted(walls.items())},
-        "cpu_s_total": round(sum(r["cpu_s"] for r in results), 1),
-        "host": {"python": platform.python_version(), "machine": platform.machine()},
     }
     if s.paper and len(simulation) == len(SIM_SCENARIOS):
         out["claims"] = evaluate_claims(simulation)
@@ -154,39 +145,51 @@ def aggregate(results: list[dict], s: PaperSettings, wall_s: float, bytes_figure
     return out
 
 
-def byte_figures(s: PaperSettings) -> dict:
+def byte_figures(
+    s: PaperSettings, executor: Executor | Session | None = None, store: TaskStore | None = None
+) -> tuple[dict, Batch]:
     """Bytes per message and per second of both modes from real encoded messages of paper-urban runs (of the first
     given preset instead) (:func:`mapcontainer.experiments.bytes.measure_bytes`, the first min(runs, 5) seeds);
-    ``ratio`` is the headline: centralized (lane mask at the matcher's resolution) over distributed, per message."""
-    from ..bytes import measure_bytes
+    ``ratio`` is the headline: centralized (lane mask at the matcher's resolution) over distributed, per message.
+    Also the runs' batch (their timing)."""
+    from ..bytes import bytes_runs, summarize_bytes
 
     seeds = [s.seed + i for i in range(min(s.runs, 5))]
     preset = SIM_SCENARIOS["urban"] if s.paper else s.scenarios[0]
-    m = measure_bytes(preset, seeds, s.duration_s, signing=True, workers=s.workers)
-    return {"ratio": m["ratio"]["with_lane_mask_per_message"], "measured": m}
+    batch = bytes_runs(preset, seeds, s.duration_s, True, executor or Executor(), store)
+    m = summarize_bytes(batch.results, preset, s.duration_s, signing=True)
+    return {"ratio": m["ratio"]["with_lane_mask_per_message"], "measured": m}, batch
 
 
-def run_paper_experiment(out_dir: str | Path, settings: PaperSettings | None = None, progress: bool = True) -> dict:
-    """Run everything; write results.json, report.md, runs.csv and the PNG plots into ``out_dir``."""
+def run_paper_experiment(
+    out_dir: str | Path,
+    settings: PaperSettings | None = None,
+    executor: Executor | None = None,
+    progress: bool = True,
+    fresh: bool = False,
+) -> dict:
+    """Run everything on ``executor`` (default: a local pool of 2); write results.json, report.md, runs.csv,
+    the PNG plots and timing.json into ``out_dir``. Every finished run is kept in ``out_dir/tasks`` as it
+    finishes: the same call on the same directory runs only what is missing (``fresh``: start over).
+    Everything but timing.json is a function of ``settings`` alone, whatever ran the tasks."""
     from .report import plots, report, runs_csv
 
     s = settings or PaperSettings()
+    executor = executor or Executor()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    results = run_all(
-        run_task,
-        tasks(s),
-        s.workers,
-        "experiment paper",
-        lambda r: f"{r['key']} {r['variant']} seed {r['seed']}",
-        progress,
-    )
-    res = aggregate(results, s, time.perf_counter() - t0, byte_figures(s))
-    res["wall_s"] = round(time.perf_counter() - t0, 1)
+    store = TaskStore(out, "paper", asdict(s), fresh=fresh)
+    with Session(executor) as session:  # one pool (or cluster) for both phases
+        runs = run_all(run_task, tasks(s), "experiment paper", describe, session, store, progress)
+        bytes_figures, bytes_batch = byte_figures(s, session, store)
+    res = aggregate(runs.results, s, bytes_figures)
     (out / "results.json").write_text(jsonout.dumps(res, indent=2) + "\n")
-    (out / "runs.csv").write_text(runs_csv(results, s.burnin_s))
-    files = plots(res, results, out)
+    (out / "runs.csv").write_text(runs_csv(runs.results, s.burnin_s))
+    files = plots(res, runs.results, out)
     (out / "report.md").write_text(report(res))
-    res["files"] = [str(p) for p in [out / "results.json", out / "report.md", out / "runs.csv", *files]]
+    timing = write_timing(out, executor, {"runs": runs, "bytes": bytes_batch}, time.perf_counter() - t0)
+    res["wall_s"] = round(time.perf_counter() - t0, 1)
+    res["resumed"] = runs.resumed + bytes_batch.resumed
+    res["files"] = [str(p) for p in [out / "results.json", out / "report.md", out / "runs.csv", *files, timing]]
     return res

@@ -393,13 +393,9 @@ def report(res: dict) -> str:
     L = [
         "# Map Container: reproduction of the paper's results",
         "",
-        f"`mapc experiment paper --runs {res['runs']} --seed {res['seed']}{_scenario_flags(res)}` — "
-        f"wall time {res['wall_s']:.0f} s with "
-        f"{res['settings']['workers']} worker processes, {res['cpu_s_total']:.0f} CPU seconds in the runs "
-        "(mean CPU s per run: "
-        + ", ".join(f"{k} {v:.1f}" for k, v in res["cpu_s_per_run"].items())
-        + "). Raw numbers: "
-        "`results.json`; per-run figures: `runs.csv`.",
+        f"`mapc experiment paper --runs {res['runs']} --seed {res['seed']}{_scenario_flags(res)}`. Raw numbers: "
+        "`results.json`; per-run figures: `runs.csv`; what the runs cost and where they ran: `timing.json` (the "
+        "one output that differs between two runs of the command; everything here follows from the seeds).",
         "",
         *_method(res),
         "## Simulation (paper figure exp_sim)",
@@ -454,14 +450,14 @@ _CSV_FIGURES = {
 def runs_csv(results: list[dict], burnin_s: float) -> str:
     """One line per run: its steady-state RMSE of each figure of its kind (empty where none applies)."""
     cols = sorted({c for v in _CSV_FIGURES.values() for c in v})
-    lines = [",".join(("kind", "key", "variant", "seed", "cpu_s", *cols))]
+    lines = [",".join(("kind", "key", "variant", "seed", *cols))]
     for r in sorted(results, key=lambda r: (r["kind"], r["key"], r["variant"], r["seed"])):
         want = set(_CSV_FIGURES[r["kind"]])
         cells = []
         for c in cols:
             v = run_rmse(r, c, burnin_s) if c in want else float("nan")
             cells.append(f"{v:.4f}" if math.isfinite(v) else "")
-        lines.append(",".join([r["kind"], r["key"], r["variant"], str(r["seed"]), f"{r['cpu_s']:.2f}", *cells]))
+        lines.append(",".join([r["kind"], r["key"], r["variant"], str(r["seed"]), *cells]))
     return "\n".join(lines) + "\n"
 
 

@@ -1,4 +1,4 @@
-"""One run of the paper experiment: a pipeline run scored frame by frame (the multiprocessing work item).
+"""One run of the paper experiment: a pipeline run scored frame by frame (the runner's task).
 
 Every run keeps its raw per-frame figures with their times, so that the aggregation can score the
 steady state (after the burn-in), draw the error against time, and compare runs:
@@ -15,7 +15,6 @@ steady state (after the burn-in), draw the error against time, and compare runs:
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import asdict
 from typing import Any
 
@@ -28,7 +27,7 @@ from ...sim import load_scenario
 from ...sim.errors import ERROR_SOURCES, with_error_sources
 from .settings import CONNECTED, EGO, PaperSettings
 
-__all__ = ["VARIANTS", "run_task", "scenario_variant"]
+__all__ = ["VARIANTS", "describe", "run_task", "scenario_variant"]
 
 # Error-source settings of the sensitivity study: "all" (the scenarios' defaults: every source on),
 # "none" (ideal sensors and map), and "no_<source>" (every source but one).
@@ -217,19 +216,16 @@ _RUNNERS = {"sim": _sim_run, "overlap": _overlap_run, "blindspot": _blindspot_ru
 def run_task(task: tuple[str, str, str, str, int, dict[str, Any]]) -> dict:
     """One independent run: (kind, key, scenario preset, error-source variant, seed, settings)."""
     kind, key, scenario, variant, seed, settings = task
-    t0, c0 = time.perf_counter(), time.process_time()
     extra = {"centralized": True} if kind == "sim" and variant == "all" else {}  # not for the sensitivity study
     out = _RUNNERS[kind](scenario_variant(scenario, variant), seed, PaperSettings(**settings), **extra)
-    out.update(
-        kind=kind,
-        key=key,
-        scenario=scenario,
-        variant=variant,
-        seed=seed,
-        wall_s=time.perf_counter() - t0,
-        cpu_s=time.process_time() - c0,
-    )
+    out.update(kind=kind, key=key, scenario=scenario, variant=variant, seed=seed)
     return out
+
+
+def describe(task: tuple) -> str:
+    """A task for people: "sim urban all seed 90001"."""
+    kind, key, _, variant, seed, _ = task
+    return f"{kind} {key} {variant} seed {seed}"
 
 
 def tasks(s: PaperSettings) -> list[tuple]:

@@ -60,7 +60,9 @@ def rv_scenario(key: str, density: str) -> str:
 
 @dataclass(frozen=True)
 class PaperSettings:
-    """How much to run. Durations are simulated seconds per run, burn-in included.
+    """How much to run (what the results depend on; where they run is the runner's
+    :class:`~mapcontainer.experiments.executors.Executor`). Durations are simulated seconds per run,
+    burn-in included.
 
     Every run starts cold by default (``start="cold"``: the vehicles initialise from GNSS, the map's
     driving directions and the camera); ``start="warm"`` (from the true pose plus stated noise, a
@@ -71,7 +73,6 @@ class PaperSettings:
 
     runs: int = 200
     seed: int = EVAL_SEED0
-    workers: int = 2
     duration_s: float = 10.0
     burnin_s: float = 3.0
     rv_runs: int | None = None  # runs per test-site scenario and density (None: min(runs, 20))
@@ -81,8 +82,8 @@ class PaperSettings:
     scenarios: tuple[str, ...] = ()  # presets of the simulation part instead of the paper's (SIM_SCENARIOS)
 
     def __post_init__(self):
-        if self.runs < 1 or self.workers < 1:
-            raise ValueError(f"runs and workers must be >= 1, got runs={self.runs}, workers={self.workers}")
+        if self.runs < 1:
+            raise ValueError(f"runs must be >= 1, got {self.runs}")
         if self.burnin_s < 0 or self.duration_s < self.burnin_s + 1.0:
             raise ValueError(
                 f"a run must score at least 1 s after its burn-in: duration {self.duration_s} s, "
