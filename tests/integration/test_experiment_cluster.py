@@ -88,6 +88,7 @@ def _kill_after_a_task(proc: subprocess.Popen, out: Path, sig: int, group: bool)
 
 
 def test_killed_half_way_and_run_again_it_gives_the_files_of_an_uninterrupted_run(reference, tmp_path):
+    pytest.importorskip("distributed")  # resumed on Dask (the cluster extra)
     out = tmp_path / "killed"
     proc = _mapc(out, "--workers", "1")
     _kill_after_a_task(proc, out, signal.SIGKILL, group=False)
