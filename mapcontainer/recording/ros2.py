@@ -34,12 +34,12 @@ from typing import Any
 
 import numpy as np
 
-from schemas import FusedState, GroundTruth, ObjectClass, decode
+from schemas import FusedState, GroundTruth, ObjectClass, Rejection, decode
 from schemas.arrays import cov_from_upper
 from schemas.topics import topic
 
 from ..hdmap.errors import require
-from .mcapio import RecordingError, read_records
+from .mcapio import RecordingError, read_records, read_scan
 
 __all__ = ["FRAME_ID", "NOMINAL_SIZE_M", "export_ros2", "ros2_typestore"]
 
@@ -204,17 +204,19 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
     from its config.json or metadata; None when neither says). Returns what was written: topics, types and
     message counts, and the keys that were not exported (other hosts, messages that do not decode)."""
     rosbag2 = require("rosbags.rosbag2", "ROS 2 export")
-    from .replay import RecordedClock, host_setup
+    from ..security import fused_signers, unwrap
+    from .replay import RecordedClock, _verifier, host_setup
 
     recording, out = Path(recording), Path(out)
     if out.exists():
         raise RecordingError(f"{out} exists; a ROS 2 bag is a new directory (rosbag2 layout)")
     setup = host_setup(recording)
-    if hdmap is None:
+    scenario = read_scan(recording).metadata.get("recording", {}).get("scenario")
+    if hdmap is None and scenario:  # the recorder names the world's scenario in the recording's metadata
         from ..sim.config import load_scenario
         from ..sim.maps import world_map
 
-        hdmap = world_map(load_scenario(setup.scenario))
+        hdmap = world_map(load_scenario(scenario))
     store = ros2_typestore()
     build = _Msgs(store)
     fused_t, truth_t = topic("fused"), topic("truth")
@@ -232,6 +234,11 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
             counts[name] += 1
 
         clock = RecordedClock()
+        verifier = _verifier(recording)  # a signed fleet's recording: only what its signer signed is exported
+
+        def believed(rec, model, senders):
+            inner = unwrap(rec.payload, verifier, rec.log_time_ns * 1e-9, senders)
+            return inner if isinstance(inner, Rejection) else decode(inner, model)
 
         def stamp(t_meas: float, rec) -> int:
             clock.update(rec.attachment)
@@ -244,7 +251,7 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
                 if where["hid"] != setup.host_id:
                     skipped[f"{rec.key} (host {where['hid']}, not {setup.host_id})"] += 1
                     continue
-                msg = decode(rec.payload, FusedState)
+                msg = believed(rec, FusedState, fused_signers(setup.host_id))
                 if not msg:
                     skipped[f"{rec.key} ({msg.reason})"] += 1
                     continue
@@ -262,7 +269,7 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
                 det = build.detections(ns, msg.object_id, msg.object_cls, msg.object_p_map, covs)
                 put("/mapc/fused/objects", DETECTIONS, det, rec.log_time_ns)
             elif truth_t.parse(rec.key) is not None:
-                msg = decode(rec.payload, GroundTruth)
+                msg = believed(rec, GroundTruth, "world")
                 if not msg:
                     skipped[f"{rec.key} ({msg.reason})"] += 1
                     continue
