@@ -219,7 +219,12 @@ def test_efficiency_targets_and_bytes_rows() -> None:
         "simulation": {
             "urban": {
                 "consistency": {"objects_cooperative_3d": {}},
-                "efficiency": {"all_vehicles": 0.9, "objects": 0.89, "bytes_ratio": 5.0},
+                "efficiency": {
+                    "all_vehicles": 0.9,
+                    "objects": 0.89,
+                    "bytes_ratio": 5.0,
+                    "valid": {"vehicles": True, "objects": True},
+                },
             }
         },
         "bytes": {"ratio": 10.0},
@@ -231,6 +236,12 @@ def test_efficiency_targets_and_bytes_rows() -> None:
     assert rows["urban: centralized bytes per message / distributed >= 5"]["pass"]
     assert rows["distributed bytes/message >= 10x smaller than centralized"]["pass"]
     assert len(rows) == 4
+    # against a reference whose NEES is outside its band, an efficiency that would pass fails as not valid
+    res["simulation"]["urban"]["efficiency"]["valid"] = {"vehicles": False, "objects": True}
+    rows = {t["target"]: t for t in fg.evaluate_targets(res)}
+    invalid = "urban: distributed efficiency (centralized MSE / distributed MSE), vehicles >= 0.9"
+    invalid += " (not valid: the reference's NEES is outside its band)"
+    assert rows[invalid] == {"target": invalid, "value": 0.9, "threshold": 0.9, "pass": False}
 
 
 def test_overlap_and_blind_spot_target_bounds() -> None:
