@@ -504,11 +504,15 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         L.append("| " + " | ".join(cells) + " |")
     L += ["", "![RMSE vs latency](network_latency.png)", "", "![bandwidth](network_bandwidth.png)", ""]
     paths["md"].write_text("\n".join(L))
-    paths.update(_plots(rows, out))
+    paths.update(_plots(rows, out, smoke_test=bool(m.get("smoke_test"))))
     return paths
 
 
-def _plots(rows: list[dict], out: Path) -> dict[str, Path]:
+SMOKE_TEST_BANNER = "SMOKE TEST (--quick): a few seconds from a cold start; not figures of the network's effect"
+
+
+def _plots(rows: list[dict], out: Path, smoke_test: bool = False) -> dict[str, Path]:
+    """The sweep's two figures; a smoke test's say so on their face (a picture travels without its report)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -549,7 +553,7 @@ def _plots(rows: list[dict], out: Path) -> dict[str, Path]:
         ax[0, j].set(title=f"{mode}, {_bw_label(bw_top)}", ylabel="fused object RMSE (m)")
         ax[1, j].set(xlabel="latency (ms)", ylabel="fused vehicle RMSE (m)")
         ax[0, j].legend(fontsize=7)
-    fig.tight_layout()
+    _banner(fig, smoke_test)
     written["png_latency"] = out / "network_latency.png"
     fig.savefig(written["png_latency"], dpi=110)
     plt.close(fig)
@@ -566,8 +570,15 @@ def _plots(rows: list[dict], out: Path) -> dict[str, Path]:
         a.set(xscale="log", xlabel="per-link capacity (bit/s)", ylabel=lab)
         a.legend(fontsize=8)
     ax[0].set_title(f"latency {lat0:g} ms, loss {100 * loss0:g} %")
-    fig.tight_layout()
+    _banner(fig, smoke_test)
     written["png_bandwidth"] = out / "network_bandwidth.png"
     fig.savefig(written["png_bandwidth"], dpi=110)
     plt.close(fig)
     return written
+
+
+def _banner(fig, smoke_test: bool) -> None:
+    """Lay the figure out, under the smoke-test banner when it is one."""
+    if smoke_test:
+        fig.suptitle(SMOKE_TEST_BANNER, color="firebrick", fontsize=10, fontweight="bold")
+    fig.tight_layout()

@@ -110,6 +110,38 @@ def test_network_md_header_describes_live_presets_truthfully(tmp_path):
     assert "**Smoke test** (`--quick`)" in head
 
 
+def test_a_smoke_tests_pictures_say_so_on_their_face(tmp_path, monkeypatch):
+    """A PNG travels without its report: the quick sweep's pictures carry the smoke-test banner, a real
+    sweep's do not."""
+    from matplotlib.figure import Figure
+
+    from mapcontainer.experiments.network import SMOKE_TEST_BANNER
+
+    titles: dict[str, str] = {}
+    save = Figure.savefig
+
+    def recording_save(fig, path, *a, **k):
+        titles[f"{path.parent.name}/{path.name}"] = fig._suptitle.get_text() if fig._suptitle else ""
+        return save(fig, path, *a, **k)
+
+    monkeypatch.setattr(Figure, "savefig", recording_save)
+    rows = [
+        {"source": "pipeline", "mode": "distributed", "profile": f"p{lat}", "latency_ms": lat, "loss": 0.0,
+         "bandwidth_bps": float("inf"), "object_rmse_m": 0.3, "vehicle_rmse_m": 0.2, "delivered_fraction": 1.0}
+        for lat in (0.0, 100.0)
+    ]  # fmt: skip
+    (tmp_path / "q").mkdir()
+    (tmp_path / "s").mkdir()
+    write_network_outputs(rows, tmp_path / "q", {"seed": 0, "duration_s": 2.5, "warmup_s": 1.0, "smoke_test": True})
+    write_network_outputs(rows, tmp_path / "s", {"seed": 0, "duration_s": 4.0, "warmup_s": 1.0})
+    assert titles == {
+        "q/network_latency.png": SMOKE_TEST_BANNER,
+        "q/network_bandwidth.png": SMOKE_TEST_BANNER,
+        "s/network_latency.png": "",
+        "s/network_bandwidth.png": "",
+    }
+
+
 def test_progress_bar_writes_deciles_to_a_file():
     buf = io.StringIO()
     bar = Progress(20, "work", stream=buf)
