@@ -12,9 +12,10 @@ The access control (Zenoh's ``access_control``, default deny) gives each process
 (:func:`acl`): a vehicle puts only its V2X messages and reads only its sensors; the host reads only its
 receive keys (and its on-board vehicle's transmit key) and puts only its own fused state; the channel
 reads the transmit keys and the world's truth (a geometric radio places its radios there) and puts the
-receive keys; the world puts the simulation's keys; the evaluator
-reads and puts its metrics; the recorder reads; every process answers health queries on its own key and
-holds its own liveliness token; the operator may do everything under the fleet's namespace.
+receive keys; the world puts the simulation's keys (and, for its adaptive clock, reads the vehicles'
+transmit keys and the fused states and watches who is alive); the evaluator reads and puts its metrics;
+the recorder reads; every process answers health queries on its own key and holds its own liveliness
+token; the operator may do everything under the fleet's namespace.
 
 ``mapc fleet up --insecure`` keeps the open peer mesh of earlier versions (any process on the machine
 can join it) for debugging; the fleet's state, ``mapc fleet status`` and ``mapc health`` say so.
@@ -72,7 +73,13 @@ def _grants(spec: ProcessSpec, params: FleetParams) -> list[tuple[tuple[tuple[st
     hid, ego = params.host_id, params.ego
     by_role = {
         "vehicle": [(_PUB, [f"{f}/v2x/tx/{spec.id}/**"]), (_SUB, [f"{f}/sim/{spec.id}/sensors"])],
-        "world": [(_PUB, [f"{f}/sim/**"])],
+        "world": [
+            (_PUB, [f"{f}/sim/**"]),
+            # the adaptive clock follows the services it waits for: the vehicles' messages, the fused states, and
+            # which vehicles and hosts are alive (services/world/app.py, _follow_progress)
+            (_SUB, [f"{f}/v2x/tx/**", f"{f}/host/*/fused"]),
+            (_WATCH, [f"{f}/alive/vehicle/*", f"{f}/alive/host/*"]),
+        ],
         "channel": [(_SUB, [f"{f}/v2x/tx/**", f"{f}/sim/truth"]), (_PUB, [f"{f}/v2x/rx/**"])],
         "host": [
             (_SUB, [f"{f}/v2x/rx/{hid}/**", f"{f}/v2x/tx/{ego}/**"]),

@@ -151,7 +151,7 @@ def _follow_progress(svc: Service, s: WorldSettings, vehicle_ids: list[str], dt:
                     progress.sent(where["src"], float(t))
 
     def on_fused(msg: Received) -> None:
-        t = peek(msg.payload).get("t_meas")
+        t = peek(inner_payload(msg.payload)).get("t_meas")  # signed fleets: the state inside the signature
         if isinstance(t, float | int):
             progress.fused(float(t))
 
