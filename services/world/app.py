@@ -6,8 +6,8 @@ Publishes each vehicle's SensorFrame on ``mc/{fleet}/sim/{vid}/sensors`` and Gro
 ``time_scale``, ``t_next``), the attachment a copy of it and the publish time (``t_wall_ns``). If frames
 take longer than their period (an overloaded machine) at a fixed time scale, the world drops frames
 instead of falling behind: once a frame is due before it was even computed, it skips to the frame due
-next, as an overloaded sensor pipeline does, and its state turns degraded while it does (``skipped_frames``). Publishing ever staler frames instead would make every
-prior older than the host's window, and nothing would be fused. The lag behind the clock is a health
+next, as an overloaded sensor pipeline does, and its state turns degraded while it does
+(``skipped_frames``). Publishing ever staler frames instead would make every prior older than the host's window, and nothing would be fused. The lag behind the clock is a health
 figure too, degraded beyond ``--max-lag``. Frames dropped in the first ``startup_s`` of scenario time
 after the world starts (or resumes) leave it *starting*, not degraded, while they count: every process of
 the fleet is starting then, and the vehicles' cold starts take the machine.
