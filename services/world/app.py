@@ -3,14 +3,18 @@
 Publishes each vehicle's SensorFrame on ``mc/{fleet}/sim/{vid}/sensors`` and GroundTruth on
 ``mc/{fleet}/sim/truth``. Frame k is computed ahead, then published at its due wall time
 ``epoch + k dt / time_scale``; every message carries the clock in its envelope (``epoch_wall_ns``,
-``time_scale``, ``t_next``), the attachment a copy of it and the publish time (``t_wall_ns``). If frames
-take longer than their period (an overloaded machine) at a fixed time scale, the world drops frames
-instead of falling behind: once a frame is due before it was even computed, it skips to the frame due
-next, as an overloaded sensor pipeline does, and its state turns degraded while it does
-(``skipped_frames``). Publishing ever staler frames instead would make every prior older than the host's window, and nothing would be fused. The lag behind the clock is a health
-figure too, degraded beyond ``--max-lag``. Frames dropped in the first ``startup_s`` of scenario time
-after the world starts (or resumes) leave it *starting*, not degraded, while they count: every process of
-the fleet is starting then, and the vehicles' cold starts take the machine.
+``time_scale``, ``t_next``), the attachment a copy of it and the publish time (``t_wall_ns``).
+
+With ``--time-scale auto`` (the adaptive clock) the world waits, before each frame, for the vehicles'
+messages of the previous one and for the host, pausing its clock (the epoch moves on), so every frame is
+processed whatever the load. At a fixed time scale, if frames take longer than their period (an
+overloaded machine), the world drops frames instead of falling behind: once a frame is due before it was
+even computed, it skips to the frame due next, as an overloaded sensor pipeline does, and its state turns
+degraded while it does (``skipped_frames``). Publishing ever staler frames instead would make every prior
+older than the host's window, and nothing would be fused. The lag behind the clock is a health figure
+too, degraded beyond ``--max-lag``. Frames dropped in the first ``startup_s`` of scenario time after the
+world starts (or resumes) leave it *starting*, not degraded, while they count: every process of the fleet
+is starting then, and the vehicles' cold starts take the machine.
 
 With ``--state-file`` the clock is kept in a file: a restarted world resumes the same timeline
 (at the frame now due, with fresh sensor noise state) instead of starting again at t = 0.
