@@ -180,7 +180,7 @@ def publish_plan(session, items, rec_start_ns: int, speed: float = 1.0, stop=Non
 
     import zenoh
 
-    from mapcontainer.recording.replay import shift_attachment
+    from mapcontainer.recording.replay import shift_attachment, shift_clock
 
     stop = stop or threading.Event()
     pubs = {}
@@ -194,7 +194,8 @@ def publish_plan(session, items, rec_start_ns: int, speed: float = 1.0, stop=Non
             delay = t0 + it.at_s - time.monotonic()
             if delay > 0 and stop.wait(delay):
                 break
-            pubs[it.key].put(it.payload, attachment=shift_attachment(it.attachment, rec_start_ns, start_ns, speed))
+            payload = shift_clock(it.payload, rec_start_ns, start_ns, speed)  # services read the message's clock
+            pubs[it.key].put(payload, attachment=shift_attachment(it.attachment, rec_start_ns, start_ns, speed))
             late.append(time.monotonic() - t0 - it.at_s)
     finally:
         for p in pubs.values():

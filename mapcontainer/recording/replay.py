@@ -68,12 +68,14 @@ __all__ = [
     "replay_plan",
     "retarget",
     "shift_attachment",
+    "shift_clock",
 ]
 
 _NO_CLOCK = {"epoch_wall_ns": None, "time_scale": None, "t_next": None}  # encode leaves None out
 TRUTH_TOL_S = 0.02  # the evaluator's t_tol_s: a fused state is scored against the truth this close in time
 BURNIN_S = 5.0  # the evaluator's steady state
 _FLEET_TAG = TAGS["fleet"]
+_EPOCH_TAG, _SCALE_TAG = TAGS["epoch_wall_ns"], TAGS["time_scale"]
 
 
 # ---------------------------------------------------------------------------- bytes
@@ -89,6 +91,23 @@ def retarget(payload: bytes, fleet: str) -> bytes:
     if not isinstance(obj, dict) or not isinstance(obj.get(_FLEET_TAG), str) or obj[_FLEET_TAG] == fleet:
         return payload
     obj[_FLEET_TAG] = fleet
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def shift_clock(payload: bytes, rec_start_ns: int, replay_start_ns: int, speed: float) -> bytes:
+    """``payload`` with the world's clock in its envelope (``epoch_wall_ns``, ``time_scale``) moved from the
+    recording's wall clock to the replay's, as :func:`shift_attachment` moves an attachment's: services take
+    the clock from the message itself. Replay publishes the verified inner messages, unsigned, so they can
+    change; anything without a clock is returned unchanged."""
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception:  # not msgpack: not ours to change
+        return payload
+    if not isinstance(obj, dict) or type(obj.get(_EPOCH_TAG)) is not int:
+        return payload
+    obj[_EPOCH_TAG] = replay_start_ns + int(round((obj[_EPOCH_TAG] - rec_start_ns) / speed))
+    if isinstance(obj.get(_SCALE_TAG), int | float):
+        obj[_SCALE_TAG] = float(obj[_SCALE_TAG]) * speed
     return msgpack.packb(obj, use_bin_type=True)
 
 
@@ -183,8 +202,9 @@ def replay_plan(
 ) -> tuple[list[ReplayItem], dict[str, Any]]:
     """What to publish, when: the recording's messages on ``topics`` (registry names; by default what the
     world, vehicles and channel emitted: the host's and the evaluator's input), moved to ``fleet``. The
-    attachments stay on the recorded clock: the publisher moves each with :func:`shift_attachment` from
-    ``figures["rec_start_ns"]`` to its own start as it puts it. Returns the items and figures (messages,
+    attachments and the messages' clocks stay on the recorded clock: the publisher moves each with
+    :func:`shift_attachment` and :func:`shift_clock` from ``figures["rec_start_ns"]`` to its own start as it
+    puts it. Returns the items and figures (messages,
     refused signatures)."""
     if not (math.isfinite(speed) and speed > 0):
         raise ValueError(f"speed must be finite and > 0, got {speed}")

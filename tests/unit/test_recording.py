@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from mapcontainer.host import HostSetup
 from mapcontainer.recording import RecordingError, RecordingWriter, info, read_records
 from mapcontainer.recording.foxglove import SCENE_UPDATE, ellipsoid, map_scene, visualizer
-from mapcontainer.host import HostSetup
-from mapcontainer.recording.replay import refuse, replay_plan, retarget, shift_attachment
+from mapcontainer.recording.replay import refuse, replay_plan, retarget, shift_attachment, shift_clock
 from mapcontainer.security import Signer, issue, make_ca
 from schemas import FusedState, GroundTruth, decode, encode
 from schemas.codec import peek
@@ -198,6 +198,13 @@ def test_retarget_changes_only_the_fleet_and_the_clock_moves_with_the_replay() -
     assert obj == {"epoch_wall_ns": 10**6 - 1500, "t_wall_ns": 10**6 + 500, "time_scale": 2.0, "link_latency_s": 0.02}
     t_rec = (5000 - 1000) * 1e-9 * 1.0
     assert (obj["t_wall_ns"] - obj["epoch_wall_ns"]) * 1e-9 * obj["time_scale"] == pytest.approx(t_rec)
+    # the message's own clock (what the services read) moves the same way; a message without one is unchanged
+    clocked = prior(fleet="rec").model_copy(update={"epoch_wall_ns": 1000, "time_scale": 1.0, "t_next": 0.5})
+    m = decode(shift_clock(encode(clocked), 4000, 10**6, 2.0), type(prior()))
+    assert (m.epoch_wall_ns, m.time_scale, m.t_next) == (10**6 - 1500, 2.0, 0.5)
+    clock = {"epoch_wall_ns", "time_scale"}
+    assert m.model_dump(exclude=clock) == clocked.model_dump(exclude=clock)
+    assert shift_clock(raw, 4000, 10**6, 2.0) == raw and shift_clock(b"\x00not ours", 0, 1, 1.0) == b"\x00not ours"
 
 
 def test_an_ellipsoid_has_the_covariance_axes_at_two_sigma() -> None:
