@@ -55,17 +55,24 @@ class SimClock:
     """
 
     TIME_SCALE_MIN, TIME_SCALE_MAX = MIN_TIME_SCALE, MAX_TIME_SCALE
+    PLAUSIBLE_S = 0.5  # scenario seconds: how far a new epoch may put the present before the newest time seen
 
     def __init__(self) -> None:
         self.epoch_wall_ns: int | None = None
         self.time_scale: float | None = None
         self.t_next: float | None = None
-        self.changes = 0  # how often a message changed the time scale of a clock already known
-        self.changed_by: str | None = None  # the sender of the message that changed it last
+        self.t_seen: float | None = None  # the newest scenario time of a message that was not from the future
+        self.changes = 0  # how often a message changed the clock's scale, or moved its epoch implausibly
+        self.changed_by: str | None = None  # the sender of the message that did it last
 
-    def update(self, msg: Mapping[str, Any] | Any) -> bool:
-        """Take the clock of ``msg`` (a decoded message, or a mapping such as :func:`schemas.codec.peek`'s);
-        False when it carries none (or an impossible one)."""
+    def update(self, msg: Mapping[str, Any] | Any, wall_ns: int | None = None) -> bool:
+        """Take the clock of ``msg`` (a decoded message, or a mapping such as :func:`schemas.codec.peek`'s),
+        received at ``wall_ns`` (now); False when it carries none (or an impossible one).
+
+        A newer epoch of the same scale is taken only where it is plausible, a pause of the world's: the
+        present on it is not before the newest time already seen (within ``PLAUSIBLE_S``). An epoch an hour
+        ahead in one signed message would otherwise have put the present an hour back for good (older
+        epochs are ignored); it is counted as a change, with its sender, and not taken."""
         get = msg.get if isinstance(msg, Mapping) else lambda k: getattr(msg, k, None)
         e, s = get("epoch_wall_ns"), get("time_scale")
         if not (
@@ -75,17 +82,29 @@ class SimClock:
             and self.TIME_SCALE_MIN <= s <= self.TIME_SCALE_MAX  # not inf, nan
         ):
             return False
+        wall_ns = time.time_ns() if wall_ns is None else wall_ns
         if self.time_scale is not None and float(s) != self.time_scale:  # another clock altogether
-            self.changes += 1
-            sender = get("sender")
-            self.changed_by = sender if isinstance(sender, str) else None
-            self.epoch_wall_ns, self.time_scale, self.t_next = e, float(s), None
-        elif self.epoch_wall_ns is None or e >= self.epoch_wall_ns:  # the same clock, or moved on by a pause
+            self._changed(get("sender"))
+            self.epoch_wall_ns, self.time_scale, self.t_next, self.t_seen = e, float(s), None, None
+        elif self.epoch_wall_ns is None:
             self.epoch_wall_ns, self.time_scale = e, float(s)
+        elif e > self.epoch_wall_ns:  # moved on by a pause, if the present it gives has not passed already
+            present = (wall_ns - e) * 1e-9 * float(s)
+            if self.t_seen is not None and present < self.t_seen - self.PLAUSIBLE_S:
+                self._changed(get("sender"))
+            else:
+                self.epoch_wall_ns = e
         t_next = get("t_next")
         if type(t_next) in (int, float) and math.isfinite(t_next):
             self.t_next = float(t_next) if self.t_next is None else max(self.t_next, float(t_next))
+        t_meas, now = get("t_meas"), self.now(wall_ns)
+        if type(t_meas) in (int, float) and now is not None and t_meas <= now + self.PLAUSIBLE_S:  # not the future
+            self.t_seen = float(t_meas) if self.t_seen is None else max(self.t_seen, float(t_meas))
         return True
+
+    def _changed(self, sender: Any) -> None:
+        self.changes += 1
+        self.changed_by = sender if isinstance(sender, str) else None
 
     @property
     def known(self) -> bool:

@@ -320,3 +320,25 @@ def test_the_clock_comes_from_a_message_and_its_changes_are_counted() -> None:
     assert c.now(10**18 + 5 + 10**10) == 2.0  # capped at the next frame's time while the world is paused
     assert c.update({"sender": "cv2", "epoch_wall_ns": 10**18, "time_scale": 0.5})
     assert (c.changes, c.changed_by, c.time_scale, c.t_next) == (1, "cv2", 0.5, None)
+
+
+def test_a_pause_moves_the_epoch_on_but_a_forged_later_epoch_does_not() -> None:
+    """The adaptive clock's pause moves the world's epoch forward; an epoch that would put the present before
+    times already seen (one signed message an hour ahead) is counted with its sender and not taken."""
+    s, e0 = 10**9, 10**18
+    c = SimClock()
+    assert c.update({"sender": "cv0", "epoch_wall_ns": e0, "time_scale": 1.0, "t_meas": 5.0, "t_next": 5.1}, e0 + 5 * s)
+    assert c.t_seen == 5.0
+    # the world paused 2 s, then sent frame 5.1 on its new epoch: taken, and the present is 5.1 s again
+    paused = e0 + 2 * s
+    msg = {"sender": "cv0", "epoch_wall_ns": paused, "time_scale": 1.0, "t_meas": 5.1, "t_next": 5.2}
+    assert c.update(msg, paused + int(5.12 * s))
+    assert c.epoch_wall_ns == paused and c.now(paused + int(5.12 * s)) == pytest.approx(5.12)
+    # a liar's epoch an hour later: the present would be an hour back; counted, not taken
+    liar = {"sender": "cv3", "epoch_wall_ns": paused + 3600 * s, "time_scale": 1.0, "t_meas": 5.2}
+    assert c.update(liar, paused + int(5.3 * s))
+    assert (c.epoch_wall_ns, c.changes, c.changed_by) == (paused, 1, "cv3")
+    assert c.now(paused + int(5.3 * s)) == pytest.approx(5.2)  # capped at the next frame until it is out
+    # a message from the future (on the clock in force) does not count as a time seen
+    assert c.update({"sender": "cv3", "epoch_wall_ns": paused, "time_scale": 1.0, "t_meas": 1e6}, paused + 6 * s)
+    assert c.t_seen == 5.2
