@@ -40,7 +40,7 @@ def test_a_cold_start_is_starting_and_a_replay_that_ended_is_finished(tmp_path, 
     endpoint = next(e for e in state["endpoints"] if "127.0.0.1" in e)
     seen: list[tuple[float, int, dict[str, str]]] = []  # (scenario time, exit code, states)
     health_notes: dict[str, str | None] = {}  # why a service was not healthy
-    session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+    session = open_session(ZenohSettings(connect=[endpoint], config_file=state["zenoh_login"]))  # the operator
     try:
         # `mapc health` itself at once (a call takes a second or more), then polled in process
         rc, rows, table = _health(mapc, fleet_name, table=True)
