@@ -218,6 +218,17 @@ def main(s: WorldSettings) -> int:
         t_start = pacer.t(k)
         progress, alive_vehicles, host_alive = _follow_progress(svc, s, world.vehicle_ids, world.dt)
         wall0, saved = time.time_ns(), {"t": time.monotonic()}
+
+        def paused(ns: int) -> None:
+            """The adaptive clock stood still ``ns``: count it, and keep the moved epoch in the state file (a
+            restarted world resumes on it, and the launcher reads scenario time from it), at most every 0.5 s."""
+            if ns <= 0:
+                return
+            fig["paused_s"] += ns * 1e-9
+            if s.state_file and time.monotonic() - saved["t"] > 0.5:
+                _save_clock(s, pacer.epoch_wall_ns, fig)
+                saved["t"] = time.monotonic()
+
         if k:
             log.info("resuming the timeline at frame %d (t = %.1f s)", k, pacer.t(k))
         log.info(
@@ -240,12 +251,7 @@ def main(s: WorldSettings) -> int:
                 if late:
                     fig["waits_timed_out"] += 1
                     waited.update(late=late, t=time.monotonic())
-                paused = pacer.pause(k, time.time_ns())  # the clock stood still while they caught up
-                if paused:
-                    fig["paused_s"] += paused * 1e-9
-                    if s.state_file and time.monotonic() - saved["t"] > 0.5:  # the launcher's scenario time
-                        _save_clock(s, pacer.epoch_wall_ns, fig)
-                        saved["t"] = time.monotonic()
+                paused(pacer.pause(k, time.time_ns()))  # the clock stood still while they caught up
                 fig["achieved_time_scale"] = round((t - t_start) / max((time.time_ns() - wall0) * 1e-9, 1e-9), 3)
             due = pacer.due_wall_ns(k)
             if svc.wait(max(0.0, (due - time.time_ns()) * 1e-9)):
@@ -271,7 +277,7 @@ def main(s: WorldSettings) -> int:
             k += 1
             due_next = pacer.first_k_at(time.time_ns())  # the first frame not due yet
             if due_next > k and progress is not None:  # adaptive: the clock waits for the world too
-                fig["paused_s"] += pacer.pause(k, time.time_ns()) * 1e-9
+                paused(pacer.pause(k, time.time_ns()))
             elif due_next > k:  # frame k is due already, before it is computed: skip to the next one
                 fig["skipped_frames"] += due_next - k
                 skipping.update(t=time.monotonic(), starting=pacer.t(k) < t_start + s.startup_s)
