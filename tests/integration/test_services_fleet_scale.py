@@ -33,7 +33,8 @@ def test_a_fleet_of_eight_comes_up_healthy_and_every_vehicle_is_scored(tmp_path,
         def every_service_ok():
             h = mapc("health", "--fleet", fleet_name, "--json", "--timeout", "3", cwd=tmp_path)
             rows = json.loads(h.stdout) if h.returncode == 0 and h.stdout.strip() else []
-            return rows if len(rows) == VEHICLES + 4 and all(r["state"] == "ok" for r in rows) else None
+            # the world, the channel, the host and its standby (on by default), the evaluator
+            return rows if len(rows) == VEHICLES + 5 and all(r["state"] == "ok" for r in rows) else None
 
         rows = wait_for(every_service_ok, timeout=240, what="every service ok at once", every=1.0)
         assert {r["id"] for r in rows if r["role"] == "vehicle"} == ids
