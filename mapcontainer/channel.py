@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import heapq
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -232,6 +233,26 @@ def _link_key(seed: int, src: str, dst: str) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed, spawn_key=words)
 
 
+def pop_arrivals(
+    heap: list[tuple[float, int, Delivery]], t: float, counters: Callable[[Delivery], dict[str, int]]
+) -> list[Delivery]:
+    """Remove and return every message copy in ``heap`` (time arrived, sequence, delivery) with time arrived
+    <= t, in arrival order, each counted as delivered (and as duplicated if it is a copy) in ``counters(d)``,
+    its link's counters. The one delivery queue of :class:`Channel` and the geometric radio's."""
+    out: list[Delivery] = []
+    while heap and heap[0][0] <= t:
+        d = heapq.heappop(heap)[2]
+        c = counters(d)
+        n = len(d.payload)
+        c["delivered_msgs"] += 1
+        c["delivered_bytes"] += n
+        if d.duplicate:
+            c["duplicated_msgs"] += 1
+            c["duplicated_bytes"] += n
+        out.append(d)
+    return out
+
+
 class Channel:
     r"""V2X channel emulator: per directed link loss, serialization queue, latency and jitter.
 
@@ -371,19 +392,7 @@ class Channel:
 
     def deliver(self, t: float) -> list[Delivery]:
         """Remove and return every message copy with time arrived <= t, in arrival order."""
-        out: list[Delivery] = []
-        heap = self._heap
-        while heap and heap[0][0] <= t:
-            d = heapq.heappop(heap)[2]
-            c = self._links[(d.src, d.dst)].counters
-            n = len(d.payload)
-            c["delivered_msgs"] += 1
-            c["delivered_bytes"] += n
-            if d.duplicate:
-                c["duplicated_msgs"] += 1
-                c["duplicated_bytes"] += n
-            out.append(d)
-        return out
+        return pop_arrivals(self._heap, t, lambda d: self._links[(d.src, d.dst)].counters)
 
     def next_arrival(self) -> float | None:
         """Earliest pending time arrived (s), or None when nothing is in flight."""

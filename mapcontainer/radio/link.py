@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..channel import Delivery, NetworkProfile, link_totals
+from ..channel import Delivery, NetworkProfile, link_totals, pop_arrivals
 from .dcc import DccParams, ReactiveDcc
 from .hashing import directed_keys, link_keys, node_key, uniforms
 from .mac import Csma, MacParams, Sps, airtime_s
@@ -385,14 +385,7 @@ class RadioChannel:
 
     def deliver(self, t: float) -> list[Delivery]:
         """Remove and return every message with time arrived <= t, in arrival order."""
-        out: list[Delivery] = []
-        while self._heap and self._heap[0][0] <= t:
-            d = heapq.heappop(self._heap)[2]
-            c = self._links[(d.src, d.dst)]
-            c["delivered_msgs"] += 1
-            c["delivered_bytes"] += len(d.payload)
-            out.append(d)
-        return out
+        return pop_arrivals(self._heap, t, lambda d: self._links[(d.src, d.dst)])
 
     def next_arrival(self) -> float | None:
         return self._heap[0][0] if self._heap else None
