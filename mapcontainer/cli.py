@@ -20,10 +20,12 @@ from .cliargs import (
     positive_float,
     positive_int,
     seconds,
+    service_ids,
     vehicle_ids,
 )
 from .config import ConfigError
 from .map_cli import add_map_commands
+from .security import SERVICE_SIGNERS
 from .seeds import EVAL_SEED0
 
 __all__ = [
@@ -166,7 +168,9 @@ def _cmd_keys_init(args: argparse.Namespace) -> int:
     from .security import write_fleet_keys
 
     vehicles = args.vehicles if args.vehicles is not None else [f"cv{i}" for i in range(args.count)]
-    doc = write_fleet_keys(Path(args.out), vehicles, args.validity_days * 86400.0, args.ca_name, force=args.force)
+    doc = write_fleet_keys(
+        Path(args.out), vehicles, args.validity_days * 86400.0, args.ca_name, force=args.force, services=args.services
+    )
     print(jsonout.dumps(doc))
     return 0
 
@@ -630,6 +634,13 @@ def build_parser() -> argparse.ArgumentParser:
     who = ki.add_mutually_exclusive_group()
     who.add_argument("--vehicles", type=vehicle_ids, default=None, help="comma-separated vehicle ids (cv0,cv1,...)")
     who.add_argument("--count", type=positive_int, default=4, help="vehicles cv0..cv{N-1} (default 4)")
+    ki.add_argument(
+        "--services",
+        type=service_ids,
+        default=list(SERVICE_SIGNERS),
+        help="comma-separated service ids that sign (their health status; the world its truth, a host its fused "
+        f"state, the evaluator its metrics); default {','.join(SERVICE_SIGNERS)}",
+    )
     ki.add_argument("--validity-days", type=positive_days, default=30.0, help="days the certificates are valid")
     ki.add_argument("--ca-name", type=fleet_name, default="mapc-ca", help="the CA certificate's subject")
     ki.add_argument("--force", action="store_true", help="replace credentials already in --out")

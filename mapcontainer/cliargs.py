@@ -92,17 +92,26 @@ def fleet_sizes(text: str) -> list[int]:
     return sizes
 
 
-def vehicle_ids(text: str) -> list[str]:
-    """``cv0,cv1,...``: distinct ids (letters, digits, '_' or '-'), none of them ``ca``."""
+def _ids(text: str, what: str) -> list[str]:
     from schemas.topics import is_chunk
 
     ids = [v.strip() for v in text.split(",") if v.strip()]
     bad = [v for v in ids if not is_chunk(v) or v == "ca"]
     if not ids or bad:
-        raise argparse.ArgumentTypeError(f"not a list of vehicle ids: {', '.join(map(repr, bad)) or repr(text)}")
+        raise argparse.ArgumentTypeError(f"not a list of {what} ids: {', '.join(map(repr, bad)) or repr(text)}")
     if len(set(ids)) != len(ids):
-        raise argparse.ArgumentTypeError(f"a vehicle id is repeated in {text!r}")
+        raise argparse.ArgumentTypeError(f"a {what} id is repeated in {text!r}")
     return ids
+
+
+def vehicle_ids(text: str) -> list[str]:
+    """``cv0,cv1,...``: distinct ids (letters, digits, '_' or '-'), none of them ``ca``."""
+    return _ids(text, "vehicle")
+
+
+def service_ids(text: str) -> list[str]:
+    """``world,host,...``: distinct service ids, as :func:`vehicle_ids`."""
+    return _ids(text, "service")
 
 
 def fleet_name(text: str) -> str:

@@ -58,6 +58,7 @@ __all__ = [
     "CA_NAME",
     "REASONS",
     "Credentials",
+    "CredentialsMissing",
     "Signer",
     "Verified",
     "Verifier",
@@ -69,6 +70,7 @@ __all__ = [
     "load_credentials",
     "make_ca",
     "save_credentials",
+    "service_signer",
     "unwrap",
     "write_fleet_keys",
 ]
@@ -328,7 +330,23 @@ VERIFY_WINDOW_S = 5.0  # services: a signed message generated longer ago (or ahe
 KEYS_SKEW_S = 3600.0  # write_fleet_keys: certificates start this long before now (clocks of other machines)
 
 
-SERVICE_SIGNERS = ("world", "evaluator", "host", "host-standby")  # they sign truth, metrics, fused state
+# they sign truth, metrics and fused state, and every service its health status
+SERVICE_SIGNERS = ("world", "evaluator", "host", "host-standby", "channel", "recorder", "router")
+
+
+class CredentialsMissing(ConfigError):
+    """A keys directory without credentials for this id (keys made for fewer services)."""
+
+
+def service_signer(directory: str | Path, sid: str) -> Signer:
+    """The signer of service ``sid``'s health status: its credentials in ``directory``, the full certificate
+    with every message (a health query is answered to a verifier that has seen none of the service's
+    messages before). CredentialsMissing when ``directory`` holds none for ``sid``; ConfigError when they
+    are there but bad."""
+    key_path, cert_path = _paths(Path(directory), sid)
+    if not key_path.exists() and not cert_path.exists():
+        raise CredentialsMissing(f"{directory} holds no credentials for {sid!r} (`mapc keys init` names the services)")
+    return Signer(load_credentials(directory, sid), full_cert_every_s=0.0)
 
 
 def write_fleet_keys(
@@ -491,7 +509,9 @@ class Verifier:
             return self._reject("unsigned", f"not a SecuredMessage ({msg.reason}: {msg.detail})")
         if msg.certificate is not None:
             if not new_certificates and certificate_digest(msg.certificate) not in self._known:
-                return self._reject("unknown_certificate", f"{msg.certificate.subject}: a new certificate under a flood")
+                return self._reject(
+                    "unknown_certificate", f"{msg.certificate.subject}: a new certificate under a flood"
+                )
             known = self._learn(msg.certificate)
             if isinstance(known, Rejection):
                 return known

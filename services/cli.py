@@ -151,6 +151,13 @@ def _health_zenoh_file(path: str):
     return [str(e) for e in endpoints]
 
 
+def _health_verifier(keys: str):
+    """A verifier of the fleet's CA in ``keys``, for the statuses ``mapc health`` reads."""
+    from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate
+
+    return Verifier(load_certificate(keys, CA_NAME), window_s=VERIFY_WINDOW_S)
+
+
 def _cmd_health(args: argparse.Namespace) -> int:
     from .health import exit_code, fleet_health, format_table
     from .launcher.control import active_fleets
@@ -181,6 +188,8 @@ def _cmd_health(args: argparse.Namespace) -> int:
         print(f"mapc: {why}; or give --connect ENDPOINT", file=sys.stderr)
         return 2
     fleet = fleet or "local"  # --connect without --fleet
+    keys = args.keys or (own[0].get("keys_dir") if own else None)
+    verifier = _health_verifier(keys) if keys else None  # ConfigError (no CA there): exit 2, one line
     login = args.zenoh_config or (own[0].get("zenoh_login") if own else None)  # the run's operator login
     if own and own[0].get("insecure") and not args.json:
         print(f"fleet {fleet}: open Zenoh mesh (--insecure): anyone on this machine can publish and subscribe")
@@ -200,7 +209,7 @@ def _cmd_health(args: argparse.Namespace) -> int:
         return 2
     try:
         while True:
-            views = fleet_health(session, fleet, expected, timeout_s=args.timeout)
+            views = fleet_health(session, fleet, expected, timeout_s=args.timeout, verifier=verifier)
             rc = exit_code(views)
             if args.json:
                 print(json.dumps([v.to_json() for v in views]), flush=True)
@@ -336,6 +345,13 @@ def add_live_commands(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="a Zenoh JSON5 client configuration (user/password or TLS, e.g. from deploy/zenoh/secure/) "
         "for a secured router; --connect is laid over its endpoints",
+    )
+    h.add_argument(
+        "--keys",
+        default=None,
+        metavar="DIR",
+        help="the fleet's keys directory: believe only statuses signed by their service (default: the running "
+        "fleet's own keys, when it signs)",
     )
     h.add_argument("--json", action="store_true", help="a JSON list of services")
     h.add_argument("--watch", action="store_true", help="refresh every second until Ctrl-C")

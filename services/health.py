@@ -5,8 +5,14 @@ Used by ``mapc health`` and by the launcher. A service is *alive* while its live
 ``mc/{fleet}/health/{role}/{id}``. Exit codes of ``mapc health``: 0 every service answers a healthy
 state (``ok``, ``starting`` in a cold start's expected period, ``finished`` when its input ended with
 the run) and every expected one is there, 1 any degraded/failed/unanswered or expected-but-missing,
-2 nothing answers at all. The table fits 100 columns (one line per service, its reason or refusals
-cut to fit); ``--json`` has every figure.
+2 nothing answers at all.
+
+On a signed fleet (a ``verifier`` of the fleet's CA) a status is believed only if it is signed by
+the service it is about (the id in its key): a reply that fails is refused and counted, and a
+service with no believable reply is ``unverified`` (not healthy).
+
+The table fits 100 columns (one line per service, its reason or refusals cut to fit); ``--json``
+has every figure.
 """
 
 from __future__ import annotations
@@ -15,7 +21,9 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from mapcontainer.security import Verifier, unwrap
 from schemas import HealthStatus, decode
+from schemas.codec import Rejection
 from schemas.topics import topic
 from services.runtime import HEALTHY_STATES
 
@@ -29,11 +37,14 @@ class ServiceView:
     role: str
     id: str
     alive: bool
-    state: str  # a HealthStatus state | missing (expected, no token) | unresponsive (token, no reply)
+    state: str  # a HealthStatus state | missing | unresponsive (token, no reply) | unverified (no reply believed)
     status: HealthStatus | None = None
+    refused: list[str] | None = None  # why replies on its key were not believed (a signed fleet)
 
     def to_json(self) -> dict:
         d = {"role": self.role, "id": self.id, "alive": self.alive, "state": self.state}
+        if self.refused:
+            d["refused"] = list(self.refused)
         if self.status is not None:
             st = self.status.model_dump(mode="json", exclude={"schema_version", "fleet", "sender", "role", "state"})
             d.update(st)
@@ -57,40 +68,75 @@ def alive_services(session, fleet: str, timeout_s: float = 1.0) -> set[tuple[str
     return out
 
 
-def query_status(session, fleet: str, timeout_s: float = 1.0) -> dict[tuple[str, str], HealthStatus]:
-    """Every health queryable's answer (consolidation off: one reply per service)."""
+def believe_status(
+    data: bytes, key: str, verifier: Verifier | None, now: float
+) -> tuple[tuple[str, str], HealthStatus | str]:
+    """((role, id), the status) of a health reply or put on ``key``, or ((role, id), why it is refused).
+
+    With a ``verifier``, the status must be signed by the service of ``key`` and say it is that service;
+    without one, a signed status is read unverified (an open fleet)."""
+    role, sid = split_key(key)
+    inner = unwrap(data, verifier, now, sid)
+    if isinstance(inner, Rejection):
+        return (role, sid), f"{inner.reason}: {inner.detail}"
+    msg = decode(inner, HealthStatus)
+    if isinstance(msg, Rejection):
+        return (role, sid), f"{msg.reason}: {msg.detail}"
+    if (msg.role, msg.sender) != (role, sid):
+        return (role, sid), f"sender_mismatch: the status of {msg.role}/{msg.sender} on {role}/{sid}'s key"
+    return (role, sid), msg
+
+
+def query_status(
+    session, fleet: str, timeout_s: float = 1.0, verifier: Verifier | None = None
+) -> tuple[dict[tuple[str, str], HealthStatus], dict[tuple[str, str], list[str]]]:
+    """Every health queryable's answer (consolidation off: one reply per service), and why replies were
+    refused, by service: a believed reply wins over refused ones on the same key."""
     import zenoh
 
     out: dict[tuple[str, str], HealthStatus] = {}
+    refused: dict[tuple[str, str], list[str]] = {}
     replies = session.get(
         topic("health").pattern(fleet=fleet), timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
     )
     for reply in replies:
         if reply.ok is None:
             continue
-        msg = decode(reply.ok.payload.to_bytes(), HealthStatus)
-        if msg:
-            out[split_key(str(reply.ok.key_expr))] = msg
-    return out
+        try:
+            who, msg = believe_status(reply.ok.payload.to_bytes(), str(reply.ok.key_expr), verifier, time.time())
+        except ValueError:  # not a service key: not ours to judge
+            continue
+        if isinstance(msg, str):
+            refused.setdefault(who, []).append(msg)
+        else:
+            out[who] = msg
+    return out, refused
 
 
 def fleet_health(
-    session, fleet: str, expected: Iterable[tuple[str, str]] = (), timeout_s: float = 1.0
+    session,
+    fleet: str,
+    expected: Iterable[tuple[str, str]] = (),
+    timeout_s: float = 1.0,
+    verifier: Verifier | None = None,
 ) -> list[ServiceView]:
-    """Alive services, their status, and expected-but-missing ones; sorted by role then id."""
+    """Alive services, their status, and expected-but-missing ones; sorted by role then id. With a
+    ``verifier`` (the fleet's CA) only statuses signed by their service count (:func:`believe_status`)."""
     alive = alive_services(session, fleet, timeout_s)
-    status = query_status(session, fleet, timeout_s)
-    keys = alive | set(status) | set(expected)
+    status, refused = query_status(session, fleet, timeout_s, verifier)
+    keys = alive | set(status) | set(refused) | set(expected)
     views = []
     for role, sid in keys:
         st = status.get((role, sid))
         if st is not None:
             state = st.state
+        elif (role, sid) in refused:
+            state = "unverified"
         elif (role, sid) in alive:
             state = "unresponsive"
         else:
             state = "missing"
-        views.append(ServiceView(role, sid, (role, sid) in alive, state, st))
+        views.append(ServiceView(role, sid, (role, sid) in alive, state, st, refused.get((role, sid))))
     return sorted(views, key=lambda v: (v.role, v.id))
 
 
@@ -110,6 +156,8 @@ def _fmt(x: float | None, spec: str = ".1f") -> str:
 def _note(v: ServiceView) -> str:
     """What a person reads first: the reason of a state that is not ok, else the refusals counted."""
     s = v.status
+    if s is None and v.refused:
+        return f"health refused: {v.refused[0]}"
     if s is None:
         return "no health token" if v.state == "missing" else "alive, does not answer"
     if v.state != "ok" and s.last_error:

@@ -200,7 +200,7 @@ def main(s: ChannelSettings) -> int:
     gate_lock = threading.Lock()
     log.info("profile %s: %s", profile.name, profile.description)
 
-    with Service("channel", s, figures=relay.stats) as svc:
+    with Service("channel", s, figures=relay.stats, keys=s.keys) as svc:
         pubs: dict[tuple[str, str, str], CountingPublisher] = {}
 
         def publisher(kind: str, dst: str, src: str) -> CountingPublisher:

@@ -132,7 +132,7 @@ def main(s: EvaluatorSettings) -> int:
     work: queue.Queue[tuple[str, Received]] = queue.Queue(maxsize=10_000)
     latest: dict = {"figures": {}}  # replaced whole, never mutated: the health thread reads it
 
-    with Service("evaluator", s, figures=lambda: latest["figures"]) as svc:
+    with Service("evaluator", s, figures=lambda: latest["figures"], keys=s.keys) as svc:
         pub = svc.publisher(topic("metrics").key(fleet=s.fleet), drop=True)
 
         def enqueue(kind: str):

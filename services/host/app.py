@@ -236,7 +236,7 @@ def main(s: HostSettings) -> int:
     fused_at: dict[str, Any] = {"t": time.monotonic(), "rejects": {}, "t_meas": None}
     newest_input: dict[str, float | None] = {"t": None}  # the newest input's receive time (scenario s)
     rc = 0
-    with Service("host", s, figures=figures) as svc:
+    with Service("host", s, figures=figures, keys=s.keys) as svc:
 
         def check() -> tuple[str, str | None]:
             if not worker.is_alive():

@@ -35,7 +35,6 @@ from pydantic import BaseModel, ConfigDict, Field
 from mapcontainer.config import ConfigError, validate_model
 from mapcontainer.security import (
     CA_NAME,
-    STANDBY_SUFFIX,
     VERIFY_WINDOW_S,
     Verifier,
     load_certificate,
@@ -92,6 +91,10 @@ class LauncherSettings(BaseModel):
     json_summary: bool = Field(False, description="end with the summary as one JSON line instead of the table")
     frozen_kill_s: float = 5.0
     drain_s: float = 2.0
+
+
+def _absolute(path: str | None) -> str | None:
+    return None if path is None else str(Path(path).resolve())
 
 
 def registry_dir() -> Path:
@@ -440,8 +443,7 @@ def run(s: LauncherSettings) -> int:
         connect = next((e for e in r.endpoints if "127.0.0.1" in e), r.endpoints[0])
         specs = plan(s, run_dir, connect)
         if s.params.signing and s.params.keys is None:  # a test CA and the fleet's credentials for this run
-            hid = s.params.host_id
-            signers = ["world", "evaluator", hid, hid + STANDBY_SUFFIX]
+            signers = [p.id for p in specs if p.role != "vehicle"]  # every service signs its health status
             write_fleet_keys(run_dir / "keys", vehicle_ids(s.params), validity_s=7 * 86400.0, services=signers)
         if s.params.signing:
             ca = load_certificate(keys_dir(s.params, run_dir), CA_NAME)
@@ -469,6 +471,7 @@ def run(s: LauncherSettings) -> int:
                 "cwd": os.getcwd(),
                 "zenoh_login": r.login,
                 "insecure": s.params.insecure,
+                "keys_dir": _absolute(keys_dir(s.params, run_dir)),  # its CA: mapc health verifies statuses
             },
         )
         r.write_state()

@@ -58,6 +58,7 @@ def active_fleets() -> list[dict[str, Any]]:
                 "endpoints": state.get("endpoints") or p.get("endpoints") or [],
                 "zenoh_login": p.get("zenoh_login"),  # the operator's login to a secure mesh (mesh.py)
                 "insecure": bool(p.get("insecure")),
+                "keys_dir": p.get("keys_dir"),  # a signed fleet's keys (None: unsigned, or a launcher before it)
                 "status": state.get("status"),
                 "processes": procs,
                 "params": state.get("params", {}),

@@ -116,7 +116,7 @@ def main(s: RecorderSettings) -> int:
     inbox: queue.Queue[tuple[str, bytes, bytes | None, int]] = queue.Queue(maxsize=s.queue)
     fig: dict[str, Any] = {"recorded": 0, "dropped": 0, "file_bytes": 0, "full": 0}
 
-    with Service("recorder", s, figures=lambda: {**fig, "viz_refused": dict(viz_refused)}) as svc:
+    with Service("recorder", s, figures=lambda: {**fig, "viz_refused": dict(viz_refused)}, keys=s.keys) as svc:
 
         def on_sample(key: str, payload: bytes, att: bytes | None, t_ns: int) -> None:
             try:

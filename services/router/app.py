@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 
+from pydantic import Field
+
 from ..runtime import (
     Service,
     ServiceSettings,
@@ -23,20 +25,25 @@ from ..runtime import (
 __all__ = ["main", "parse_args"]
 
 
-def parse_args(argv: list[str] | None = None) -> ServiceSettings:
+class RouterSettings(ServiceSettings):
+    keys: str | None = Field(None, description="the fleet's keys directory: sign the health status (as its id)")
+
+
+def parse_args(argv: list[str] | None = None) -> RouterSettings:
     p = argparse.ArgumentParser(prog="python -m services.router", description=__doc__.splitlines()[0])
     add_service_args(p, "router", default_id="router")
+    p.add_argument("--keys", default=None, help="the fleet's keys directory (mapc keys init): sign the health status")
     p.set_defaults(zenoh_mode="router")
     a = p.parse_args(argv)
     s = service_settings_from_args(a)
     z = s.zenoh.model_copy(update={"adminspace": True, "exit_on_failure": False})
-    return s.model_copy(update={"zenoh": z, "stale_input_s": None})
+    return RouterSettings(**{**s.model_dump(), "zenoh": z, "stale_input_s": None, "keys": a.keys})
 
 
-def main(s: ServiceSettings) -> int:
+def main(s: RouterSettings) -> int:
     log = setup_logging("router", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
-    with Service("router", s) as svc:
+    with Service("router", s, keys=s.keys) as svc:
         log.info("listening on %s", listening_locators(svc.session))
         svc.wait()
     return 0

@@ -16,7 +16,7 @@ from typing import Any
 
 from mapcontainer import jsonout
 from mapcontainer.admission import Gate
-from mapcontainer.security import Verifier
+from mapcontainer.security import CredentialsMissing, Signer, Verifier, service_signer
 from schemas import HealthStatus, decode, encode
 from schemas.topics import max_bytes, topic
 
@@ -76,7 +76,9 @@ class Service:
     """A service process's runtime: session, liveliness token, health, counters, signals.
 
     Use as a context manager in the main thread. ``figures`` (a callable returning the core's
-    stats dict) and ``health_check`` (returning ``(state, note)``) refine the health status.
+    stats dict) and ``health_check`` (returning ``(state, note)``) refine the health status. With
+    ``keys`` (the fleet's keys directory), the health status is signed with the service's own credentials
+    (its id's), so that ``mapc health`` believes only what the service said.
     Worker threads started with :meth:`spawn` are joined before the session closes. A worker thread
     that dies of an exception turns the health to failed and stops the service, which then exits
     with :data:`EXIT_THREAD_DIED` so that the launcher restarts it as it restarts a crashed one (a
@@ -92,6 +94,7 @@ class Service:
         figures: Callable[[], Mapping[str, Any]] | None = None,
         health_check: Callable[[], tuple[str, str | None]] | None = None,
         session_opener: Callable[[ZenohSettings], Any] = open_session,
+        keys: str | Path | None = None,
     ):
         self.role = role
         self.settings = settings
@@ -116,6 +119,13 @@ class Service:
         self._old_handlers: dict[int, Any] = {}
         self._parent = os.getppid()
         self.health_key = topic("health").key(fleet=self.fleet, role=role, id=self.id)
+        self._health_signer: Signer | None = None
+        self._sign_lock = threading.Lock()  # the health loop and the queryable's thread both sign
+        if keys is not None:
+            try:
+                self._health_signer = service_signer(keys, self.id)
+            except CredentialsMissing as e:  # keys made before services signed: health goes unsigned
+                self.log.warning("health is not signed: %s", e)
         self.alive_key = topic("alive").key(fleet=self.fleet, role=role, id=self.id)
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -303,9 +313,17 @@ class Service:
             figures=figures,
         )
 
+    def health_payload(self) -> bytes:
+        """The health status as it goes on the bus: encoded, and signed where the service has credentials."""
+        data = encode(self.health())
+        if self._health_signer is None:
+            return data
+        with self._sign_lock:
+            return self._health_signer.sign(data, time.time())
+
     def _on_health_query(self, query) -> None:
         try:
-            query.reply(self.health_key, encode(self.health()))
+            query.reply(self.health_key, self.health_payload())
         except Exception as e:  # a failed reply must not kill the Zenoh callback thread
             self.log.warning("health reply failed: %s", e)
 
@@ -319,7 +337,7 @@ class Service:
             now = time.monotonic()
             if now >= next_t:
                 try:
-                    self._health_pub.put(encode(self.health()))
+                    self._health_pub.put(self.health_payload())
                 except Exception as e:
                     self.log.warning("health put failed: %s", e)
                 next_t = now + self.settings.health_period_s

@@ -108,7 +108,7 @@ def main(s: VehicleSettings) -> int:
         return agent.health() if s.mode == "distributed" else ("ok", None)
 
     with Service(
-        "vehicle", s, figures=lambda: {**(figures_fn() if figures_fn else {}), **extra}, health_check=check
+        "vehicle", s, figures=lambda: {**(figures_fn() if figures_fn else {}), **extra}, health_check=check, keys=s.keys
     ) as svc:
         kind = "prior_tx" if s.mode == "distributed" else "raw_tx"
         pub = svc.publisher(topic(kind).key(fleet=s.fleet, src=s.id))

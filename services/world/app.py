@@ -201,7 +201,7 @@ def main(s: WorldSettings) -> int:
             )
         return "ok", None
 
-    with world, Service("world", s, figures=lambda: fig, health_check=check) as svc:
+    with world, Service("world", s, figures=lambda: fig, health_check=check, keys=s.keys) as svc:
         pubs = {vid: svc.publisher(topic("sensors").key(fleet=s.fleet, vid=vid)) for vid in world.vehicle_ids}
         truth_pub = svc.publisher(topic("truth").key(fleet=s.fleet))
         svc.ready()

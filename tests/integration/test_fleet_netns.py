@@ -143,11 +143,12 @@ def test_a_fleet_split_over_two_namespaces_through_tls_routers(tmp_path, fleet_n
     for m, conf in configs.items():
         (tmp_path / f"router-{m}.json5").write_text(json.dumps(conf))
     keys = tmp_path / "keys"
-    assert run(ns_a, "keys", "init", "--out", str(keys), "--count", "2").returncode == 0
+    signers = "world,evaluator,host,host-standby,channel,recorder,router-a,router-b"  # each signs its health
+    assert run(ns_a, "keys", "init", "--out", str(keys), "--count", "2", "--services", signers).returncode == 0
     try:
         for m, ns in (("a", ns_a), ("b", ns_b)):
             start(ns, f"router-{m}.log", "-m", "services.router", "--fleet", fleet_name, "--id", f"router-{m}",
-                  "--zenoh-config", str(tmp_path / f"router-{m}.json5"))  # fmt: skip
+                  "--zenoh-config", str(tmp_path / f"router-{m}.json5"), "--keys", str(keys))  # fmt: skip
         common = ("--join", "tcp/127.0.0.1:7447", "--fleet", fleet_name, "--vehicles", "2", "--keys", str(keys))
         b = run(ns_b, "fleet", "up", "--detach", "--json", "--manifest", "fleet-host-b", *common,
                 "--runs-dir", str(tmp_path / "runs-b"))  # fmt: skip
@@ -187,6 +188,7 @@ def test_a_fleet_split_over_two_namespaces_through_tls_routers(tmp_path, fleet_n
         assert {("router", "router-a"), ("router", "router-b"), ("evaluator", "evaluator")} <= {
             (r["role"], r["id"]) for r in rows
         }
+        assert not [r for r in rows if r["state"] == "unverified"], rows  # every status signed by its service
         assert a.wait(timeout=400) == 0, (tmp_path / "fleet-a.log").read_text()[-3000:]
         report = json.loads(next((tmp_path / "runs-a").glob("*/report.json")).read_text())
         ev = report["evaluation"]

@@ -208,3 +208,58 @@ def test_a_fake_fused_state_is_refused_and_counted_by_every_consumer(
     recorder = _status(session, fleet_name, "recorder")
     refused = {k: v for k, v in recorder.figures.items() if k.startswith("viz_refused.")}
     assert refused == {"viz_refused.unsigned": n, "viz_refused.sender_mismatch": n}, recorder.figures
+
+
+def test_health_statuses_are_believed_only_from_their_service(
+    tmp_path, rendezvous, fleet_name, spawn, wait_for, watch_liveliness
+):
+    """The probe's last open channel: health replies were unsigned, so an attacker answering health queries
+    on a service's key could say it was ok. Every service now signs its status with its own credentials:
+    with the fleet's CA, `mapc health` believes the genuine status, refuses and counts the forged replies
+    (unsigned, or signed by another member of the fleet), and a key answered by forgeries only is
+    ``unverified``, not healthy."""
+    from mapcontainer.security import CA_NAME, Signer, Verifier, load_certificate, load_credentials
+    from mapcontainer.security import write_fleet_keys
+    from services.health import exit_code
+    from services.runtime import build_health
+    from services.runtime.metrics import ServiceMetrics
+
+    keys = tmp_path / "keys"
+    write_fleet_keys(keys, ["cv0"], validity_s=3600.0)
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    spawn("services.channel", "--fleet", fleet_name, "--connect", endpoint, "--keys", str(keys), "--network", "ideal")
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="channel", id="channel"), timeout=90)
+    cv0 = Signer(load_credentials(keys, "cv0"), full_cert_every_s=0.0)
+
+    def forged(role: str, sid: str) -> bytes:
+        st = build_health(fleet=fleet_name, role=role, sid=sid, seq=1, uptime_s=1.0, metrics=ServiceMetrics(5.0))
+        return encode(st)
+
+    def answer(role: str, sid: str, signed_by_cv0: bool):
+        key = topic("health").key(fleet=fleet_name, role=role, id=sid)
+
+        def reply(query) -> None:
+            data = forged(role, sid)
+            query.reply(key, cv0.sign(data, time.time()) if signed_by_cv0 else data)
+
+        return session.declare_queryable(key, reply)
+
+    fakes = [
+        answer("channel", "channel", signed_by_cv0=False),  # beside the genuine channel: unsigned
+        answer("channel", "channel", signed_by_cv0=True),  # and signed by a vehicle of the fleet
+        answer("host", "host", signed_by_cv0=True),  # a host that does not run
+    ]
+    verifier = Verifier(load_certificate(keys, CA_NAME), window_s=5.0)
+    views = {(v.role, v.id): v for v in fleet_health(session, fleet_name, timeout_s=2.0, verifier=verifier)}
+    for q in fakes:
+        q.undeclare()
+    channel, host = views[("channel", "channel")], views[("host", "host")]
+    assert channel.state == "ok" and channel.status.sender == "channel", channel
+    assert sorted(r.split(":")[0] for r in channel.refused) == ["sender_mismatch", "unsigned"], channel.refused
+    assert host.state == "unverified" and host.status is None and not host.alive, host
+    assert [r.split(":")[0] for r in host.refused] == ["sender_mismatch"], host.refused
+    assert exit_code(list(views.values())) == 1
+    # without the CA (an open fleet's reader) the signed status is still read, unverified
+    plain = {(v.role, v.id): v for v in fleet_health(session, fleet_name, timeout_s=2.0)}
+    assert plain[("channel", "channel")].status is not None
