@@ -55,6 +55,7 @@ from schemas.models import FusedState, GroundTruth
 from schemas.tags import TAGS
 from schemas.topics import topic
 
+from ..clock import SimClock
 from ..evaluation import Totals, score_frame
 from ..host import HostSetup, add_host_args, build_host, host_setup_from_args
 from .mcapio import Record, RecordingError, read_records, read_scan, recording_files
@@ -482,16 +483,18 @@ def refuse(
         if not_found:
             notes.append(f"{not_found} messages the host ingested are not in the recording (the recorder missed them)")
     else:
-        clock = RecordedClock()
+        clock = SimClock()  # the host service's clock rules: from the (verified) message, capped at t_next
         t0_ns = inputs[0][0].log_time_ns if inputs else 0
         solved = []
         for r, src in inputs:
             now = (r.log_time_ns - t0_ns) * 1e-9  # seconds since the first input: Unix seconds lose the ns
             solved += host.timeouts(now)
-            clock.update(r.attachment)
-            t_recv = clock.now(r.log_time_ns)
             data = inner(r, src)
-            if data is None or t_recv is None:
+            if data is None:
+                continue
+            clock.update(peek(data), r.log_time_ns)
+            t_recv = clock.now(r.log_time_ns)
+            if t_recv is None:
                 continue
             host.receive(data, t_recv, now)
             ingested += 1
@@ -531,31 +534,3 @@ def refuse(
     )
 
 
-class RecordedClock:
-    """The world's clock from attachments (services.runtime.SimClock's arithmetic, for recorded times)."""
-
-    def __init__(self) -> None:
-        self.epoch_ns: int | None = None
-        self.scale: float | None = None
-
-    def update(self, attachment: bytes | None) -> None:
-        if not attachment:
-            return
-        try:
-            obj = msgpack.unpackb(attachment, raw=False)
-        except Exception:  # an unreadable attachment leaves the clock as it was
-            return
-        e, s = (obj.get("epoch_wall_ns"), obj.get("time_scale")) if isinstance(obj, dict) else (None, None)
-        if type(e) is int and isinstance(s, int | float) and 1e-3 <= s <= 100:
-            self.epoch_ns, self.scale = e, float(s)
-
-    def now(self, wall_ns: int) -> float | None:
-        if self.epoch_ns is None or self.scale is None:
-            return None
-        return (wall_ns - self.epoch_ns) * 1e-9 * self.scale
-
-    def wall_ns(self, t: float) -> int | None:
-        """The wall time (ns) at which scenario time ``t`` happened; None until a clock was seen."""
-        if self.epoch_ns is None or self.scale is None:
-            return None
-        return int(self.epoch_ns + t / self.scale * 1e9)

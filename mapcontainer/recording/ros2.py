@@ -204,8 +204,9 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
     from its config.json or metadata; None when neither says). Returns what was written: topics, types and
     message counts, and the keys that were not exported (other hosts, messages that do not decode)."""
     rosbag2 = require("rosbags.rosbag2", "ROS 2 export")
+    from ..clock import SimClock
     from ..security import fused_signers, unwrap
-    from .replay import RecordedClock, _verifier, host_setup
+    from .replay import _verifier, host_setup
 
     recording, out = Path(recording), Path(out)
     if out.exists():
@@ -233,16 +234,17 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
             writer.write(conns[name], ns, bytes(store.serialize_cdr(msg, msgtype)))
             counts[name] += 1
 
-        clock = RecordedClock()
+        clock = SimClock()  # the world's clock from the believed messages, as a service keeps it
         verifier = _verifier(recording)  # a signed fleet's recording: only what its signer signed is exported
 
         def believed(rec, model, senders):
             inner = unwrap(rec.payload, verifier, rec.log_time_ns * 1e-9, senders)
             return inner if isinstance(inner, Rejection) else decode(inner, model)
 
-        def stamp(t_meas: float, rec) -> int:
-            clock.update(rec.attachment)
-            ns = clock.wall_ns(t_meas)
+        def stamp(msg, rec) -> int:
+            """The wall time of ``msg``'s measurement, on the clock of the messages believed so far."""
+            clock.update(msg, rec.log_time_ns)
+            ns = clock.wall_ns(msg.t_meas)
             return rec.log_time_ns if ns is None else ns
 
         for rec in read_records(recording):
@@ -255,7 +257,7 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
                 if not msg:
                     skipped[f"{rec.key} ({msg.reason})"] += 1
                     continue
-                ns = stamp(msg.t_meas, rec)
+                ns = stamp(msg, rec)
                 if "/mapc/map" not in counts and hdmap is not None:
                     put("/mapc/map", MARKERS, build.map_markers(ns, hdmap), rec.log_time_ns)
                 for vid, pose, cov in zip(msg.vehicle_ids, msg.vehicle_pose, msg.vehicle_pose_cov, strict=True):
@@ -273,7 +275,7 @@ def export_ros2(recording: str | Path, out: str | Path, hdmap=None) -> dict[str,
                 if not msg:
                     skipped[f"{rec.key} ({msg.reason})"] += 1
                     continue
-                ns = stamp(msg.t_meas, rec)
+                ns = stamp(msg, rec)
                 for vid, pose in zip(msg.vehicle_ids, msg.vehicle_pose, strict=True):
                     put(f"/mapc/truth/vehicles/{vid}", POSE, build.pose_stamped(ns, pose), rec.log_time_ns)
                 det = build.detections(ns, msg.obstacle_id, msg.obstacle_cls, msg.obstacle_p_map, None)

@@ -256,10 +256,10 @@ def _host_run(tmp_path: Path, frames: int = 25, fakes: bool = False):
         t_ns = start_ns + int(t * 1e9)
         for v, y in (("cv0", 0.0), ("cv1", 12.0)):
             obj = ((20.0 - 0.5 * t, -y, 0.0), (15.0, 3.0 - y, 0.0))
-            inner = encode(prior(sender=v, seq=k, t=t, pose=(5 * t, y, 0, 0, 0, 0), objects=obj))
+            p = prior(sender=v, seq=k, t=t, pose=(5 * t, y, 0, 0, 0, 0), objects=obj)
+            inner = encode(p.model_copy(update={"epoch_wall_ns": start_ns, "time_scale": 1.0}))  # the world's clock
             signed = signers[v].sign(inner, time.time())
-            clock = att(epoch_wall_ns=start_ns, time_scale=1.0)
-            w.add(f"mc/f/v2x/rx/host/{v}/prior", signed, clock, t_ns + 30_000_000)
+            w.add(f"mc/f/v2x/rx/host/{v}/prior", signed, att(t_wall_ns=t_ns), t_ns + 30_000_000)
             inbox.put(("ingest", inner, t + 0.03))
         while True:
             item = outbox.get(timeout=30)

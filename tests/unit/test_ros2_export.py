@@ -19,7 +19,7 @@ from mapcontainer.recording.ros2 import quaternion, ros2_typestore  # noqa: E402
 from schemas import FusedState, GroundTruth, encode  # noqa: E402
 from schemas.arrays import cov_to_upper  # noqa: E402
 
-EPOCH_NS = 1_700_000_000 * 10**9  # the world's clock in the attachments
+EPOCH_NS = 1_700_000_000 * 10**9  # the world's clock, in each message's envelope
 SCALE = 0.5
 
 
@@ -30,6 +30,8 @@ def _truth(t: float) -> GroundTruth:
         seq=int(round(t * 10)),
         t_meas=t,
         t_sent=t,
+        epoch_wall_ns=EPOCH_NS,
+        time_scale=SCALE,
         vehicle_ids=["cv0", "cv1"],
         vehicle_pose=np.array([[t * 5, 0, 0, 0, 0, 0], [t * 5, 20, 0, 0, 0, 0.5]], np.float32),
         vehicle_v_map=np.array([[5, 0, 0], [5, 0, 0]], np.float32),
@@ -51,6 +53,8 @@ def _fused(t: float, hid: str = "host") -> FusedState:
         seq=int(round(t * 10)),
         t_meas=t,
         t_sent=t,
+        epoch_wall_ns=EPOCH_NS,
+        time_scale=SCALE,
         vehicle_ids=["cv0", "cv1"],
         vehicle_pose=np.array([[t * 5 + 0.1, 0, 0, 0, 0, 0.05], [t * 5, 20.2, 0, 0, 0, 0.5]], np.float32),
         vehicle_pose_cov=np.stack([cov_to_upper(pose_cov)] * 2).astype(np.float32),
@@ -63,7 +67,7 @@ def _fused(t: float, hid: str = "host") -> FusedState:
 
 
 def _recording(path: Path) -> Path:
-    att = msgpack.packb({"epoch_wall_ns": EPOCH_NS, "time_scale": SCALE, "t_wall_ns": EPOCH_NS}, use_bin_type=True)
+    att = msgpack.packb({"t_wall_ns": EPOCH_NS}, use_bin_type=True)  # instrumentation only: not the clock
     w = RecordingWriter(path, metadata={"fleet": "f", "scenario": "paper-urban", "seed": "0"})
     for k in range(10):
         t, ns = 0.1 * k, EPOCH_NS + int(0.2e9 * k)

@@ -342,3 +342,21 @@ def test_a_pause_moves_the_epoch_on_but_a_forged_later_epoch_does_not() -> None:
     # a message from the future (on the clock in force) does not count as a time seen
     assert c.update({"sender": "cv3", "epoch_wall_ns": paused, "time_scale": 1.0, "t_meas": 1e6}, paused + 6 * s)
     assert c.t_seen == 5.2
+
+
+def test_a_late_message_of_the_old_time_scale_does_not_turn_a_changed_clock_back() -> None:
+    """A message relayed late from before a change of time scale (sent on the old clock, its time older than
+    what the new clock already stamped) flipped the clock back to the old scale and counted a change. It is
+    from the past of the clock in force: ignored. A message on another scale that is not older is a change."""
+    s, e0 = 10**9, 10**18
+    c = SimClock()
+    assert c.update({"sender": "world", "epoch_wall_ns": e0, "time_scale": 1.0, "t_meas": 9.9}, e0 + int(9.9 * s))
+    e1 = e0 - 10 * s  # the world went on at half speed from t = 10 s, at wall time e0 + 10 s
+    assert c.update({"sender": "world", "epoch_wall_ns": e1, "time_scale": 0.5, "t_meas": 10.0}, e0 + 10 * s)
+    assert (c.time_scale, c.changes) == (0.5, 1)
+    late = {"sender": "cv1", "epoch_wall_ns": e0, "time_scale": 1.0, "t_meas": 9.9}  # relayed from before
+    assert c.update(late, e0 + int(10.2 * s))
+    assert (c.epoch_wall_ns, c.time_scale, c.changes) == (e1, 0.5, 1)
+    again = {"sender": "world", "epoch_wall_ns": e0, "time_scale": 1.0, "t_meas": 10.2}  # a change back: taken
+    assert c.update(again, e0 + int(10.2 * s))
+    assert (c.epoch_wall_ns, c.time_scale, c.changes) == (e0, 1.0, 2)
