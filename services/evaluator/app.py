@@ -18,6 +18,7 @@ import argparse
 import csv
 import queue
 import time
+from collections import OrderedDict
 from pathlib import Path
 
 from pydantic import Field
@@ -108,6 +109,29 @@ def _seq(payload: bytes) -> int | None:
     return seq if isinstance(seq, int) else None
 
 
+
+class FrameWallTimes:
+    """The wall time of each recent frame of the world, on the epoch its truth was sent with.
+
+    The end-to-end latency of a fused state is measured from its frame's wall time. The clock's newest
+    epoch gives the wrong one for a frame from before a pause of the adaptive clock (the epoch moved on by
+    the pause, so the latency came out short by it); the truth of the frame says when the frame was.
+    """
+
+    def __init__(self, keep: int = 600) -> None:
+        self._ns: OrderedDict[float, int] = OrderedDict()
+        self._keep = keep
+
+    def record(self, truth: GroundTruth) -> None:
+        if truth.epoch_wall_ns is None or not truth.time_scale:
+            return
+        self._ns[round(truth.t_meas, 6)] = truth.epoch_wall_ns + int(round(truth.t_meas / truth.time_scale * 1e9))
+        while len(self._ns) > self._keep:
+            self._ns.popitem(last=False)
+
+    def get(self, t_meas: float) -> int | None:
+        return self._ns.get(round(t_meas, 6))
+
 def main(s: EvaluatorSettings) -> int:
     log = setup_logging("evaluator", s.id, s.log_level)
     log.info("settings: %s", s.model_dump_json())
@@ -150,6 +174,8 @@ def main(s: EvaluatorSettings) -> int:
             svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), enqueue(f"{kind}_tx"))
             svc.subscribe(topic(f"{kind}_rx").pattern(fleet=s.fleet), enqueue(f"{kind}_rx"))
 
+        frame_wall = FrameWallTimes()
+
         def believed(msg: Received, model, senders):
             """The message, verified (signed fleets) and decoded; None, counted, if it is refused."""
             inner = unwrap(msg.payload, verifier, time.time(), senders)
@@ -164,6 +190,7 @@ def main(s: EvaluatorSettings) -> int:
                 truth = believed(msg, GroundTruth, "world")
                 if truth is not None:
                     clock.update(truth)  # the world's clock, from the message
+                    frame_wall.record(truth)
                     ev.on_truth(truth)
             elif kind == "fused":
                 where = topic("fused").parse(msg.key)
@@ -172,7 +199,8 @@ def main(s: EvaluatorSettings) -> int:
                     clock.update(fused)
                     pub_ns = msg.attachment.get("t_wall_ns")
                     pub_ns = pub_ns if isinstance(pub_ns, int) and pub_ns > 0 else msg.t_recv_wall_ns
-                    ev.on_fused(fused, pub_ns, clock.wall_ns(fused.t_meas), now)
+                    meas_ns = frame_wall.get(fused.t_meas)  # when the frame was, on its own epoch
+                    ev.on_fused(fused, pub_ns, clock.wall_ns(fused.t_meas) if meas_ns is None else meas_ns, now)
             else:  # a V2X topic: who sent it (and to whom) is in its key
                 where = topic(kind).parse(msg.key)
                 if where is None:

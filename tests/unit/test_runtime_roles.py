@@ -437,3 +437,22 @@ def test_the_evaluators_traces_stay_bounded_over_any_run_length() -> None:
     later = later.model_copy(update={"obstacle_id": np.array([2], np.uint32)})
     ev.on_truth(later)
     assert list(ev.truth_obstacles) == [2]
+
+
+def test_a_frames_wall_time_is_on_the_epoch_its_truth_was_sent_with() -> None:
+    """The evaluator measured a fused state's latency from its frame's wall time on the newest epoch: for a
+    frame from before a pause of the adaptive clock the latency came out short by the pause. The frame's
+    own truth says when it was."""
+    from services.evaluator.app import FrameWallTimes
+
+    e0, pause = 10**18, 2 * 10**9
+    frames = FrameWallTimes(keep=3)
+    env = dict(fleet="f", sender="world", t_sent=0.0, vehicle_ids=[], time_scale=0.5)
+    for k, epoch in ((0, e0), (1, e0), (2, e0 + pause)):
+        frames.record(GroundTruth(seq=k, t_meas=0.1 * k, epoch_wall_ns=epoch, **env))
+    assert frames.get(0.1) == e0 + 200_000_000  # 0.1 s of scenario at half speed: 0.2 s after the epoch
+    assert frames.get(0.2) == e0 + pause + 400_000_000
+    frames.record(GroundTruth(seq=3, t_meas=0.3, epoch_wall_ns=e0 + pause, **env))
+    assert frames.get(0.0) is None and frames.get(0.3) is not None  # the oldest frames are let go
+    frames.record(GroundTruth(seq=4, t_meas=0.4, **env | {"time_scale": None}))  # no clock: nothing to keep
+    assert frames.get(0.4) is None
