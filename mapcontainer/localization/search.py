@@ -44,7 +44,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ..geometry import project_points_grid, wrap_angle
 from . import hypotheses as hyp
-from .matcher import CameraFrame, FrameData, MapMatcher, MatchResult
+from .matcher import MapMatcher
+from .matcher_types import CameraFrame, FrameData, MatchResult
 
 __all__ = ["PoseSearch", "PoseSearchParams", "SearchOutcome"]
 

@@ -41,7 +41,8 @@ from ..geometry import circular_mean, wrap_angle
 from ..hdmap.model import HDMap
 from . import ekf
 from . import hypotheses as hyp
-from .matcher import CameraFrame, MapMatcher, MatchResult
+from .matcher import MapMatcher
+from .matcher_types import CameraFrame, MatchResult
 from .search import PoseSearch, SearchOutcome
 
 if TYPE_CHECKING:
