@@ -132,6 +132,7 @@ class Association:
                 lane_pts, lane_w, uv_l[:nS], z_l[:nS], uv_l[nS:], z_l[nS:], fd, rd.lane_cap
             )
             var = (p.lane_sigma_px * fd.lane_scale) ** 2 + (0.5 * w_px) ** 2 / 3.0
+            rd.lane_s = np.sqrt(var)
             rd.lane_sigma = np.sqrt(var * max(1.0, n_in / p.lane_effective_samples))
         if self._lane_tree is not None:
             dist, i = self._lane_tree.query(x[:2])

@@ -7,10 +7,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..geometry import project_points_grid, project_points_jac, rpy_to_matrix_jac, wrap_angle
+from ..geometry import project_points_grid, project_points_jac, project_points_pose, rpy_to_matrix_jac, wrap_angle
 from .matcher_types import FrameData, RoundData
 
-__all__ = ["LaneTerms", "bilinear_with_grad", "lane_distance_transform"]
+__all__ = ["LaneTerms", "bilinear_with_grad", "lane_distance_transform", "lane_sample_nll"]
 
 
 def lane_distance_transform(mask: np.ndarray) -> np.ndarray | None:
@@ -53,8 +53,60 @@ def bilinear_with_grad(img: np.ndarray, uv: np.ndarray):
     return top + fv * dv, (1.0 - fv) * du_top + fv * du_bot, dv
 
 
+def lane_sample_nll(d: np.ndarray, s: np.ndarray, outlier_fraction: float, outlier_scale: float):
+    """-2 log-density of lane samples' distances d >= 0 to the nearest marking (px of the mask), and each one's
+    probability of being an inlier.
+
+    A mixture: with probability 1 - eps the sample's marking is seen, d half-normal with the sample's own
+    1-sigma s (the detector's and the painted width's, before ``lane_effective_samples``' inflation); with
+    probability eps it is not (occluded, dropped, off in the map), d exponential with mean ``outlier_scale``:
+    ``p(d) = (1 - eps) 2 N(d; 0, s^2) + eps exp(-d / mu) / mu``. Unlike the squared capped distance the
+    solver minimises (an unseen sample costs (cap / sigma)^2, about 25, and how many are unseen varies from
+    pose to pose), it is a density: an unseen sample costs a few units, the same wherever it is.
+    """
+    d = np.asarray(d, dtype=float)
+    eps, mu = outlier_fraction, outlier_scale
+    p_in = (1.0 - eps) * np.sqrt(2.0 / np.pi) / s * np.exp(-0.5 * (d / s) ** 2)
+    p_out = eps / mu * np.exp(-d / mu)
+    total = p_in + p_out
+    return -2.0 * np.log(total), p_in / total
+
+
 class LaneTerms:
     """The lane stage of :class:`.matcher.MapMatcher` (a mixin: it reads the matcher's params and lane samples)."""
+
+    def lane_evidence(self, x, fd: FrameData) -> tuple[float, np.ndarray]:
+        """The lanes' -2 log-likelihood of the frame at pose x and its information (6x6): ``n_eff mean_i rho(d_i)``
+        (:func:`lane_sample_nll`, ``n_eff`` = ``lane_evidence_samples``) over the painted samples ahead that
+        project into the mask away from marking ends (every line, dashed too: chosen by the pose alone, as at
+        every pose, whatever the solver used), d_i the uncapped distance transform. The information is
+        Gauss-Newton's, each sample weighed by its inlier probability and n_eff over the samples (and without
+        its along-track part unless ``lane_along_track``). 0 without a mask; every sample unseen without one in
+        view."""
+        p = self.params
+        if fd.dt is None:
+            return 0.0, np.zeros((6, 6))
+        n_eff, eps, mu = p.lane_evidence_samples, p.lane_outlier_fraction, p.lane_outlier_scale_px * fd.lane_scale
+        cap = p.lane_cap_px * fd.lane_scale
+        unseen = n_eff * float(lane_sample_nll(cap, p.lane_sigma_px * fd.lane_scale, eps, mu)[0])
+        pts, tan, width = self._lane_ahead(x, tangents=True)
+        n = len(pts)
+        if n == 0:
+            return unseen, np.zeros((6, 6))
+        uv_l, z_l = project_points_pose(fd.intr, x, fd.T_bc, np.vstack([pts, pts + 0.5 * tan]))
+        pts, w_px, _ = self._lane_select(pts, width, uv_l[:n], z_l[:n], uv_l[n:], z_l[n:], fd, cap)
+        if len(pts) == 0:
+            return unseen, np.zeros((6, 6))
+        s = np.sqrt((p.lane_sigma_px * fd.lane_scale) ** 2 + (0.5 * w_px) ** 2 / 3.0)
+        uv, _, J = project_points_jac(fd.intr, x, fd.T_bc, pts)
+        d, du, dv = bilinear_with_grad(fd.dt, self._to_mask(uv, fd) - [0.0, fd.dt_row0])
+        rho, inlier = lane_sample_nll(d, s, eps, mu)
+        g = (du[:, None] * J[:, 0, :] + dv[:, None] * J[:, 1, :]) * fd.lane_scale
+        if not p.lane_along_track:
+            heading = np.array([np.cos(x[5]), np.sin(x[5])])
+            g[:, :2] -= np.outer(g[:, :2] @ heading, heading)
+        gw = g * (n_eff / len(pts) * inlier / s**2)[:, None]
+        return n_eff * float(rho.mean()), gw.T @ g
 
     def _lane_ahead(self, x, lo: float | None = None, solid_only: bool = False, tangents: bool = False):
         """Painted lane samples from lane_range_m[0] (or lo) to lane_range_m[1] ahead of the body (body x).

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import wrap_angle
+from . import hypotheses as hyp
 from .matcher_types import FrameData, MatchResult, RoundData
 from .residuals import _Eval
 
@@ -128,7 +129,35 @@ class LevenbergMarquardt:
             pole_pairs=np.column_stack([rd.pole_map, rd.pole_det]).astype(int).reshape(-1, 2),
             prior_chi2=float(ev.e[-6:] @ ev.e[-6:]),
             pair_chi2=np.concatenate([ev.pt_chi2, ev.pole_chi2]),
+            evidence=self.evidence(x, ev, rd, fd, landmarks),
         )
+
+    def evidence(self, x, ev: _Eval, rd: RoundData, fd: FrameData, landmarks: int) -> float:
+        """The camera's -2 log marginal likelihood of the frame at the solution x (Laplace), without the prediction
+        prior's rows: what basins of one frame, or hypotheses tracked over frames, are weighed by (:mod:`.hypotheses`).
+
+        ``peak + log det(H_ev + I_prior) - log det(I_prior)`` (:func:`.hypotheses.frame_nll`), with ``peak`` = the
+        landmarks' robust chi^2 + ``inlier_chi2`` per detection left unexplained + the ground (and GNSS) rows + the
+        lanes' calibrated evidence at x (:meth:`.lanes.LaneTerms.lane_evidence`), and H_ev the information of the
+        same terms. Not the solver's lane rows (their cost is not a likelihood, and whether a solve used the lanes
+        depends on its start's covariance), nor the lane-search anchor (a pseudo-measurement).
+        """
+        p = self.params
+        m = len(ev.e) - 6
+        n_lm = 2 * (len(ev.pt_chi2) + len(ev.pole_chi2))
+        keep = np.ones(m, bool)
+        keep[ev.lane_rows] = False
+        keep[m - (0 if rd.anchor is None else len(rd.anchor[0])) : m] = False
+        e = ev.e[:m]
+        landmark_rho = ev.cost - float(e[n_lm:] @ e[n_lm:]) - float(ev.e[m:] @ ev.e[m:])
+        other = keep.copy()
+        other[:n_lm] = False
+        lanes, H_lanes = self.lane_evidence(x, fd)
+        unexplained = p.inlier_chi2 * (len(fd.pt_uv) + len(fd.pole_M1) - landmarks)
+        peak = landmark_rho + float(e[other] @ e[other]) + lanes + unexplained
+        Jw = ev.J_info[:m][keep] * ev.w[:m][keep, None]
+        H_ev = Jw.T @ ev.J_info[:m][keep] + H_lanes
+        return hyp.frame_nll(peak, _safe_inv(H_ev + fd.I_prior), _safe_inv(fd.I_prior))
 
 
 def _safe_inv(H: np.ndarray) -> np.ndarray:

@@ -53,6 +53,26 @@ class MatcherParams(BaseModel):
         description="lane residuals share the mask's correlated errors: their total information is that "
         "of at most this many independent samples (sigma_lane is inflated accordingly)",
     )
+    lane_outlier_fraction: float = Field(
+        0.46,
+        gt=0,
+        lt=1,
+        description="the lane evidence (MatchResult.evidence): the fraction of lane samples whose marking the mask "
+        "does not show near them at the true pose (occlusion, dropouts, map and calibration error); fitted by EM "
+        "on development seeds 10-11 of both paper scenarios (docs/localization.md)",
+    )
+    lane_outlier_scale_px: float = Field(
+        46.0,
+        gt=0,
+        description="... the mean distance (px, exponential) of such a sample's nearest marking (fitted likewise)",
+    )
+    lane_evidence_samples: float = Field(
+        7.0,
+        gt=0,
+        description="... the lanes' evidence of one frame is worth this many independent samples (n_eff times "
+        "the mean per-sample -2 log-likelihood): fitted on the same seeds so that the lateral offset the lanes "
+        "alone give has a NEES of 1 at the true pose",
+    )
     huber_k: float = Field(2.0, gt=0, description="Huber threshold on a landmark's whitened residual norm")
     # The soft constraint r_n and the GNSS antenna.
     sigma_roll_pitch_rad: float = Field(0.01, gt=0, description="r_n: 1/lambda_n on roll and pitch (rad)")
@@ -184,7 +204,9 @@ class MatchResult:
     ``cost`` is the robust chi^2 per residual of the camera residuals (points, poles, lane samples
     within the cap); ``score`` is the whole robust objective (prior included) plus ``inlier_chi2``
     for every detection left unexplained -- what competing solutions of one frame are ranked by;
-    ``reason`` says why ``converged`` is False.
+    ``reason`` says why ``converged`` is False. ``evidence``: the camera's -2 log marginal likelihood of the
+    frame at this solution (Laplace; without the prediction prior's rows, ``prior_chi2``): what basins are
+    weighed by (see :meth:`.lm.LevenbergMarquardt.evidence`).
     """
 
     pose: np.ndarray
@@ -205,6 +227,7 @@ class MatchResult:
     pole_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
     prior_chi2: float = 0.0  # the prediction prior's part of ``score``
     pair_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))  # chi^2 of point_pairs, then pole_pairs
+    evidence: float = 0.0
 
     def inliers(self, inlier_chi2: float) -> list[tuple[tuple[str, int], float]]:
         """((kind 'point' or 'pole', map index), chi^2) of every landmark inlier."""
@@ -249,6 +272,7 @@ class RoundData:
     pt_sigma: np.ndarray = field(default_factory=lambda: np.ones(0))  # per point landmark, px
     lane_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     lane_sigma: np.ndarray = field(default_factory=lambda: np.ones(0))  # per sample, mask px
+    lane_s: np.ndarray = field(default_factory=lambda: np.ones(0))  # ... before lane_effective_samples' inflation
     lane_cap: float = 10.0  # mask px
     z_ground: float | None = None
     anchor: tuple[np.ndarray, np.ndarray] | None = None  # lane-search pseudo-measurement (rows, pose)

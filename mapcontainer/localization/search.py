@@ -176,7 +176,7 @@ class PoseSearch:
         out = dict(hypotheses=scores.size, solutions=tuple(sols), best_score=best_score, runner_up_score=runner)
         if not any(r.converged for r in sols):
             return SearchOutcome(None, best.reason, **out)
-        nll, null = self.camera_nll(sols, P0)
+        nll, null = self.camera_nll(sols)
         out.update(nll=tuple(nll), null_nll=null)
         if p.accept == "landmarks":
             if not best.converged:
@@ -194,14 +194,11 @@ class PoseSearch:
             return SearchOutcome(None, f"ambiguous: best basin holds {mass[i]:.3f} of the mass", **out)
         return SearchOutcome(replace(sols[i], reason=""), "", **out)
 
-    def camera_nll(self, sols, P_prior) -> tuple[list[float], float]:
-        """The camera's -2 log-likelihood of each solution of one frame (inf if not converged): its score
-        without the prediction prior, with the Laplace volume term against ``P_prior`` (the pose's); and that
-        of *elsewhere* (see :mod:`.hypotheses`). Needs a converged solution."""
-        out = [
-            hyp.frame_nll(r.score - r.prior_chi2, r.cov_filtered, P_prior[:6, :6]) if r.converged else np.inf
-            for r in sols
-        ]
+    def camera_nll(self, sols) -> tuple[list[float], float]:
+        """The camera's -2 log-likelihood of each solution of one frame (inf if not converged): its
+        ``MatchResult.evidence`` (Laplace, against the frame's prior, without the prior's rows); and that of
+        *elsewhere* (see :mod:`.hypotheses`). Needs a converged solution."""
+        out = [r.evidence if r.converged else np.inf for r in sols]
         best = sols[int(np.argmin(out))]
         inlier_chi2 = self.matcher.params.inlier_chi2
         return out, hyp.null_increment(min(out), [c for _, c in best.inliers(inlier_chi2)], inlier_chi2)

@@ -594,7 +594,7 @@ class StartupMachine:
                 return None
             if res.converged:
                 h.y, h.P = ekf.match_update(h.y_pred, h.P_pred, res)
-                h.add(res, hyp.frame_nll(res.score, res.cov_filtered, h.P_pred[:6, :6]))
+                h.add(res, res.evidence + res.prior_chi2)
                 if best is None or h.last_nll < best[0]:
                     best = (h.last_nll, res)
             else:  # nothing explained: every detection costs like an outlier
