@@ -66,10 +66,10 @@ def lane_sample_nll(d: np.ndarray, s: np.ndarray, outlier_fraction: float, outli
     """
     d = np.asarray(d, dtype=float)
     eps, mu = outlier_fraction, outlier_scale
-    p_in = (1.0 - eps) * np.sqrt(2.0 / np.pi) / s * np.exp(-0.5 * (d / s) ** 2)
-    p_out = eps / mu * np.exp(-d / mu)
-    total = p_in + p_out
-    return -2.0 * np.log(total), p_in / total
+    log_in = np.log((1.0 - eps) * np.sqrt(2.0 / np.pi) / s) - 0.5 * (d / s) ** 2
+    log_out = np.log(eps / mu) - d / mu
+    log_total = np.logaddexp(log_in, log_out)
+    return -2.0 * log_total, np.exp(log_in - log_total)
 
 
 class LaneTerms:
