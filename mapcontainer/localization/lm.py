@@ -17,8 +17,9 @@ class LevenbergMarquardt:
     """The solver stage of :class:`.matcher.MapMatcher` (a mixin: it calls the association and residual stages)."""
 
     def _solve(self, x, P, fd: FrameData, anchor=None):
-        """Association rounds from (x, P): associate, LM, until the association repeats."""
+        """Association rounds from (x, P): associate, LM, until the association repeats (counted in ``solves``)."""
         p = self.params
+        self.solves += 1
         key_prev, ev, lm_ok, iterations = None, None, True, 0
         rd = RoundData().finalize()
         for rnd in range(p.rounds):

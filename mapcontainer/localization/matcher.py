@@ -80,6 +80,7 @@ class MapMatcher(LaneTerms, Association, Residuals, LevenbergMarquardt):
     def __init__(self, hdmap: HDMap, params: MatcherParams | None = None):
         self.params = params or MatcherParams()
         self.hdmap = hdmap
+        self.solves = 0  # association-round solves so far (:meth:`_solve`): the unit of the search's CPU budget
         self._pt_xyz = np.array([f.p_map for f in hdmap.points], dtype=float).reshape(-1, 3)
         self._pt_cls = np.array([_POINT_CODES[f.cls] for f in hdmap.points], dtype=int)
         self._pole_base = np.array([f.base for f in hdmap.poles], dtype=float).reshape(-1, 3)
