@@ -149,9 +149,10 @@ class PoseSearch:
     ) -> SearchOutcome:
         """Search around the prediction (pose_pred, cov_pred: its prior) over positions within
         ``radius_m`` and the headings ``yaws`` (absolute, rad). ``starts``: instead of the grid, solve these
-        start poses (an earlier search's ``pending``, carried to this frame). ``budget``: at most about this
-        many of the matcher's solves in this call (None: ``solves_per_frame``); the starts left are returned
-        as ``pending`` and nothing is accepted. Raises ValueError on malformed input."""
+        start poses (an earlier search's ``pending``, carried to this frame; nothing is accepted then: the
+        earlier search's basins are not among these solutions). ``budget``: at most about this many of the
+        matcher's solves in this call (None: ``solves_per_frame``); the starts left are returned as ``pending``
+        and nothing is accepted. Raises ValueError on malformed input."""
         p = self.params
         fd = self.matcher.prepare(frame, pose_pred, cov_pred, None)
         n_det = len(fd.pt_uv) + len(fd.pole_M1)
@@ -161,7 +162,7 @@ class PoseSearch:
         x0 = fd.x_prior
         P0 = np.linalg.inv(fd.I_prior)
         if starts is not None:
-            return self._decide(fd, P0, list(starts), 0, budget)
+            return self._decide(fd, P0, list(starts), 0, budget, resumed=True)
         yaws = np.unique(np.round(np.asarray(yaws, dtype=float) / 1e-6) * 1e-6)
         radius = min(float(radius_m), p.max_radius_m)
         k = int(np.ceil(radius / p.grid_step_m))
@@ -180,8 +181,12 @@ class PoseSearch:
 
         return self._decide(fd, P0, self._starts(scores, off, yaws, x0), scores.size, budget)
 
-    def _decide(self, fd: FrameData, P0, starts: list[np.ndarray], hypotheses: int, budget: int | None):
-        """Solve the starts (within the budget), merge those that fell into one basin, and decide (module doc, 2-3)."""
+    def _decide(
+        self, fd: FrameData, P0, starts: list[np.ndarray], hypotheses: int, budget: int | None, resumed: bool = False
+    ):
+        """Solve the starts (within the budget), merge those that fell into one basin, and decide (module doc, 2-3).
+        ``resumed``: the starts are an earlier search's pending ones, whose other basins are not among these
+        solutions (the caller tracks them): nothing is accepted, the solutions join the caller's hypotheses."""
         p = self.params
         P_start = np.diag([p.start_sigma_m**2, p.start_sigma_m**2, P0[2, 2], P0[3, 3], P0[4, 4], p.start_sigma_rad**2])
         sols: list[MatchResult] = []
@@ -206,7 +211,7 @@ class PoseSearch:
             return SearchOutcome(None, best.reason, **out)
         nll, null = self.camera_nll(sols)
         out.update(nll=tuple(nll), null_nll=null)
-        if pending:
+        if pending or resumed:
             return SearchOutcome(None, f"searching: {len(pending)} starts pending", **out)
         if p.accept == "landmarks":
             if not best.converged:

@@ -690,7 +690,9 @@ class StartupMachine:
         and the lanes frame after frame while the true basin comes into view. So the search runs on
         every such frame: a solution it accepts wins at once (as at a cold start); its other converged
         solutions distinct from the hypothesis join it as rivals, scored as if they had explained the
-        earlier frames as well as it did (only this frame's evidence tells them apart).
+        earlier frames as well as it did (only this frame's evidence tells them apart). With the anytime budget
+        (``search.solves_per_frame``) it also runs while an earlier search's starts are pending, whatever the
+        number of hypotheses: their solutions join as rivals of the leading one.
         """
         lone = self.hyps[0]  # the leading one (sorted by rank)
         self._count("search")
