@@ -33,6 +33,7 @@ def bench_localization(
     seed0: int = 0,
     stanford_png: str | None = None,
     startup_accept: Literal["landmarks", "posterior"] = "landmarks",
+    search_budget: int | None = PoseSearchParams().solves_per_frame,
 ) -> dict:
     """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes (seeds
     ``seed0`` ... ``seed0 + seeds - 1``; development seeds are below :data:`~mapcontainer.seeds.EVAL_SEED0`).
@@ -55,9 +56,12 @@ def bench_localization(
     noisier, with its own covariance. Frames in the first ``warmup_s`` seconds (initialisation
     from GNSS) are not scored, nor frames without a pose (``no_pose_frames``: the localizer re-initialising).
     Time is the whole vehicle step (PNG decode, distance transform,
-    matching, message build). ``after_localized_rmse_m``: every vehicle's horizontal RMSE from the frame it
-    localizes on (steady state, whatever its start). ``startup``: the cold start from GNSS of every vehicle, from
-    t = 0, as the paper experiment scores it (:func:`mapcontainer.experiments.paper.figures.startup_summary`:
+    matching, message build); ``solves_per_frame_*``: the matcher's solves per step (association rounds + LM
+    from one start pose), the machine-independent part of that time (the start-up search's anytime budget,
+    ``PoseSearchParams.solves_per_frame``, bounds it; ``search_budget``, None: no budget).
+    ``after_localized_rmse_m``: every vehicle's horizontal RMSE from the frame it localizes on (steady state,
+    whatever its start). ``startup``: the cold start from GNSS of every vehicle, from t = 0, as the paper
+    experiment scores it (:func:`mapcontainer.experiments.paper.figures.startup_summary`:
     time to localize, gross errors after it, those the vehicle did not announce). ``integrity``: see
     :func:`integrity_summary`; ``stanford_png``: draw its Stanford diagram there. ``startup_accept``: the
     localizer's start-up acceptance rule (``PoseSearchParams.accept``: 'landmarks', the default, or 'posterior').
@@ -67,7 +71,7 @@ def bench_localization(
     if seeds < 1 or not duration_s > warmup_s:
         raise ValueError(f"need seeds >= 1 and duration_s > warmup_s, got {seeds}, {duration_s}, {warmup_s}")
     acc: dict[str, list] = {k: [] for k in _ACC}
-    params = LocalizerParams(search=PoseSearchParams(accept=startup_accept))
+    params = LocalizerParams(search=PoseSearchParams(accept=startup_accept, solves_per_frame=search_budget))
     sc = load_scenario(scenario)
     if ideal:
         sc = with_error_sources(sc, ())
@@ -76,7 +80,7 @@ def bench_localization(
         with World(sc, seed=seed) as world:
             runs.append({"locks": _episode(world, duration_s, warmup_s, acc, params)})
     (e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes) = (
-        acc[k] for k in _ACC[:-4]
+        acc[k] for k in _ACC[:-5]
     )
     return {
         "scenario": scenario,
@@ -85,6 +89,7 @@ def bench_localization(
         "seed0": seed0,
         "seed_kind": seed_kind(seed0),
         "startup_accept": startup_accept,
+        "search_budget": search_budget,
         "duration_s": duration_s,
         "warmup_s": warmup_s,
         "frames": len(matched),
@@ -106,6 +111,8 @@ def bench_localization(
         "nees_axes_mean": dict(zip(_AXES, np.round(np.mean(nees_axes, axis=0), 2).tolist(), strict=True)),
         "ms_per_frame_p50": round(percentile(ms, 50), 2),
         "ms_per_frame_p99": round(percentile(ms, 99), 2),
+        "solves_per_frame_p99": percentile(acc["solves"], 99),
+        "solves_per_frame_max": int(np.max(acc["solves"], initial=0)),
         "prior_bytes_mean": round(float(np.mean(sizes)), 1),
         "prior_rmse_m": round(rmse(e_prior), 3),
         "prior_nees_mean": round(float(np.mean(nees_prior)), 2),
@@ -118,7 +125,7 @@ def bench_localization(
 _AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 _ACC = (
     "e_pos", "e_lat", "e_lon", "e_yaw", "e_gnss", "nees", "ms", "sizes", "matched", "e_prior", "nees_prior", "e_all",
-    "e_all_yaw", "nees_axes", "no_pose", "e_all_lat", "e_all_lon", "integrity",
+    "e_all_yaw", "nees_axes", "no_pose", "e_all_lat", "e_all_lon", "integrity", "solves",
 )  # fmt: skip
 ALERT_LIMIT_M = 0.5  # lateral protection level at most this: the frame is available (local streets)
 
@@ -130,16 +137,17 @@ def _episode(
     to ``acc`` (lists named in :data:`_ACC`); returns the cold-start rows [t, vehicle index, says map_matching,
     horizontal error]."""
     e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes = (
-        acc[k] for k in _ACC[:-4]
+        acc[k] for k in _ACC[:-5]
     )
     agents = {v: VehicleAgent(world.hdmap, v, world.fleet, params=params) for v in world.vehicle_ids}
     index = {v: i for i, v in enumerate(world.vehicle_ids)}
     locks: list[list[float]] = []
     for tick in world.run(duration_s):
         for vid, frame in tick.frames.items():
-            t0 = time.perf_counter()
+            t0, solves0 = time.perf_counter(), agents[vid].localizer.matcher.solves
             prior = agents[vid].handle(tick.t, frame)
             ms.append((time.perf_counter() - t0) * 1e3)
+            acc["solves"].append(agents[vid].localizer.matcher.solves - solves0)
             sizes.append(len(encode(prior)))
             res = agents[vid].last_result
             truth = tick.states[vid].pose

@@ -119,6 +119,7 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
                 seed0=args.seed0,
                 stanford_png=args.stanford,
                 startup_accept=args.startup_accept,
+                **({} if args.search_budget is None else {"search_budget": args.search_budget or None}),
             )
         )
     )
@@ -434,6 +435,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="landmarks",
         help="the start-up acceptance rule (LocalizerParams.search.accept): 'landmarks' (default: enough distinct "
         "landmarks and a margin) or 'posterior' (opt-in: posterior mass over basins; see docs/localization.md)",
+    )
+    bl.add_argument(
+        "--search-budget",
+        type=non_negative_int,
+        default=None,
+        help="the start-up search's matcher solves per frame (LocalizerParams.search.solves_per_frame; the starts "
+        "left carry to the next frames); 0: no budget (default: the localizer's)",
     )
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")

@@ -15,7 +15,7 @@ import numpy as np
 from ..geometry import wrap_angle
 
 if TYPE_CHECKING:
-    from .matcher import MatchResult
+    from .matcher_types import MatchResult
     from .params import GnssMeasurement, LocalizerParams, OdometryMeasurement
 
 __all__ = [

@@ -6,12 +6,17 @@ accepts a basin when it holds at least ``1 - epsilon`` of the mass, not when it 
 of landmarks. Everything is in -2 log-likelihood units (``nll``), so that the matcher's robust chi^2
 costs add to it directly.
 
-* **Camera evidence of one frame** (:func:`frame_nll`): the matcher's score at its optimum (robust
-  residual cost, prediction prior included, plus ``inlier_chi2`` per detection it leaves unexplained)
-  with the Laplace correction ``log det P_prior - log det P_post``: for a linear-Gaussian model this
-  is the exact marginal likelihood of the frame up to a constant common to all hypotheses
-  (peak cost + log of the posterior volume over the prior's). A tracked hypothesis' prior is its own
-  odometry prediction, so the prior rows score how well it follows the vehicle's motion.
+* **Camera evidence of one frame** (``MatchResult.evidence``, :func:`frame_nll`): the -2 log-likelihood
+  at the matcher's optimum -- the landmarks' robust chi^2, ``inlier_chi2`` per detection left
+  unexplained, and the lanes' calibrated evidence (a per-sample mixture of a seen marking and an unseen
+  one, averaged over the samples and worth ``lane_evidence_samples`` independent ones:
+  :func:`.lanes.lane_sample_nll`) -- with the Laplace correction ``log det P_prior - log det P_post``:
+  for a linear-Gaussian model this is the exact marginal likelihood of the frame up to a constant common
+  to all hypotheses (peak cost + log of the posterior volume over the prior's). The solver's own lane
+  cost is not a likelihood: it charges an unseen sample (cap / sigma)^2, about 25, and a third of the
+  samples are unseen at the true pose, a number that changes from pose to pose. A tracked hypothesis'
+  prior is its own odometry prediction, so its prior rows (``prior_chi2``) are added: they score how
+  well it follows the vehicle's motion.
 * **GNSS** (:func:`student_t_nll`): a 2-D Student-t on the fix's offset from the hypothesis, heavy
   tailed because a low-cost receiver jumps by several metres under multipath: a Gaussian would let
   one such fix decide between basins. The receiver's error is correlated for a minute (its bias), so

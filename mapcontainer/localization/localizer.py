@@ -96,7 +96,8 @@ from schemas import bias_cov
 
 from ..hdmap.model import HDMap
 from . import ekf
-from .matcher import CameraFrame, MapMatcher, MatchResult
+from .matcher import MapMatcher
+from .matcher_types import CameraFrame, MatchResult
 from .params import GnssMeasurement, LocalizationResult, LocalizerParams, OdometryMeasurement
 from .search import PoseSearch
 from .startup import UNIFORM_YAW_VAR, Phase, StartupMachine

@@ -12,7 +12,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .matcher import MatcherParams
+from .matcher_types import MatcherParams
 from .search import PoseSearchParams
 
 __all__ = ["GnssMeasurement", "LocalizationResult", "LocalizerParams", "OdometryMeasurement"]

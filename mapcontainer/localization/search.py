@@ -44,7 +44,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ..geometry import project_points_grid, wrap_angle
 from . import hypotheses as hyp
-from .matcher import CameraFrame, FrameData, MapMatcher, MatchResult
+from .matcher import MapMatcher
+from .matcher_types import CameraFrame, FrameData, MatchResult
 
 __all__ = ["PoseSearch", "PoseSearchParams", "SearchOutcome"]
 
@@ -104,6 +105,15 @@ class PoseSearchParams(BaseModel):
         description="degrees of freedom of the Student-t position prior (GNSS, a widened prediction) that "
         "weighs basins: heavy tails for multipath jumps of several metres",
     )
+    solves_per_frame: int | None = Field(
+        None,
+        ge=1,
+        description="anytime budget (opt-in): a search solves starts until it has used this many of the matcher's "
+        "solves (association rounds + LM from one start pose; the lane search and the polish count) in the step, "
+        "the hypotheses' matches included; the starts left are returned as pending and solved on the next frames "
+        "(carried by the odometry), and nothing is accepted while any is pending. None (the default): every start "
+        "in the frame (see docs/localization.md for the figures of both)",
+    )
     grid_detections: int = Field(
         64,
         ge=2,
@@ -124,6 +134,7 @@ class SearchOutcome:
     runner_up_score: float = np.inf
     nll: tuple[float, ...] = ()  # the camera's -2 log-likelihood of each solution (see PoseSearch.camera_nll)
     null_nll: float = np.inf  # ... and of 'elsewhere'
+    pending: tuple[np.ndarray, ...] = ()  # start poses not solved within the frame's budget, best first
 
 
 class PoseSearch:
@@ -133,15 +144,25 @@ class PoseSearch:
         self.matcher = matcher
         self.params = params or PoseSearchParams()
 
-    def search(self, frame: CameraFrame, pose_pred, cov_pred, yaws, radius_m: float) -> SearchOutcome:
+    def search(
+        self, frame: CameraFrame, pose_pred, cov_pred, yaws, radius_m: float, starts=None, budget: int | None = None
+    ) -> SearchOutcome:
         """Search around the prediction (pose_pred, cov_pred: its prior) over positions within
-        ``radius_m`` and the headings ``yaws`` (absolute, rad). Raises ValueError on malformed input."""
+        ``radius_m`` and the headings ``yaws`` (absolute, rad). ``starts``: instead of the grid, solve these
+        start poses (an earlier search's ``pending``, carried to this frame; nothing is accepted then: the
+        earlier search's basins are not among these solutions). ``budget``: at most about this many of the
+        matcher's solves in this call (None: ``solves_per_frame``); the starts left are returned as ``pending``
+        and nothing is accepted. Raises ValueError on malformed input."""
         p = self.params
         fd = self.matcher.prepare(frame, pose_pred, cov_pred, None)
         n_det = len(fd.pt_uv) + len(fd.pole_M1)
         if n_det == 0:
-            return SearchOutcome(None, "no landmark detections", 0)
+            return SearchOutcome(None, "no landmark detections", 0, pending=tuple(starts or ()))
+        budget = p.solves_per_frame if budget is None else budget
         x0 = fd.x_prior
+        P0 = np.linalg.inv(fd.I_prior)
+        if starts is not None:
+            return self._decide(fd, P0, list(starts), 0, budget, resumed=True)
         yaws = np.unique(np.round(np.asarray(yaws, dtype=float) / 1e-6) * 1e-6)
         radius = min(float(radius_m), p.max_radius_m)
         k = int(np.ceil(radius / p.grid_step_m))
@@ -150,7 +171,6 @@ class PoseSearch:
         off = off[np.hypot(off[:, 0], off[:, 1]) <= radius + 1e-9]
         scores = self._grid_scores(fd, x0, off, yaws)
         # Prediction prior on (x, y, yaw) for every hypothesis.
-        P0 = np.linalg.inv(fd.I_prior)
         idx3 = [0, 1, 5]
         I3 = np.linalg.inv(P0[np.ix_(idx3, idx3)])
         dyaw = wrap_angle(yaws - x0[5])
@@ -159,10 +179,22 @@ class PoseSearch:
         D[..., 2] = dyaw[None, :]
         scores = scores + np.einsum("pyi,ij,pyj->py", D, I3, D)
 
-        starts = self._starts(scores, off, yaws, x0)
+        return self._decide(fd, P0, self._starts(scores, off, yaws, x0), scores.size, budget)
+
+    def _decide(
+        self, fd: FrameData, P0, starts: list[np.ndarray], hypotheses: int, budget: int | None, resumed: bool = False
+    ):
+        """Solve the starts (within the budget), merge those that fell into one basin, and decide (module doc, 2-3).
+        ``resumed``: the starts are an earlier search's pending ones, whose other basins are not among these
+        solutions (the caller tracks them): nothing is accepted, the solutions join the caller's hypotheses."""
+        p = self.params
         P_start = np.diag([p.start_sigma_m**2, p.start_sigma_m**2, P0[2, 2], P0[3, 3], P0[4, 4], p.start_sigma_rad**2])
         sols: list[MatchResult] = []
-        for h in starts:
+        used0, pending = self.matcher.solves, ()
+        for k, h in enumerate(starts):
+            if budget is not None and k and self.matcher.solves - used0 >= budget:
+                pending = tuple(starts[k:])
+                break
             res = self.matcher.polish(fd, self.matcher.solve_from(fd, h, P_start))
             if all(self.distinct(res.pose_filtered, o.pose_filtered) for o in sols):
                 sols.append(res)
@@ -172,11 +204,15 @@ class PoseSearch:
         sols.sort(key=lambda r: r.score)
         best, best_score = sols[0], sols[0].score
         runner = sols[1].score if len(sols) > 1 else np.inf
-        out = dict(hypotheses=scores.size, solutions=tuple(sols), best_score=best_score, runner_up_score=runner)
+        out = dict(
+            hypotheses=hypotheses, solutions=tuple(sols), best_score=best_score, runner_up_score=runner, pending=pending
+        )
         if not any(r.converged for r in sols):
             return SearchOutcome(None, best.reason, **out)
-        nll, null = self.camera_nll(sols, P0)
+        nll, null = self.camera_nll(sols)
         out.update(nll=tuple(nll), null_nll=null)
+        if pending or resumed:
+            return SearchOutcome(None, f"searching: {len(pending)} starts pending", **out)
         if p.accept == "landmarks":
             if not best.converged:
                 return SearchOutcome(None, best.reason, **out)
@@ -193,14 +229,11 @@ class PoseSearch:
             return SearchOutcome(None, f"ambiguous: best basin holds {mass[i]:.3f} of the mass", **out)
         return SearchOutcome(replace(sols[i], reason=""), "", **out)
 
-    def camera_nll(self, sols, P_prior) -> tuple[list[float], float]:
-        """The camera's -2 log-likelihood of each solution of one frame (inf if not converged): its score
-        without the prediction prior, with the Laplace volume term against ``P_prior`` (the pose's); and that
-        of *elsewhere* (see :mod:`.hypotheses`). Needs a converged solution."""
-        out = [
-            hyp.frame_nll(r.score - r.prior_chi2, r.cov_filtered, P_prior[:6, :6]) if r.converged else np.inf
-            for r in sols
-        ]
+    def camera_nll(self, sols) -> tuple[list[float], float]:
+        """The camera's -2 log-likelihood of each solution of one frame (inf if not converged): its
+        ``MatchResult.evidence`` (Laplace, against the frame's prior, without the prior's rows); and that of
+        *elsewhere* (see :mod:`.hypotheses`). Needs a converged solution."""
+        out = [r.evidence if r.converged else np.inf for r in sols]
         best = sols[int(np.argmin(out))]
         inlier_chi2 = self.matcher.params.inlier_chi2
         return out, hyp.null_increment(min(out), [c for _, c in best.inliers(inlier_chi2)], inlier_chi2)

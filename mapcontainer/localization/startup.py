@@ -41,7 +41,8 @@ from ..geometry import circular_mean, wrap_angle
 from ..hdmap.model import HDMap
 from . import ekf
 from . import hypotheses as hyp
-from .matcher import CameraFrame, MapMatcher, MatchResult
+from .matcher import MapMatcher
+from .matcher_types import CameraFrame, MatchResult
 from .search import PoseSearch, SearchOutcome
 
 if TYPE_CHECKING:
@@ -166,6 +167,8 @@ class StartupMachine:
         self.far = 0  # GNSS fixes in a row farther than gnss_divergence_m from the state
         self.attempt: MatchResult | None = None
         self.fix: GnssMeasurement | None = None  # this step's GNSS fix: it weighs the hypotheses
+        self.pending: list[np.ndarray] = []  # search starts not solved within a frame's budget, carried by odometry
+        self._solves0 = 0  # the matcher's solve count at the start of this step (the search's budget)
 
     @property
     def posterior(self) -> bool:
@@ -198,6 +201,7 @@ class StartupMachine:
         p = self.params
         match, reason = None, ""
         self.attempt, self.fix = None, gnss
+        self._carry(dt, odo_a, odo_b)
         if self.init_match is not None:
             match, self.attempt, self.init_match = self.init_match, self.init_match, None
         elif (self.hyps and self.phase is Phase.SEARCHING and self.posterior) or self._wide(P_pred[:6, :6]):
@@ -215,6 +219,7 @@ class StartupMachine:
                 self.phase = Phase.SEARCHING if self.hyps else Phase.TRACKING
         else:
             self._set_hyps([])
+            self.pending = []
             match, reason = self._match(frame, y_pred, P_pred)
             if match is None and self.jumps >= p.jump_reset_after:
                 # The prediction keeps disagreeing with converged matches: distrust it and search.
@@ -375,7 +380,36 @@ class StartupMachine:
         if yaws is None or len(yaws) == 0:
             k = int(np.ceil(min(half, np.pi) / step))
             yaws = wrap_angle(x_pred[5] + np.arange(-k, k + 1) * step)
-        return self.search.search(frame, x_pred, Pxx, yaws, radius)
+        return self._budgeted(frame, x_pred, Pxx, yaws, radius)
+
+    def _budgeted(self, frame: CameraFrame, x_pred, Pxx, yaws, radius: float) -> SearchOutcome:
+        """The search within what is left of this step's budget (``search.solves_per_frame`` less the solves the
+        hypotheses' matches used; one start at least), continuing from the pending starts if there are any."""
+        budget = self.params.search.solves_per_frame
+        if budget is not None:
+            budget = max(1, budget - (self.matcher.solves - self._solves0))
+        starts = self.pending or None
+        out = self.search.search(frame, x_pred, Pxx, yaws, radius, starts=starts, budget=budget)
+        self.pending = list(out.pending)
+        return out
+
+    def _carry(self, dt: float, odo_a, odo_b) -> None:
+        """Start of a step: the pending starts moved by the odometry (a unicycle over dt), and the budget's count."""
+        if self.params.search.solves_per_frame is not None:
+            self._solves0 = self.matcher.solves
+        speeds = [o for o in (odo_a, odo_b) if o is not None]
+        if not self.pending or not speeds or dt <= 0.0:
+            return
+        v = float(np.mean([o.speed for o in speeds]))
+        w = float(np.mean([o.yaw_rate for o in speeds]))
+        moved = []
+        for h in self.pending:
+            h = h.copy()
+            yaw = h[5] + 0.5 * w * dt
+            h[:2] += v * dt * np.array([np.cos(yaw), np.sin(yaw)])
+            h[5] = wrap_angle(h[5] + w * dt)
+            moved.append(h)
+        self.pending = moved
 
     # ------------------------------------------------------------------ start-up (no state yet)
 
@@ -442,8 +476,10 @@ class StartupMachine:
         is well constrained and beats every other by the search's margin. The winning match of
         this frame is kept in ``init_match``, with the state its prediction.
         """
+        self._carry(dt, odo_a, odo_b)
         state = self._initialise(frame, gnss, dt, odo_a, odo_b)
         if state is not None:
+            self.pending = []
             self.phase = Phase.VERIFYING if self.verify_left > 0 else Phase.TRACKING
         return state
 
@@ -507,7 +543,7 @@ class StartupMachine:
         if len(yaws) == 0:
             return None
         y0, P0 = self._init_state(gnss, circular_mean(yaws), np.sqrt(UNIFORM_YAW_VAR))
-        return y0, P0, self.search.search(frame, y0[:6], P0[:6, :6], yaws, radius)
+        return y0, P0, self._budgeted(frame, y0[:6], P0[:6, :6], yaws, radius)
 
     # ------------------------------------------------------------------ hypotheses
 
@@ -593,7 +629,7 @@ class StartupMachine:
                 return None
             if res.converged:
                 h.y, h.P = ekf.match_update(h.y_pred, h.P_pred, res)
-                h.add(res, hyp.frame_nll(res.score, res.cov_filtered, h.P_pred[:6, :6]))
+                h.add(res, res.evidence + res.prior_chi2)
                 if best is None or h.last_nll < best[0]:
                     best = (h.last_nll, res)
             else:  # nothing explained: every detection costs like an outlier
@@ -638,11 +674,12 @@ class StartupMachine:
             )
         win = kept[i]
         if win.last is None or not won:
-            if len(kept) == 1 and n_det:
+            if (len(kept) == 1 or self.pending) and n_det:
                 return self._rivals(search, n_det)
             return None
         self._count("hypothesis accepted")
         self._set_hyps([])
+        self.pending = []
         return win
 
     def _rivals(self, search, n_det: int) -> _Hypothesis | None:
@@ -653,9 +690,11 @@ class StartupMachine:
         and the lanes frame after frame while the true basin comes into view. So the search runs on
         every such frame: a solution it accepts wins at once (as at a cold start); its other converged
         solutions distinct from the hypothesis join it as rivals, scored as if they had explained the
-        earlier frames as well as it did (only this frame's evidence tells them apart).
+        earlier frames as well as it did (only this frame's evidence tells them apart). With the anytime budget
+        (``search.solves_per_frame``) it also runs while an earlier search's starts are pending, whatever the
+        number of hypotheses: their solutions join as rivals of the leading one.
         """
-        lone = self.hyps[0]
+        lone = self.hyps[0]  # the leading one (sorted by rank)
         self._count("search")
         try:
             found = search()
@@ -677,7 +716,7 @@ class StartupMachine:
         ref = min(nll for _, nll in found) if ref is None else ref
         earlier = lone.score - (lone.last.score if lone.last is not None else self.params.matcher.inlier_chi2 * n_det)
         for sol, nll in found:
-            if self.search.distinct(sol.pose_filtered, lone.y):
+            if all(self.search.distinct(sol.pose_filtered, h.y) for h in self.hyps):
                 h = _Hypothesis(*ekf.match_update(y0, P0, sol), lone.nll - ref, earlier)
                 h.add(sol, nll)
                 h.last_nll = nll - ref

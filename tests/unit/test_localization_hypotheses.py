@@ -120,8 +120,10 @@ def test_a_lone_pole_with_the_lanes_is_accepted():
     after = [_err(t, r) for t, r in out[k:] if r.mode == "map_matching"]
     assert len(after) == len(out) - k and max(after) < 0.5, after  # the pole's bearing fixes along-road over travel
     assert max(after[-10:]) < 0.3, after
-    # One frame of one pole is not a lock: its search left the basin ambiguous (elsewhere kept more than epsilon).
-    assert any(r.reason.startswith("search: ambiguous") for _, r in out[:k]), [r.reason for _, r in out[:k]]
+    # One frame of one pole is not a lock: its search left the basin ambiguous (elsewhere kept more than epsilon), or
+    # had starts left to solve on the next frames (the anytime budget, search.solves_per_frame).
+    first = ("search: ambiguous", "search: searching")
+    assert any(r.reason.startswith(first) for _, r in out[:k]), [r.reason for _, r in out[:k]]
 
 
 def test_the_default_rule_decides_the_lone_pole_case_as_main_did():

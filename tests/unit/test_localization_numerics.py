@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from mapcontainer import geometry as geo
-from mapcontainer.localization.matcher import _Eval, bilinear_with_grad
+from mapcontainer.localization.lanes import bilinear_with_grad
+from mapcontainer.localization.residuals import _Eval
 
 INTR = geo.CameraIntrinsics(1000.0, 1000.0, 640.0, 360.0, 1280, 720)
 T_BC = geo.camera_extrinsic(1.5, 0.0, 1.4, 0.05)
