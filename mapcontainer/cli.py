@@ -264,17 +264,35 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     if args.radio:
         from .experiments.network_radio import run_radio_sweeps
 
-        rows = run_radio_sweeps(
-            args.out,
-            profiles=tuple(args.radio.split(",")),
-            sweeps=tuple(args.sweep.split(",")),
-            quick=args.quick,
-            seed=args.seed,
-            workers=args.workers,
-            duration=args.duration,
-            progress=not args.quiet,
+        try:
+            seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else (args.seed,)
+            extras = tuple(int(n) for n in args.extra_vehicles.split(",")) if args.extra_vehicles else None
+        except ValueError:
+            raise ConfigError(
+                f"--seeds, --extra-vehicles: integers, got {args.seeds!r}, {args.extra_vehicles!r}"
+            ) from None
+        if args.duration is not None and args.duration <= args.warmup:
+            raise ConfigError(f"--duration ({args.duration:g} s) must exceed --warmup ({args.warmup:g} s)")
+        rows = _run_experiment(
+            args,
+            lambda ex: run_radio_sweeps(
+                args.out,
+                profiles=tuple(args.radio.split(",")),
+                sweeps=tuple(args.sweep.split(",")),
+                quick=args.quick,
+                seeds=seeds,
+                executor=ex,
+                duration=args.duration,
+                warmup_s=args.warmup,
+                progress=not args.quiet,
+                extra_vehicles=extras,
+                cpm=not args.no_cpm,
+                fresh=args.fresh,
+            ),
         )
-        print(jsonout.dumps({"out": str(args.out), "points": len(rows), "radio": args.radio}))
+        if isinstance(rows, int):
+            return rows
+        print(jsonout.dumps({"out": str(args.out), "points": len(rows), "radio": args.radio, "seeds": list(seeds)}))
         return 0
 
     if args.duration is not None and args.duration <= 1.0:
@@ -566,6 +584,14 @@ def build_parser() -> argparse.ArgumentParser:
         "sweeps (docs/radio.md) instead of the latency x loss x bandwidth grid",
     )
     en.add_argument("--sweep", default="distance,density", help="with --radio: distance, density or both")
+    en.add_argument("--seeds", default=None, help="with --radio: comma-separated seeds, every point once per seed")
+    en.add_argument(
+        "--extra-vehicles", default=None, help="with --radio: the density sweep's added vehicles (e.g. 0,40,120)"
+    )
+    en.add_argument(
+        "--warmup", type=seconds, default=1.0, help="with --radio: seconds of each run left unscored (default 1)"
+    )
+    en.add_argument("--no-cpm", action="store_true", help="with --radio: skip the density points with the CPM rules")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
 
