@@ -321,12 +321,23 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
 
 
 def _cmd_experiment_radio(args: argparse.Namespace) -> int:
-    from .experiments.radio import run_radio_validation
+    from .experiments.radio import link_cost, run_radio_validation
 
+    if args.cost_vehicles:
+        doc = link_cost(args.cost_vehicles, args.cost_duration, seed=args.seed)
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "link_cost.json").write_text(jsonout.dumps(doc) + "\n")
+        print(jsonout.dumps(doc))
+        return 0
     doc = run_radio_validation(args.out, messages=args.messages, seed=args.seed)
     worst = {f"{p['profile']} {p['state']}": p["max_abs_diff"] for p in doc["prr"]}
+    pl = max(abs(r["diff_db"]) for r in doc["path_loss_vs_ns3"])
     ok = doc["all_within_tolerance"]
-    print(jsonout.dumps({"out": str(args.out), "all_within_tolerance": ok, "max_abs_diff": worst}))
+    print(
+        jsonout.dumps(
+            {"out": str(args.out), "all_within_tolerance": ok, "max_abs_diff": worst, "path_loss_max_diff_db": pl}
+        )
+    )
     return 0 if ok else 1
 
 
@@ -597,12 +608,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     er = exp.add_parser(
         "radio",
-        help="validate the geometric radio model: PRR vs distance (LOS, NLOS) per PHY profile against the sources' "
-        "closed forms, CBR vs density (docs/radio.md)",
+        help="validate the geometric radio model: PRR vs distance (LOS, NLOS) per PHY profile against the published "
+        "models, path loss against ns-3's TR 37.885 vectors, CBR vs density (docs/radio.md)",
     )
     er.add_argument("--out", required=True, type=output_dir, help="output directory")
     er.add_argument("--messages", type=positive_int, default=1000, help="messages per distance point")
     er.add_argument("--seed", type=non_negative_int, default=0)
+    er.add_argument(
+        "--cost-vehicles",
+        type=positive_int,
+        default=None,
+        help="instead: the link model's CPU cost, one in-process run with this many connected vehicles per profile "
+        "(dsrc, its-g5, cv2x-mode4), the ratio to dsrc (OUT/link_cost.json)",
+    )
+    er.add_argument("--cost-duration", type=seconds, default=3.0, help="with --cost-vehicles: scenario seconds")
     er.set_defaults(func=_cmd_experiment_radio)
 
     es = exp.add_parser(
