@@ -52,68 +52,74 @@ def source_scenario(profile: RadioProfile) -> RadioProfile:
 
 
 def link_cost(
-    vehicles: int = 100,
+    vehicles: int | None = 100,
     duration_s: float = 3.0,
     profiles: tuple[str, ...] = ("dsrc", "its-g5", "cv2x-mode4"),
     scenario: str = "paper-urban",
     seed: int = 0,
 ) -> dict:
     """CPU cost of the link model: one in-process run (distributed, warm start, signed) of ``scenario``
-    with ``vehicles`` connected vehicles per profile; the process's CPU seconds for the whole run, the
-    CPU seconds spent inside the channel (``send`` / ``observe`` / ``on_air`` / ``deliver``, timed by
-    wrapping the channel's methods), and each profile's run CPU over the first profile's (today's link)."""
+    with ``vehicles`` connected vehicles (None: the scenario's) per profile. Per run: the process's CPU
+    seconds, the CPU seconds inside the channel's methods (timed by wrapping ``send``, ``observe``,
+    ``on_air``, ``deliver``) with each method's calls and mean CPU per call (``observe``: once a frame,
+    what the live relay does per truth message), and the run's CPU over the first profile's (today's link).
+    """
     import time
 
+    from .. import channel as classic
     from ..pipeline import run_pipeline
     from ..radio import link as radio_link
     from ..sim import load_scenario
     from ..sim.config import scale_scenario
 
     sc = scale_scenario(load_scenario(scenario), vehicles)
-    timed = {"s": 0.0}
-
-    def wrap(cls, name):
-        orig = getattr(cls, name)
-
-        def timed_call(self, *a, **k):
-            t0 = time.process_time()
-            try:
-                return orig(self, *a, **k)
-            finally:
-                timed["s"] += time.process_time() - t0
-
-        return orig, timed_call
-
-    from .. import channel as classic
-
     rows = []
     for name in profiles:
         prof = load_profile(name)
         cls = radio_link.RadioChannel if isinstance(prof, RadioProfile) else classic.Channel
-        saved = {}
-        for m in ("send", "observe", "on_air", "deliver"):
-            if hasattr(cls, m):
-                saved[m], new = wrap(cls, m)
-                setattr(cls, m, new)
-        timed["s"] = 0.0
+        spent: dict[str, list[float]] = {}
+
+        def timed(method: str, orig, spent=spent):
+            acc = spent.setdefault(method, [0.0, 0])
+
+            def call(self, *a, **k):
+                t0 = time.process_time()
+                try:
+                    return orig(self, *a, **k)
+                finally:
+                    acc[0] += time.process_time() - t0
+                    acc[1] += 1
+
+            return call
+
+        saved = {m: getattr(cls, m) for m in ("send", "observe", "on_air", "deliver") if hasattr(cls, m)}
+        for m, orig in saved.items():
+            setattr(cls, m, timed(m, orig))
         t0 = time.process_time()
         try:
             res = run_pipeline(sc, seed=seed, duration_s=duration_s, network=prof, start="warm", signing=True)
         finally:
             for m, orig in saved.items():
                 setattr(cls, m, orig)
-        cpu = time.process_time() - t0
         rows.append(
             {
                 "profile": name,
-                "run_cpu_s": round(cpu, 2),
-                "channel_cpu_s": round(timed["s"], 2),
+                "run_cpu_s": round(time.process_time() - t0, 2),
+                "channel_cpu_s": round(sum(v[0] for v in spent.values()), 2),
+                "per_call_cpu_ms": {m: round(1e3 * v[0] / max(1, v[1]), 3) for m, v in spent.items()},
+                "calls": {m: v[1] for m, v in spent.items()},
                 "delivered_msgs": int(res.channel_stats.get("delivered_msgs", 0)),
             }
         )
     for r in rows:
         r["run_cpu_vs_first"] = round(r["run_cpu_s"] / rows[0]["run_cpu_s"], 3)
-    return {"scenario": sc.name, "connected_vehicles": vehicles, "duration_s": duration_s, "seed": seed, "runs": rows}
+    return {
+        "scenario": sc.name,
+        "connected_vehicles": sc.n_connected,
+        "duration_s": duration_s,
+        "seed": seed,
+        "runs": rows,
+    }
 
 
 def ns3_path_loss_check() -> list[dict]:
