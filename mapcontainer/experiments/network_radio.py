@@ -17,7 +17,9 @@ vehicles, the radio drops by cause, and ``rmse_vs_ideal``: the fused vehicle-pos
 link's at the same density, mode and seed. ``degradation.json`` gives, per mode, profile, DCC and CPM
 setting, the mean of ``rmse_vs_ideal`` over the seeds at each density (with its smallest and largest
 seed), and the lowest density (vehicles per km of ring) at which that mean is 10 % worse than on the
-ideal link (linear interpolation between points; None: not reached in the sweep).
+ideal link (linear interpolation between points; None: not reached in the sweep; already at the sweep's
+lowest density: that density, with ``at_or_below_lowest_density``, since the sweep cannot say where below
+it the loss began).
 """
 
 from __future__ import annotations
@@ -247,11 +249,11 @@ def degradation(rows: list[dict]) -> list[dict]:
         x = sorted(by_x)
         per_seed = [np.asarray(by_x[xi], dtype=float) for xi in x]
         y = [float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for v in per_seed]
-        at = None
+        at, below = None, False
         for i, yi in enumerate(y):
             if np.isfinite(yi) and yi >= 1 + DEGRADATION:
                 if i == 0:
-                    at = x[0]
+                    at, below = x[0], True
                 else:
                     x0, y0 = x[i - 1], y[i - 1]
                     at = x0 + (x[i] - x0) * (1 + DEGRADATION - y0) / (yi - y0) if yi != y0 else x[i]
@@ -268,6 +270,7 @@ def degradation(rows: list[dict]) -> list[dict]:
                 "rmse_vs_ideal_min": [rounded(float(np.nanmin(v))) if np.isfinite(v).any() else None for v in per_seed],
                 "rmse_vs_ideal_max": [rounded(float(np.nanmax(v))) if np.isfinite(v).any() else None for v in per_seed],
                 "degrades_10pct_at_per_km": None if at is None else round(float(at), 1),
+                "at_or_below_lowest_density": below,
             }
         )
     return out

@@ -45,6 +45,8 @@ def test_degradation_interpolates_the_density_of_a_10_percent_loss():
     assert got[("distributed", False)] == pytest.approx(100 + 100 * 0.05 / 0.20)
     assert got[("distributed", True)] is None
     assert got[("centralized", False)] == 30
+    below = {(d["mode"], d["dcc"]): d["at_or_below_lowest_density"] for d in degradation(rows)}
+    assert below == {("distributed", False): False, ("distributed", True): False, ("centralized", False): True}
     assert len(got) == 3
     assert not math.isnan(got[("distributed", False)])
 
