@@ -13,13 +13,14 @@ started, centralized cold: the host localizes every vehicle from its raw data, s
 after ``warmup_s``); each radio profile with and without ETSI reactive DCC, and in distributed mode
 with and without the CPM inclusion rules (``cpm=False``: without only); and the ideal link at the same
 density as the reference; every point for each of ``seeds``. Rows add the mean CBR of the connected
-vehicles, the radio drops by cause, and ``rmse_vs_ideal``: the fused vehicle-pose RMSE over the ideal
-link's at the same density, mode and seed. ``degradation.json`` gives, per mode, profile, DCC and CPM
-setting, the mean of ``rmse_vs_ideal`` over the seeds at each density (with its smallest and largest
-seed), and the lowest density (vehicles per km of ring) at which that mean is 10 % worse than on the
-ideal link (linear interpolation between points; None: not reached in the sweep; already at the sweep's
-lowest density: that density, with ``at_or_below_lowest_density``, since the sweep cannot say where below
-it the loss began).
+vehicles, the radio drops by cause, ``rmse_vs_ideal``: the fused vehicle-pose RMSE over the ideal
+link's at the same density, mode and seed (what the link costs), and ``rmse_vs_sparsest``: over the same
+link's at the sweep's lowest density (what density costs). ``degradation.json`` gives, per mode, profile,
+DCC and CPM setting and for each of the two ratios, its mean over the seeds at each density (with its
+smallest and largest seed), and the lowest density (vehicles per km of ring) at which that mean is 10 %
+worse (linear interpolation between points; None: not reached in the sweep; already at the sweep's
+lowest density: that density, flagged ``..._at_or_below_lowest_density``, since the sweep cannot say
+where below it the loss began).
 """
 
 from __future__ import annotations
@@ -226,54 +227,67 @@ def run_radio_sweeps(
 
 
 def _reference(rows: list[dict]) -> None:
-    """``rmse_vs_ideal``: vehicle RMSE over the ideal link's at the same density, mode and seed."""
-    ideal = {
-        (r["mode"], r["x"], r["seed"]): r for r in rows if r["sweep"] == "density" and r["radio_profile"] == "ideal"
-    }
+    """``rmse_vs_ideal``: vehicle RMSE over the ideal link's at the same density, mode and seed (the link's
+    cost); ``rmse_vs_sparsest``: over the same link's (profile, DCC, CPM) at the sweep's lowest density,
+    same mode and seed (what density costs, the estimator's own share in dense traffic included)."""
+    dens = [r for r in rows if r["sweep"] == "density"]
+    ideal = {(r["mode"], r["x"], r["seed"]): r for r in dens if r["radio_profile"] == "ideal"}
+    x0 = min((r["x"] for r in dens), default=None)
+    link = lambda r: (r["mode"], r["radio_profile"], r["dcc"], r["cpm"], r["seed"])  # noqa: E731
+    sparse = {link(r): r for r in dens if r["x"] == x0}
     for r in rows:
-        ref = ideal.get((r["mode"], r["x"], r["seed"])) if r["sweep"] == "density" else None
-        ok = ref is not None and ref["vehicle_rmse_m"] and np.isfinite(ref["vehicle_rmse_m"])
-        r["rmse_vs_ideal"] = rounded(r["vehicle_rmse_m"] / ref["vehicle_rmse_m"]) if ok else float("nan")
+        r["rmse_vs_ideal"] = _ratio(r, ideal.get((r["mode"], r["x"], r["seed"])) if r["sweep"] == "density" else None)
+        r["rmse_vs_sparsest"] = _ratio(r, sparse.get(link(r)) if r["sweep"] == "density" else None)
+
+
+def _ratio(r: dict, ref: dict | None) -> float:
+    ok = ref is not None and ref["vehicle_rmse_m"] and np.isfinite(ref["vehicle_rmse_m"])
+    return rounded(r["vehicle_rmse_m"] / ref["vehicle_rmse_m"]) if ok else float("nan")
+
+
+READOUTS = {"rmse_vs_ideal": "degrades_10pct_at_per_km", "rmse_vs_sparsest": "density_degrades_10pct_at_per_km"}
+"""The two 10 % read-outs of :func:`degradation`: column -> its key in ``degradation.json``."""
 
 
 def degradation(rows: list[dict]) -> list[dict]:
-    """Per mode, radio profile, DCC and CPM: ``rmse_vs_ideal`` per density as the mean over the seeds (and
-    its smallest and largest seed), and the density where that mean first reaches 1 + DEGRADATION."""
+    """Per mode, radio profile, DCC and CPM, for each column of :data:`READOUTS`: its mean over the seeds at
+    each density (and its smallest and largest seed), and the density where that mean first reaches
+    1 + DEGRADATION (``at_or_below_lowest_density`` when the sweep's first point already does)."""
     out = []
-    groups: dict[tuple, dict[float, list[float]]] = {}
+    groups: dict[tuple, list[dict]] = {}
     for r in rows:
         if r["sweep"] == "density" and r["radio_profile"] != "ideal":
-            key = (r["mode"], r["radio_profile"], r["dcc"], r["cpm"])
-            groups.setdefault(key, {}).setdefault(r["vehicles_per_km"], []).append(r["rmse_vs_ideal"])
-    for (mode, prof, dcc, cpm), by_x in sorted(groups.items()):
-        x = sorted(by_x)
-        per_seed = [np.asarray(by_x[xi], dtype=float) for xi in x]
-        y = [float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for v in per_seed]
-        at, below = None, False
-        for i, yi in enumerate(y):
-            if np.isfinite(yi) and yi >= 1 + DEGRADATION:
-                if i == 0:
-                    at, below = x[0], True
-                else:
-                    x0, y0 = x[i - 1], y[i - 1]
-                    at = x0 + (x[i] - x0) * (1 + DEGRADATION - y0) / (yi - y0) if yi != y0 else x[i]
-                break
-        out.append(
-            {
-                "mode": mode,
-                "profile": prof,
-                "dcc": dcc,
-                "cpm": cpm,
-                "densities_per_km": x,
-                "seeds": [int(np.isfinite(v).sum()) for v in per_seed],
-                "rmse_vs_ideal": [rounded(v) for v in y],
-                "rmse_vs_ideal_min": [rounded(float(np.nanmin(v))) if np.isfinite(v).any() else None for v in per_seed],
-                "rmse_vs_ideal_max": [rounded(float(np.nanmax(v))) if np.isfinite(v).any() else None for v in per_seed],
-                "degrades_10pct_at_per_km": None if at is None else round(float(at), 1),
-                "at_or_below_lowest_density": below,
-            }
-        )
+            groups.setdefault((r["mode"], r["radio_profile"], r["dcc"], r["cpm"]), []).append(r)
+    for (mode, prof, dcc, cpm), rs in sorted(groups.items()):
+        x = sorted({r["vehicles_per_km"] for r in rs})
+        entry: dict[str, Any] = {"mode": mode, "profile": prof, "dcc": dcc, "cpm": cpm, "densities_per_km": x}
+        for col, key in READOUTS.items():
+            per_seed = [np.asarray([r.get(col, np.nan) for r in rs if r["vehicles_per_km"] == xi], float) for xi in x]
+            y = [float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for v in per_seed]
+            at, below = _crossing(x, y)
+            entry.update(
+                {
+                    f"{col}_seeds": [int(np.isfinite(v).sum()) for v in per_seed],
+                    col: [rounded(v) for v in y],
+                    f"{col}_min": [rounded(float(np.nanmin(v))) if np.isfinite(v).any() else None for v in per_seed],
+                    f"{col}_max": [rounded(float(np.nanmax(v))) if np.isfinite(v).any() else None for v in per_seed],
+                    key: None if at is None else round(float(at), 1),
+                    f"{key}_at_or_below_lowest_density": below,
+                }
+            )
+        out.append(entry)
     return out
+
+
+def _crossing(x: list[float], y: list[float]) -> tuple[float | None, bool]:
+    """The first x where y reaches 1 + DEGRADATION (linear interpolation), and whether it is x[0]."""
+    for i, yi in enumerate(y):
+        if np.isfinite(yi) and yi >= 1 + DEGRADATION:
+            if i == 0:
+                return x[0], True
+            x0, y0 = x[i - 1], y[i - 1]
+            return (x0 + (x[i] - x0) * (1 + DEGRADATION - y0) / (yi - y0) if yi != y0 else x[i]), False
+    return None, False
 
 
 def _plots(rows: list[dict], out: Path) -> None:

@@ -197,7 +197,7 @@ def test_experiment_network_radio_density_over_two_seeds_resumes(tmp_path):
     assert {(d["mode"], d["dcc"]) for d in doc["degradation"]} == {
         (m, dcc) for m in ("distributed", "centralized") for dcc in (False, True)
     }
-    assert all(d["seeds"] == [2] for d in doc["degradation"])
+    assert all(d["rmse_vs_ideal_seeds"] == [2] for d in doc["degradation"])
     _mapc(*args)
     assert (
         json.loads((out / "degradation.json").read_text())["meta"]["resumed"] == 12
