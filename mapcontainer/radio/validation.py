@@ -123,7 +123,8 @@ def simulated_prr(
 ) -> np.ndarray:
     """PRR per distance measured message by message through a :class:`RadioChannel`: a transmitter and a
     receiver ``d`` apart, both sending every 100 ms, that jump 400 m sideways between messages (so each
-    message sees fresh shadowing, as the closed form's average does); for NLOS a building between them."""
+    message sees fresh shadowing, as the reference's average over the shadowing does); for NLOS a building
+    between them."""
     out = []
     for dist in np.asarray(d, dtype=float):
         hop = 400.0
