@@ -269,17 +269,35 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     if args.radio:
         from .experiments.network_radio import run_radio_sweeps
 
-        rows = run_radio_sweeps(
-            args.out,
-            profiles=tuple(args.radio.split(",")),
-            sweeps=tuple(args.sweep.split(",")),
-            quick=args.quick,
-            seed=args.seed,
-            workers=args.workers,
-            duration=args.duration,
-            progress=not args.quiet,
+        try:
+            seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else (args.seed,)
+            extras = tuple(int(n) for n in args.extra_vehicles.split(",")) if args.extra_vehicles else None
+        except ValueError:
+            raise ConfigError(
+                f"--seeds, --extra-vehicles: integers, got {args.seeds!r}, {args.extra_vehicles!r}"
+            ) from None
+        if args.duration is not None and args.duration <= args.warmup:
+            raise ConfigError(f"--duration ({args.duration:g} s) must exceed --warmup ({args.warmup:g} s)")
+        rows = _run_experiment(
+            args,
+            lambda ex: run_radio_sweeps(
+                args.out,
+                profiles=tuple(args.radio.split(",")),
+                sweeps=tuple(args.sweep.split(",")),
+                quick=args.quick,
+                seeds=seeds,
+                executor=ex,
+                duration=args.duration,
+                warmup_s=args.warmup,
+                progress=not args.quiet,
+                extra_vehicles=extras,
+                cpm=not args.no_cpm,
+                fresh=args.fresh,
+            ),
         )
-        print(jsonout.dumps({"out": str(args.out), "points": len(rows), "radio": args.radio}))
+        if isinstance(rows, int):
+            return rows
+        print(jsonout.dumps({"out": str(args.out), "points": len(rows), "radio": args.radio, "seeds": list(seeds)}))
         return 0
 
     if args.duration is not None and args.duration <= 1.0:
@@ -308,12 +326,23 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
 
 
 def _cmd_experiment_radio(args: argparse.Namespace) -> int:
-    from .experiments.radio import run_radio_validation
+    from .experiments.radio import link_cost, run_radio_validation
 
+    if args.cost_vehicles:
+        doc = link_cost(args.cost_vehicles, args.cost_duration, seed=args.seed)
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "link_cost.json").write_text(jsonout.dumps(doc) + "\n")
+        print(jsonout.dumps(doc))
+        return 0
     doc = run_radio_validation(args.out, messages=args.messages, seed=args.seed)
     worst = {f"{p['profile']} {p['state']}": p["max_abs_diff"] for p in doc["prr"]}
+    pl = max(abs(r["diff_db"]) for r in doc["path_loss_vs_ns3"])
     ok = doc["all_within_tolerance"]
-    print(jsonout.dumps({"out": str(args.out), "all_within_tolerance": ok, "max_abs_diff": worst}))
+    print(
+        jsonout.dumps(
+            {"out": str(args.out), "all_within_tolerance": ok, "max_abs_diff": worst, "path_loss_max_diff_db": pl}
+        )
+    )
     return 0 if ok else 1
 
 
@@ -578,17 +607,33 @@ def build_parser() -> argparse.ArgumentParser:
         "sweeps (docs/radio.md) instead of the latency x loss x bandwidth grid",
     )
     en.add_argument("--sweep", default="distance,density", help="with --radio: distance, density or both")
+    en.add_argument("--seeds", default=None, help="with --radio: comma-separated seeds, every point once per seed")
+    en.add_argument(
+        "--extra-vehicles", default=None, help="with --radio: the density sweep's added vehicles (e.g. 0,40,120)"
+    )
+    en.add_argument(
+        "--warmup", type=seconds, default=1.0, help="with --radio: seconds of each run left unscored (default 1)"
+    )
+    en.add_argument("--no-cpm", action="store_true", help="with --radio: skip the density points with the CPM rules")
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
 
     er = exp.add_parser(
         "radio",
-        help="validate the geometric radio model: PRR vs distance (LOS, NLOS) per PHY profile against the sources' "
-        "closed forms, CBR vs density (docs/radio.md)",
+        help="validate the geometric radio model: PRR vs distance (LOS, NLOS) per PHY profile against the published "
+        "models, path loss against ns-3's TR 37.885 vectors, CBR vs density (docs/radio.md)",
     )
     er.add_argument("--out", required=True, type=output_dir, help="output directory")
     er.add_argument("--messages", type=positive_int, default=1000, help="messages per distance point")
     er.add_argument("--seed", type=non_negative_int, default=0)
+    er.add_argument(
+        "--cost-vehicles",
+        type=positive_int,
+        default=None,
+        help="instead: the link model's CPU cost, one in-process run with this many connected vehicles per profile "
+        "(dsrc, its-g5, cv2x-mode4), the ratio to dsrc (OUT/link_cost.json)",
+    )
+    er.add_argument("--cost-duration", type=seconds, default=3.0, help="with --cost-vehicles: scenario seconds")
     er.set_defaults(func=_cmd_experiment_radio)
 
     es = exp.add_parser(

@@ -9,13 +9,18 @@ ring stands between them (NLOS). Distributed mode, warm start, each radio profil
 
 **Density** (``density.csv``): paper-urban with ``extra`` more (non-connected) vehicles spread over the
 ring's lanes, each sending 10 Hz CAMs (the profile's background traffic); both modes (distributed warm
-started, centralized cold: the host localizes every vehicle from its raw data); each radio
-profile with and without ETSI reactive DCC, and in distributed mode with and without the CPM
-inclusion rules; and the ideal link at the same density as the reference. Rows add the mean CBR of
-the connected vehicles, the radio drops by cause, and ``rmse_vs_ideal``: the fused vehicle-pose RMSE
-over the ideal link's at the same density and seed. ``degradation.json`` gives, per mode, profile and
-DCC setting, the lowest density (vehicles per km of ring) at which the fused accuracy is 10 % worse
-than on the ideal link (linear interpolation between points; None: not reached in the sweep).
+started, centralized cold: the host localizes every vehicle from its raw data, so its scoring starts
+after ``warmup_s``); each radio profile with and without ETSI reactive DCC, and in distributed mode
+with and without the CPM inclusion rules (``cpm=False``: without only); and the ideal link at the same
+density as the reference; every point for each of ``seeds``. Rows add the mean CBR of the connected
+vehicles, the radio drops by cause, ``rmse_vs_ideal``: the fused vehicle-pose RMSE over the ideal
+link's at the same density, mode and seed (what the link costs), and ``rmse_vs_sparsest``: over the same
+link's at the sweep's lowest density (what density costs). ``degradation.json`` gives, per mode, profile,
+DCC and CPM setting and for each of the two ratios, its mean over the seeds at each density (with its
+smallest and largest seed), and the lowest density (vehicles per km of ring) at which that mean is 10 %
+worse (linear interpolation between points; None: not reached in the sweep; already at the sweep's
+lowest density: that density, flagged ``..._at_or_below_lowest_density``, since the sweep cannot say
+where below it the loss began).
 """
 
 from __future__ import annotations
@@ -35,8 +40,10 @@ from ..pipeline import PipelineResult
 from ..radio.dcc import DccParams
 from ..radio.link import RadioProfile
 from ..sim.config import ScenarioConfig, VehicleSpec, load_scenario
+from .executors import Executor
 from .network import run_network_point
 from .runner import run_all
+from .store import TaskStore
 
 __all__ = ["DEGRADATION", "GAPS_M", "EXTRA_VEHICLES", "run_radio_sweeps", "density_scenario", "gap_scenario"]
 
@@ -141,39 +148,58 @@ def run_radio_sweeps(
     profiles: tuple[str, ...] = ("its-g5",),
     sweeps: tuple[str, ...] = ("distance", "density"),
     quick: bool = False,
-    seed: int = 0,
-    workers: int = 2,
+    seeds: tuple[int, ...] = (0,),
+    executor: Executor | None = None,
     duration: float | None = None,
     warmup_s: float = 1.0,
     progress: bool = True,
     gaps_m: tuple[float, ...] | None = None,
     extra_vehicles: tuple[int, ...] | None = None,
     density_profiles: tuple[str, ...] | None = None,
+    cpm: bool = True,
+    fresh: bool = False,
 ) -> list[dict]:
     """Run the sweeps and write ``distance.csv``, ``density.csv``, ``degradation.json`` and the PNGs.
 
-    ``gaps_m``, ``extra_vehicles``: the grids (default :data:`GAPS_M`, :data:`EXTRA_VEHICLES`; quick: 3 and 2
-    points); ``density_profiles``: the profiles of the density sweep (default ``profiles``)."""
+    ``seeds``: every point runs once per seed; ``gaps_m``, ``extra_vehicles``: the grids (default
+    :data:`GAPS_M`, :data:`EXTRA_VEHICLES`; quick: 3 and 2 points); ``density_profiles``: the profiles of the
+    density sweep (default ``profiles``); ``cpm``: also run the density points with the CPM rules. Finished
+    points are kept in ``out_dir/tasks`` (the same call resumes; ``fresh``: start over)."""
+    if not seeds:
+        raise ValueError("seeds must name at least one seed")
     dur = duration if duration is not None else (3.0 if quick else 8.0)
+    if dur <= warmup_s:
+        raise ValueError(f"duration ({dur} s) must exceed warmup_s ({warmup_s} s)")
     gaps = gaps_m or ((12.0, 100.0, 200.0) if quick else GAPS_M)
     extras = extra_vehicles or ((0, 60) if quick else EXTRA_VEHICLES)
     tasks: list[tuple] = []
-    if "distance" in sweeps:
-        tasks += [("distance", g, p, False, False, "distributed", seed, dur, warmup_s) for p in profiles for g in gaps]
-    if "density" in sweeps:
-        for n, mode in itertools.product(extras, ("distributed", "centralized")):
-            tasks.append(("density", n, "ideal", False, False, mode, seed, dur, warmup_s))
-            for p, dcc in itertools.product(density_profiles or profiles, (False, True)):
-                tasks.append(("density", n, p, dcc, False, mode, seed, dur, warmup_s))
-                if mode == "distributed":
-                    tasks.append(("density", n, p, dcc, True, mode, seed, dur, warmup_s))
+    for seed in seeds:
+        if "distance" in sweeps:
+            tasks += [
+                ("distance", g, p, False, False, "distributed", seed, dur, warmup_s) for p in profiles for g in gaps
+            ]
+        if "density" in sweeps:
+            for n, mode in itertools.product(extras, ("distributed", "centralized")):
+                tasks.append(("density", n, "ideal", False, False, mode, seed, dur, warmup_s))
+                for p, dcc in itertools.product(density_profiles or profiles, (False, True)):
+                    tasks.append(("density", n, p, dcc, False, mode, seed, dur, warmup_s))
+                    if mode == "distributed" and cpm:
+                        tasks.append(("density", n, p, dcc, True, mode, seed, dur, warmup_s))
     t0 = time.perf_counter()
-    rows = run_all(
-        _task, tasks, workers, "experiment network --radio", lambda r: f"{r['sweep']} {r['x']} {r['profile']}", progress
-    )
-    rows.sort(key=lambda r: (r["sweep"], r["mode"], r["radio_profile"], r["dcc"], r["cpm"], r["x"]))
-    _reference(rows)
     out = Path(out_dir)
+    store = TaskStore(out, "network-radio", {"format": 1}, fresh=fresh)  # each task carries its settings
+    batch = run_all(
+        _task,
+        tasks,
+        "experiment network --radio",
+        lambda t: f"{t[0]} {t[1]} {t[2]}{' +dcc' if t[3] else ''}{' +cpm' if t[4] else ''} {t[5]} seed {t[6]}",
+        executor,
+        store,
+        progress,
+    )
+    rows = list(batch.results)
+    rows.sort(key=lambda r: (r["sweep"], r["mode"], r["radio_profile"], r["dcc"], r["cpm"], r["x"], r["seed"]))
+    _reference(rows)
     out.mkdir(parents=True, exist_ok=True)
     for kind in ("distance", "density"):
         part = [r for r in rows if r["sweep"] == kind]
@@ -184,12 +210,15 @@ def run_radio_sweeps(
                 w.writerows(part)
     deg = degradation(rows)
     meta = {
-        "seed": seed,
+        "seeds": list(seeds),
         "duration_s": dur,
         "warmup_s": warmup_s,
         "quick": quick,
         "profiles": list(profiles),
         "wall_s": round(time.perf_counter() - t0, 1),
+        "tasks": len(tasks),
+        "resumed": batch.resumed,
+        "task_cpu_s": round(sum(t.get("cpu_s", 0.0) for t in batch.timing if t), 1),
         "degradation_threshold": DEGRADATION,
     }
     (out / "degradation.json").write_text(json.dumps({"meta": meta, "degradation": deg}, indent=1, default=str) + "\n")
@@ -198,46 +227,67 @@ def run_radio_sweeps(
 
 
 def _reference(rows: list[dict]) -> None:
-    """``rmse_vs_ideal``: vehicle RMSE over the ideal link's at the same density, mode and seed."""
-    ideal = {(r["mode"], r["x"]): r for r in rows if r["sweep"] == "density" and r["radio_profile"] == "ideal"}
+    """``rmse_vs_ideal``: vehicle RMSE over the ideal link's at the same density, mode and seed (the link's
+    cost); ``rmse_vs_sparsest``: over the same link's (profile, DCC, CPM) at the sweep's lowest density,
+    same mode and seed (what density costs, the estimator's own share in dense traffic included)."""
+    dens = [r for r in rows if r["sweep"] == "density"]
+    ideal = {(r["mode"], r["x"], r["seed"]): r for r in dens if r["radio_profile"] == "ideal"}
+    x0 = min((r["x"] for r in dens), default=None)
+    link = lambda r: (r["mode"], r["radio_profile"], r["dcc"], r["cpm"], r["seed"])  # noqa: E731
+    sparse = {link(r): r for r in dens if r["x"] == x0}
     for r in rows:
-        ref = ideal.get((r["mode"], r["x"])) if r["sweep"] == "density" else None
-        ok = ref is not None and ref["vehicle_rmse_m"] and np.isfinite(ref["vehicle_rmse_m"])
-        r["rmse_vs_ideal"] = rounded(r["vehicle_rmse_m"] / ref["vehicle_rmse_m"]) if ok else float("nan")
+        r["rmse_vs_ideal"] = _ratio(r, ideal.get((r["mode"], r["x"], r["seed"])) if r["sweep"] == "density" else None)
+        r["rmse_vs_sparsest"] = _ratio(r, sparse.get(link(r)) if r["sweep"] == "density" else None)
+
+
+def _ratio(r: dict, ref: dict | None) -> float:
+    ok = ref is not None and ref["vehicle_rmse_m"] and np.isfinite(ref["vehicle_rmse_m"])
+    return rounded(r["vehicle_rmse_m"] / ref["vehicle_rmse_m"]) if ok else float("nan")
+
+
+READOUTS = {"rmse_vs_ideal": "degrades_10pct_at_per_km", "rmse_vs_sparsest": "density_degrades_10pct_at_per_km"}
+"""The two 10 % read-outs of :func:`degradation`: column -> its key in ``degradation.json``."""
 
 
 def degradation(rows: list[dict]) -> list[dict]:
-    """Per mode, radio profile, DCC and CPM: the density where rmse_vs_ideal first reaches 1 + DEGRADATION."""
+    """Per mode, radio profile, DCC and CPM, for each column of :data:`READOUTS`: its mean over the seeds at
+    each density (and its smallest and largest seed), and the density where that mean first reaches
+    1 + DEGRADATION (``at_or_below_lowest_density`` when the sweep's first point already does)."""
     out = []
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         if r["sweep"] == "density" and r["radio_profile"] != "ideal":
             groups.setdefault((r["mode"], r["radio_profile"], r["dcc"], r["cpm"]), []).append(r)
     for (mode, prof, dcc, cpm), rs in sorted(groups.items()):
-        rs.sort(key=lambda r: r["vehicles_per_km"])
-        x = [r["vehicles_per_km"] for r in rs]
-        y = [r["rmse_vs_ideal"] for r in rs]
-        at = None
-        for i, yi in enumerate(y):
-            if np.isfinite(yi) and yi >= 1 + DEGRADATION:
-                if i == 0:
-                    at = x[0]
-                else:
-                    x0, y0 = x[i - 1], y[i - 1]
-                    at = x0 + (x[i] - x0) * (1 + DEGRADATION - y0) / (yi - y0) if yi != y0 else x[i]
-                break
-        out.append(
-            {
-                "mode": mode,
-                "profile": prof,
-                "dcc": dcc,
-                "cpm": cpm,
-                "densities_per_km": x,
-                "rmse_vs_ideal": y,
-                "degrades_10pct_at_per_km": None if at is None else round(float(at), 1),
-            }
-        )
+        x = sorted({r["vehicles_per_km"] for r in rs})
+        entry: dict[str, Any] = {"mode": mode, "profile": prof, "dcc": dcc, "cpm": cpm, "densities_per_km": x}
+        for col, key in READOUTS.items():
+            per_seed = [np.asarray([r.get(col, np.nan) for r in rs if r["vehicles_per_km"] == xi], float) for xi in x]
+            y = [float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for v in per_seed]
+            at, below = _crossing(x, y)
+            entry.update(
+                {
+                    f"{col}_seeds": [int(np.isfinite(v).sum()) for v in per_seed],
+                    col: [rounded(v) for v in y],
+                    f"{col}_min": [rounded(float(np.nanmin(v))) if np.isfinite(v).any() else None for v in per_seed],
+                    f"{col}_max": [rounded(float(np.nanmax(v))) if np.isfinite(v).any() else None for v in per_seed],
+                    key: None if at is None else round(float(at), 1),
+                    f"{key}_at_or_below_lowest_density": below,
+                }
+            )
+        out.append(entry)
     return out
+
+
+def _crossing(x: list[float], y: list[float]) -> tuple[float | None, bool]:
+    """The first x where y reaches 1 + DEGRADATION (linear interpolation), and whether it is x[0]."""
+    for i, yi in enumerate(y):
+        if np.isfinite(yi) and yi >= 1 + DEGRADATION:
+            if i == 0:
+                return x[0], True
+            x0, y0 = x[i - 1], y[i - 1]
+            return (x0 + (x[i] - x0) * (1 + DEGRADATION - y0) / (yi - y0) if yi != y0 else x[i]), False
+    return None, False
 
 
 def _plots(rows: list[dict], out: Path) -> None:
@@ -250,12 +300,12 @@ def _plots(rows: list[dict], out: Path) -> None:
     if dist:
         fig, ax = plt.subplots(1, 3, figsize=(14, 4))
         for prof in sorted({r["radio_profile"] for r in dist}):
-            rs = sorted([r for r in dist if r["radio_profile"] == prof], key=lambda r: r["x"])
-            x = [r["x"] for r in rs]
-            ax[0].plot(x, [r["delivered_fraction"] for r in rs], "o-", label=prof)
-            ax[1].plot(x, [r["age_s_mean"] for r in rs], "o-", label=prof)
-            ax[2].plot(x, [r["object_coverage"] for r in rs], "o-", label=f"{prof}: coverage")
-            ax[2].plot(x, [r["state_nlos_fraction"] for r in rs], "x--", label=f"{prof}: NLOS fraction")
+            rs = [r for r in dist if r["radio_profile"] == prof]
+            x = _xs(rs, "x")
+            ax[0].plot(x, _mean_by_x(rs, "x", "delivered_fraction"), "o-", label=prof)
+            ax[1].plot(x, _mean_by_x(rs, "x", "age_s_mean"), "o-", label=prof)
+            ax[2].plot(x, _mean_by_x(rs, "x", "object_coverage"), "o-", label=f"{prof}: coverage")
+            ax[2].plot(x, _mean_by_x(rs, "x", "state_nlos_fraction"), "x--", label=f"{prof}: NLOS fraction")
         for a, lab in zip(ax, ("PRR cv1 -> host", "age of information (s)", "obstacle coverage / NLOS"), strict=True):
             a.set(xlabel="gap ego -> cv1 along the ring (m)", ylabel=lab)
             a.legend(fontsize=7)
@@ -267,14 +317,14 @@ def _plots(rows: list[dict], out: Path) -> None:
     if dens:
         fig, ax = plt.subplots(1, 4, figsize=(18, 4))
         for (mode, prof, dcc), rs in sorted(_group(dens).items()):
-            rs = sorted(rs, key=lambda r: r["vehicles_per_km"])
-            x = [r["vehicles_per_km"] for r in rs]
+            k = "vehicles_per_km"
+            x = _xs(rs, k)
             lab = f"{mode[:4]} {prof}{' +DCC' if dcc else ''}"
             if prof != "ideal":
-                ax[0].plot(x, [r["cbr_mean"] for r in rs], "o-", label=lab)
-                ax[1].plot(x, [r["delivered_fraction"] for r in rs], "o-", label=lab)
-                ax[2].plot(x, [r["rmse_vs_ideal"] for r in rs], "o-", label=lab)
-            ax[3].plot(x, [r["bytes_on_air_per_s_per_vehicle"] for r in rs], "o-", label=lab)
+                ax[0].plot(x, _mean_by_x(rs, k, "cbr_mean"), "o-", label=lab)
+                ax[1].plot(x, _mean_by_x(rs, k, "delivered_fraction"), "o-", label=lab)
+                ax[2].plot(x, _mean_by_x(rs, k, "rmse_vs_ideal"), "o-", label=lab)
+            ax[3].plot(x, _mean_by_x(rs, k, "bytes_on_air_per_s_per_vehicle"), "o-", label=lab)
         ax[2].axhline(1 + DEGRADATION, color="grey", ls=":")
         for a, lab in zip(
             ax,
@@ -286,11 +336,20 @@ def _plots(rows: list[dict], out: Path) -> None:
             ),
             strict=True,
         ):
-            a.set(xlabel="vehicles per km of ring", ylabel=lab)
+            a.set(xlabel="vehicles per km of ring", ylabel=f"{lab} (mean over seeds)")
             a.legend(fontsize=6)
         fig.tight_layout()
         fig.savefig(out / "radio_density.png", dpi=110)
         plt.close(fig)
+
+
+def _xs(rows: list[dict], xkey: str) -> list[float]:
+    return sorted({r[xkey] for r in rows})
+
+
+def _mean_by_x(rows: list[dict], xkey: str, ykey: str) -> list[float]:
+    """``ykey``'s mean over the seeds at each ``xkey`` (in :func:`_xs` order; the plots show seed means)."""
+    return [float(np.nanmean([float(r[ykey]) for r in rows if r[xkey] == x])) for x in _xs(rows, xkey)]
 
 
 def _group(rows: list[dict]) -> dict[tuple, list[dict]]:

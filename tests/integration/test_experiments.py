@@ -177,3 +177,31 @@ def test_bench_fusion_sizes_prints_every_run_the_growth_and_the_oracle(tmp_path)
     assert g["us_per_detection_over_first"][0] == 1.0 and _finite(g["exponent_vs_detections"])
     bad = _mapc("bench", "fusion", "--sizes", "4x14", check=False)
     assert bad.returncode == 2 and "--sizes" in bad.stderr
+
+
+@pytest.mark.slow
+def test_experiment_network_radio_density_over_two_seeds_resumes(tmp_path):
+    out = tmp_path / "radio"
+    args = (
+        "experiment", "network", "--radio", "its-g5", "--sweep", "density", "--seeds", "0,1", "--extra-vehicles", "0",
+        "--no-cpm", "--duration", "1.5", "--warmup", "0.5", "--workers", "2", "--quiet", "--out", str(out),
+    )  # fmt: skip
+    proc = _mapc(*args)
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == {
+        "out": str(out), "points": 12, "radio": "its-g5", "seeds": [0, 1]
+    }  # fmt: skip
+    with open(out / "density.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted({r["seed"] for r in rows}) == ["0", "1"] and len(rows) == 12  # 2 seeds x 2 modes x 3 links
+    doc = json.loads((out / "degradation.json").read_text())
+    assert doc["meta"]["seeds"] == [0, 1] and doc["meta"]["tasks"] == 12 and doc["meta"]["resumed"] == 0
+    assert {(d["mode"], d["dcc"]) for d in doc["degradation"]} == {
+        (m, dcc) for m in ("distributed", "centralized") for dcc in (False, True)
+    }
+    assert all(d["rmse_vs_ideal_seeds"] == [2] for d in doc["degradation"])
+    _mapc(*args)
+    assert (
+        json.loads((out / "degradation.json").read_text())["meta"]["resumed"] == 12
+    )  # every point read back from OUT/tasks
+    bad = _mapc(*args[:-2], "--seeds", "0,x", "--out", str(tmp_path / "bad"), check=False)
+    assert bad.returncode == 2 and "--seeds" in bad.stderr
