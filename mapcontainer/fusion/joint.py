@@ -41,7 +41,9 @@ the track's; ``FusionParams.gate_probability``) updates its pose as any other (c
 its unambiguous detections add, and the localizer started from it is not re-seeded tighter than that
 evidence; from its first map-matched frame it gains from everything again. Suburban development seeds
 1000, 1003, 1004 (centralized, vehicle RMSE / ANEES): 0.48 / 12.7, 0.40 / 7.9, 3.43 / 483 before;
-0.44 / 12.0, 0.45 / 6.6, 0.80 / 8.5 after (a consider state in every update: 1.46, 1.27, 2.12 m). Approximations, each stated: a filter, not a smoother (a measurement is linearized once);
+0.44 / 12.0, 0.45 / 6.6, 0.80 / 8.5 after (a consider state in every update: 1.46, 1.27, 2.12 m).
+
+Approximations, each stated: a filter, not a smoother (a measurement is linearized once);
 a newly confirmed track starts from the frame's detection of it, correlated with its observer as a
 landmark in EKF-SLAM (the earlier held detections give only its velocity), and a merged track's
 information goes with it; a frame older than its vehicle's newest is refused (``out_of_order``), one older
@@ -484,10 +486,7 @@ class JointHost:
         return [
             self._sl(k)
             for k in self._keys
-            if k[0] == "v"
-            and k != free
-            and (res := self._results.get(k[1])) is not None
-            and res.mode != "map_matching"
+            if k[0] == "v" and k != free and (res := self._results.get(k[1])) is not None and res.mode != "map_matching"
         ]
 
     def _sync_tracker(self) -> None:

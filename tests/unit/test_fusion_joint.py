@@ -190,12 +190,12 @@ def test_a_vehicle_in_fallback_is_not_tightened_through_shared_objects(host):
     host.mu[so][:3] = host.mu[sa][:3] + np.array([10.0, 2.0, 0.0])
     host.mu[sb][:3] = host.mu[so][:3] - np.array([12.0, -3.0, 0.0])
 
-    def detect(obs: str, z_off=np.zeros(3)):
+    def detect(obs: str, z_off=None):
         s = host._sl(("v", obs))
         x = host.mu[s]
         from mapcontainer.geometry import rpy_to_matrix
 
-        z = rpy_to_matrix(*x[3:6]).T @ (host.mu[so][:3] - x[:3]) + z_off
+        z = rpy_to_matrix(*x[3:6]).T @ (host.mu[so][:3] - x[:3]) + (0.0 if z_off is None else z_off)
         host._ekf_update(("v", obs), [(("o", 1), z, 0.04 * np.eye(3))])
 
     _modes(host, a="fallback", b="map_matching")
