@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+from scipy.stats import norm
 
 from schemas import FusedState, Rejection, decode
 
@@ -206,22 +207,37 @@ def detections_in_map(
     idx = np.flatnonzero(keep)
     cls = np.asarray(objects.cls)
     dets = [
-        Detection(sender, t, int(i), p_body[i], cov_body[i], int(cls[i]), p_map[j], S_map[j])
-        for j, i in enumerate(idx)
+        Detection(sender, t, int(i), p_body[i], cov_body[i], int(cls[i]), p_map[j], S_map[j]) for j, i in enumerate(idx)
     ]
     return MappedDetections(dets, idx, p_map, S_map, cls[keep])
 
 
 def vehicle_candidate(
-    vid: str, p_map, cov_p, v_map, dt: float, params: FusionParams, bias_p: np.ndarray | None = None
+    vid: str,
+    p_map,
+    cov_p,
+    v_map,
+    dt: float,
+    params: FusionParams,
+    bias_p: np.ndarray | None = None,
+    protection: tuple[float, np.ndarray, float] | None = None,
 ) -> VehicleCandidate:
     """Vehicle ``vid`` where its state says it is ``dt`` after the state's time: p + v dt, with covariance
-    cov_p (3x3) [+ bias_p, the part of the body's error its every frame repeats] + (sigma_v dt)^2 I."""
+    cov_p (3x3) [+ bias_p, the part of the body's error its every frame repeats] + (sigma_v dt)^2 I.
+    ``protection``: (yaw, (lateral, longitudinal) protection levels (m), integrity risk per axis) of that
+    state where the vehicle claims integrity; the levels grow by k sigma_v dt (k the risk's Gaussian
+    quantile) and gate the detections of it (:func:`~.association.protection_gate`)."""
     cov = np.asarray(cov_p, dtype=float)
     if bias_p is not None:
         cov = cov + bias_p
-    cov = cov + (params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
-    return VehicleCandidate(vid, np.asarray(p_map, dtype=float) + np.asarray(v_map, dtype=float) * dt, cov)
+    s_dt = params.vehicle_velocity_sigma_mps * abs(dt)
+    cov = cov + s_dt**2 * np.eye(3)
+    box = None
+    if protection is not None:
+        yaw, pl, risk = protection
+        k = float(norm.isf(0.5 * risk))
+        box = (float(yaw), float(pl[0]) + k * s_dt, float(pl[1]) + k * s_dt, k)
+    return VehicleCandidate(vid, np.asarray(p_map, dtype=float) + np.asarray(v_map, dtype=float) * dt, cov, box)
 
 
 def cross_observation(

@@ -333,8 +333,12 @@ class JointHost:
                 continue
             x = self.mu[s]
             S_b = bias_cov(self.loc_params.match_bias_sigma, float(x[5]))[:3, :3]
-            v = self._results[key[1]].velocity_map
-            out.append(vehicle_candidate(key[1], x[:3], self.P[s, s][:3, :3], v, dt, self.params, S_b))
+            res = self._results[key[1]]
+            pl = res.protection_level
+            prot = None if pl is None or res.t != self._t[key] else (x[5], pl, self.loc_params.integrity_risk)
+            out.append(
+                vehicle_candidate(key[1], x[:3], self.P[s, s][:3, :3], res.velocity_map, dt, self.params, S_b, prot)
+            )
         return out
 
     def _detections(self, raw: RawObservations) -> list[tuple[str, Detection]]:
