@@ -204,6 +204,7 @@ class Track:
     cls_votes: Counter = field(default_factory=Counter)
     hit_keys: set = field(default_factory=set)
     frames: dict = field(default_factory=dict)  # (sender, time key) -> t of its detections
+    det_cov: dict = field(default_factory=dict)  # sender -> body-frame covariance of its newest detection
     pending: list[tuple[Detection, float]] = field(default_factory=list)  # held detections and their d2
 
     @property
@@ -405,6 +406,7 @@ class Tracker:
         tr.vote(det.cls)
         tr.hit_keys.add(time_key(det.t))
         tr.frames[(det.sender, time_key(det.t))] = det.t
+        tr.det_cov[det.sender] = det.cov_body
         tr.pending.append((det, 0.0))
         self.tracks[tr.uid] = tr
         return tr

@@ -28,6 +28,7 @@ from .hostcore import (
     fused_state,
     observer_bias,
     observer_weights,
+    persistent_share,
     vehicle_at,
     vehicle_candidate,
 )
@@ -328,8 +329,8 @@ class Container:
         for vid in vids:
             ts, T, cov_xi = g.vehicle_estimate(vid)
             pose = vector_from_pose3(T)
-            if vid in self._bias_sigma:
-                seen_from[vid] = (pose, bias_cov(self._bias_sigma[vid], float(pose[5])))
+            S_b = bias_cov(self._bias_sigma[vid], float(pose[5])) if vid in self._bias_sigma else np.zeros((6, 6))
+            seen_from[vid] = (pose, S_b)
             if cov_xi is None:
                 cov = g.vehicles[vid].latest().cov
             else:
@@ -350,7 +351,9 @@ class Container:
             xs.append(np.concatenate([p, v]))
             C = np.array(tr.P if C is None else C)
             w = observer_weights(tr.frames, t - pp.window_s)
-            C[:3, :3] += observer_bias(p, [(*seen_from[v], w[v]) for v in w if v in seen_from])
+            f = persistent_share(pp)
+            seen = [(*seen_from[o], w[o], f * tr.det_cov[o] if o in tr.det_cov else None) for o in w if o in seen_from]
+            C[:3, :3] += observer_bias(p, seen)
             Cs.append(C)
         ps, covs, vs = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))
         if ids:

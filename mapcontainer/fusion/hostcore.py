@@ -51,6 +51,7 @@ __all__ = [
     "make_pd",
     "observer_bias",
     "observer_weights",
+    "persistent_share",
     "vehicle_at",
     "vehicle_candidate",
 ]
@@ -265,24 +266,36 @@ def observer_weights(frames: dict, t_min: float) -> dict[str, float]:
     return {v: k / total for v, k in n.items()} if total else {}
 
 
-def observer_bias(p_map, observers: list[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
+def persistent_share(params: FusionParams) -> float:
+    """The share of a detection's variance that one observer's detections of an object in the window repeat:
+    f g(T / tau), f = ``detection_persistent_fraction``, tau = ``detection_persistence_s``, T = ``window_s``,
+    g(x) = 2 (x - 1 + exp(-x)) / x^2 the variance of the mean of a unit first-order Gauss-Markov process over T
+    (1 for T << tau: the whole persistent part; -> 0 for T >> tau: it averages out)."""
+    x = params.window_s / params.detection_persistence_s
+    return params.detection_persistent_fraction * 2.0 * (x - 1.0 + float(np.exp(-x))) / (x * x)
+
+
+def observer_bias(p_map, observers: list[tuple]) -> np.ndarray:
     """What the observers' repeated errors add to the covariance of an object at ``p_map`` (3,) that they saw:
 
-        C = sum_v w_v^2 J_v S_v J_v^T,   J_v = d (t_v + R_v z_v) / d pose_v,   z_v = R_v^T (p - t_v),
+        C = sum_v w_v^2 (J_v S_v J_v^T + R_v D_v R_v^T),   J_v = d (t_v + R_v z_v) / d pose_v,   z_v = R_v^T (p - t_v),
 
     ``observers``: (pose_v (6,) [x, y, z, roll, pitch, yaw], S_v (6, 6) the map-frame covariance of the error
     every frame of v repeats (its calibration, the map's survey drift: VehiclePrior.pose_bias_sigma), w_v its
-    share of the detections). Such an error does not average out over v's detections, so the estimator, which
-    takes them as independent, leaves it out of the object's covariance; errors of different observers are
-    independent, so the weighted mean's covariance is the sum of the w_v^2 terms. A consider term: the host
-    does not estimate these errors, it states what they do to the estimate."""
+    share of the detections[, D_v (3, 3) the persistent part of v's detection error in its body frame, or
+    None: :func:`persistent_share` of its newest detection's covariance]). Such errors do not average out over
+    v's detections, so the estimator, which takes them as independent, leaves them out of the object's
+    covariance; errors of different observers are independent, so the weighted mean's covariance is the sum
+    of the w_v^2 terms. A consider term: the host does not estimate these errors, it states what they do to
+    the estimate."""
     p = np.asarray(p_map, dtype=float)
     C = np.zeros((3, 3))
-    for pose, S_v, w in observers:
+    for pose, S_v, w, *rest in observers:
         pose = np.asarray(pose, dtype=float)
         R = geo.rpy_to_matrix(*pose[3:6])
         z = R.T @ (p - pose[:3])
-        C += w * w * observations_to_map(pose, S_v, z[None], np.zeros((1, 3, 3)))[1][0]
+        D = rest[0] if rest and rest[0] is not None else np.zeros((3, 3))
+        C += w * w * observations_to_map(pose, S_v, z[None], np.asarray(D, dtype=float)[None])[1][0]
     return C
 
 

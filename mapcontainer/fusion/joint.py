@@ -83,6 +83,7 @@ from .hostcore import (
     fused_state,
     observer_bias,
     observer_weights,
+    persistent_share,
     vehicle_at,
     vehicle_candidate,
 )
@@ -539,7 +540,9 @@ class JointHost:
             cls.append(tr.cls)
             ps.append(x[:3])
             vs.append(self.mu[s][3:])
-            Ps.append(C[:3, :3] + observer_bias(x[:3], [(*seen_from[v], w[v]) for v in w if v in seen_from]))
+            f = persistent_share(pp)
+            seen = [(*seen_from[o], w[o], f * tr.det_cov[o] if o in tr.det_cov else None) for o in w if o in seen_from]
+            Ps.append(C[:3, :3] + observer_bias(x[:3], seen))
         self._seq += 1
         frames = self._cycle_frames  # a filter has no window: the frames this cycle took in
         return fused_state(self.fleet, self.host_id, self._seq, t, vids, poses, covs, ids, cls, ps, vs, Ps, frames, [])
