@@ -56,6 +56,7 @@ __all__ = [
     "cv_predict",
     "mahalanobis_matrix",
     "observations_to_map",
+    "protection_gate",
 ]
 
 _INFEASIBLE = 1e12
@@ -151,11 +152,32 @@ class Detection:
 
 @dataclass(frozen=True)
 class VehicleCandidate:
-    """A connected vehicle's reported position at a detection's time (for gating)."""
+    """A connected vehicle's reported position at a detection's time (for gating). ``protection``: where the
+    vehicle claims integrity, (yaw, lateral and longitudinal protection levels (m), the Gaussian quantile k of
+    their integrity risk): its body is within them of p_map but with that risk per axis."""
 
     vid: str
     p_map: np.ndarray
     cov: np.ndarray
+    protection: tuple[float, float, float, float] | None = None
+
+
+def protection_gate(m: np.ndarray, S_m: np.ndarray, vehicles: list[VehicleCandidate]) -> np.ndarray:
+    """(N, V) bool: detection i (map position m (N, 3), covariance S_m (N, 3, 3)) can be of vehicle j by its
+    protection levels: in the vehicle's frame (yaw), |across| <= PL_lat + k sigma_across and |along| <= PL_long +
+    k sigma_along (sigma: the detection's own, k: the vehicle's integrity quantile). A vehicle that claims no
+    integrity passes every detection (its covariance alone gates it)."""
+    out = np.ones((len(m), len(vehicles)), dtype=bool)
+    for j, v in enumerate(vehicles):
+        if v.protection is None:
+            continue
+        yaw, pl_lat, pl_long, k = v.protection
+        along, across = np.array([np.cos(yaw), np.sin(yaw), 0.0]), np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+        e = m - v.p_map
+        for axis, pl in ((across, pl_lat), (along, pl_long)):
+            sd = np.sqrt(np.einsum("i,nij,j->n", axis, S_m, axis))
+            out[:, j] &= np.abs(e @ axis) <= pl + k * sd
+    return out
 
 
 @dataclass(frozen=True)
@@ -182,6 +204,7 @@ class Track:
     cls_votes: Counter = field(default_factory=Counter)
     hit_keys: set = field(default_factory=set)
     frames: dict = field(default_factory=dict)  # (sender, time key) -> t of its detections
+    det_cov: dict = field(default_factory=dict)  # sender -> body-frame covariance of its newest detection
     pending: list[tuple[Detection, float]] = field(default_factory=list)  # held detections and their d2
 
     @property
@@ -315,6 +338,7 @@ class Tracker:
         d2_all = np.where(compat, d2, np.inf)
         gate = np.r_[np.full(nv, self.vehicle_gate), np.full(nt, self.gate)]
         gated = d2_all <= gate
+        gated[:, :nv] &= protection_gate(m, np.array([d.cov_map for d in dets]), vehicles)
         nll = d2 + logdet  # -2 ln N(m; c, S) - 3 ln 2 pi: a wide candidate pays for its width
         cost = np.where(gated, nll, _INFEASIBLE)
         rows, cols = linear_sum_assignment(cost)
@@ -382,6 +406,7 @@ class Tracker:
         tr.vote(det.cls)
         tr.hit_keys.add(time_key(det.t))
         tr.frames[(det.sender, time_key(det.t))] = det.t
+        tr.det_cov[det.sender] = det.cov_body
         tr.pending.append((det, 0.0))
         self.tracks[tr.uid] = tr
         return tr

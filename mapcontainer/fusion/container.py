@@ -28,6 +28,7 @@ from .hostcore import (
     fused_state,
     observer_bias,
     observer_weights,
+    persistent_share,
     vehicle_at,
     vehicle_candidate,
 )
@@ -61,6 +62,8 @@ class Container:
         self._cross: list = []  # (observed vehicle id, Detection) waiting for that vehicle's frame
         # vid -> body-frame 1-sigmas of the error its every frame repeats (VehiclePrior.pose_bias_sigma)
         self._bias_sigma: dict[str, np.ndarray] = {}
+        # (vid, t_meas) -> (protection levels, integrity risk) of the frames in the window that claim integrity
+        self._protection: dict[tuple[str, float], tuple[np.ndarray, float]] = {}
         self._seq = 0
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
@@ -105,9 +108,12 @@ class Container:
                 self._bias_sigma.pop(m.sender, None)
             else:
                 self._bias_sigma[m.sender] = np.asarray(m.pose_bias_sigma, dtype=float)
+            if m.protection_level_m is not None:  # the vehicle claims integrity for this frame
+                self._protection[(m.sender, float(m.t_meas))] = (np.asarray(m.protection_level_m), m.integrity_risk)
             if key is None:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
+        self._protection = {k: v for k, v in self._protection.items() if k[1] >= t_min}
         self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
         self._reported_at: dict[float, tuple] = {}
         if self.params.misbehaviour:  # the tracks one vehicle alone reported in the window (ghost check)
@@ -274,7 +280,11 @@ class Container:
             s = chain.nearest(t, self.params.vehicle_gate_max_dt_s)
             if s is None:
                 continue
-            out.append(vehicle_candidate(vid, s.pose[:3], s.cov[:3, :3], s.v_map, t - s.t, self.params))
+            pl = self._protection.get((vid, float(s.t)))
+            prot = None if pl is None else (float(s.pose[5]), *pl)
+            out.append(
+                vehicle_candidate(vid, s.pose[:3], s.cov[:3, :3], s.v_map, t - s.t, self.params, protection=prot)
+            )
         self._candidates[t] = out
         return out
 
@@ -319,8 +329,8 @@ class Container:
         for vid in vids:
             ts, T, cov_xi = g.vehicle_estimate(vid)
             pose = vector_from_pose3(T)
-            if vid in self._bias_sigma:
-                seen_from[vid] = (pose, bias_cov(self._bias_sigma[vid], float(pose[5])))
+            S_b = bias_cov(self._bias_sigma[vid], float(pose[5])) if vid in self._bias_sigma else np.zeros((6, 6))
+            seen_from[vid] = (pose, S_b)
             if cov_xi is None:
                 cov = g.vehicles[vid].latest().cov
             else:
@@ -341,7 +351,9 @@ class Container:
             xs.append(np.concatenate([p, v]))
             C = np.array(tr.P if C is None else C)
             w = observer_weights(tr.frames, t - pp.window_s)
-            C[:3, :3] += observer_bias(p, [(*seen_from[v], w[v]) for v in w if v in seen_from])
+            f = persistent_share(pp)
+            seen = [(*seen_from[o], w[o], f * tr.det_cov[o] if o in tr.det_cov else None) for o in w if o in seen_from]
+            C[:3, :3] += observer_bias(p, seen)
             Cs.append(C)
         ps, covs, vs = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))
         if ids:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+from scipy.stats import norm
 
 from schemas import FusedState, Rejection, decode
 
@@ -50,6 +51,7 @@ __all__ = [
     "make_pd",
     "observer_bias",
     "observer_weights",
+    "persistent_share",
     "vehicle_at",
     "vehicle_candidate",
 ]
@@ -206,22 +208,37 @@ def detections_in_map(
     idx = np.flatnonzero(keep)
     cls = np.asarray(objects.cls)
     dets = [
-        Detection(sender, t, int(i), p_body[i], cov_body[i], int(cls[i]), p_map[j], S_map[j])
-        for j, i in enumerate(idx)
+        Detection(sender, t, int(i), p_body[i], cov_body[i], int(cls[i]), p_map[j], S_map[j]) for j, i in enumerate(idx)
     ]
     return MappedDetections(dets, idx, p_map, S_map, cls[keep])
 
 
 def vehicle_candidate(
-    vid: str, p_map, cov_p, v_map, dt: float, params: FusionParams, bias_p: np.ndarray | None = None
+    vid: str,
+    p_map,
+    cov_p,
+    v_map,
+    dt: float,
+    params: FusionParams,
+    bias_p: np.ndarray | None = None,
+    protection: tuple[float, np.ndarray, float] | None = None,
 ) -> VehicleCandidate:
     """Vehicle ``vid`` where its state says it is ``dt`` after the state's time: p + v dt, with covariance
-    cov_p (3x3) [+ bias_p, the part of the body's error its every frame repeats] + (sigma_v dt)^2 I."""
+    cov_p (3x3) [+ bias_p, the part of the body's error its every frame repeats] + (sigma_v dt)^2 I.
+    ``protection``: (yaw, (lateral, longitudinal) protection levels (m), integrity risk per axis) of that
+    state where the vehicle claims integrity; the levels grow by k sigma_v dt (k the risk's Gaussian
+    quantile) and gate the detections of it (:func:`~.association.protection_gate`)."""
     cov = np.asarray(cov_p, dtype=float)
     if bias_p is not None:
         cov = cov + bias_p
-    cov = cov + (params.vehicle_velocity_sigma_mps * dt) ** 2 * np.eye(3)
-    return VehicleCandidate(vid, np.asarray(p_map, dtype=float) + np.asarray(v_map, dtype=float) * dt, cov)
+    s_dt = params.vehicle_velocity_sigma_mps * abs(dt)
+    cov = cov + s_dt**2 * np.eye(3)
+    box = None
+    if protection is not None:
+        yaw, pl, risk = protection
+        k = float(norm.isf(0.5 * risk))
+        box = (float(yaw), float(pl[0]) + k * s_dt, float(pl[1]) + k * s_dt, k)
+    return VehicleCandidate(vid, np.asarray(p_map, dtype=float) + np.asarray(v_map, dtype=float) * dt, cov, box)
 
 
 def cross_observation(
@@ -249,24 +266,36 @@ def observer_weights(frames: dict, t_min: float) -> dict[str, float]:
     return {v: k / total for v, k in n.items()} if total else {}
 
 
-def observer_bias(p_map, observers: list[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
+def persistent_share(params: FusionParams) -> float:
+    """The share of a detection's variance that one observer's detections of an object in the window repeat:
+    f g(T / tau), f = ``detection_persistent_fraction``, tau = ``detection_persistence_s``, T = ``window_s``,
+    g(x) = 2 (x - 1 + exp(-x)) / x^2 the variance of the mean of a unit first-order Gauss-Markov process over T
+    (1 for T << tau: the whole persistent part; -> 0 for T >> tau: it averages out)."""
+    x = params.window_s / params.detection_persistence_s
+    return params.detection_persistent_fraction * 2.0 * (x - 1.0 + float(np.exp(-x))) / (x * x)
+
+
+def observer_bias(p_map, observers: list[tuple]) -> np.ndarray:
     """What the observers' repeated errors add to the covariance of an object at ``p_map`` (3,) that they saw:
 
-        C = sum_v w_v^2 J_v S_v J_v^T,   J_v = d (t_v + R_v z_v) / d pose_v,   z_v = R_v^T (p - t_v),
+        C = sum_v w_v^2 (J_v S_v J_v^T + R_v D_v R_v^T),   J_v = d (t_v + R_v z_v) / d pose_v,   z_v = R_v^T (p - t_v),
 
     ``observers``: (pose_v (6,) [x, y, z, roll, pitch, yaw], S_v (6, 6) the map-frame covariance of the error
     every frame of v repeats (its calibration, the map's survey drift: VehiclePrior.pose_bias_sigma), w_v its
-    share of the detections). Such an error does not average out over v's detections, so the estimator, which
-    takes them as independent, leaves it out of the object's covariance; errors of different observers are
-    independent, so the weighted mean's covariance is the sum of the w_v^2 terms. A consider term: the host
-    does not estimate these errors, it states what they do to the estimate."""
+    share of the detections[, D_v (3, 3) the persistent part of v's detection error in its body frame, or
+    None: :func:`persistent_share` of its newest detection's covariance]). Such errors do not average out over
+    v's detections, so the estimator, which takes them as independent, leaves them out of the object's
+    covariance; errors of different observers are independent, so the weighted mean's covariance is the sum
+    of the w_v^2 terms. A consider term: the host does not estimate these errors, it states what they do to
+    the estimate."""
     p = np.asarray(p_map, dtype=float)
     C = np.zeros((3, 3))
-    for pose, S_v, w in observers:
+    for pose, S_v, w, *rest in observers:
         pose = np.asarray(pose, dtype=float)
         R = geo.rpy_to_matrix(*pose[3:6])
         z = R.T @ (p - pose[:3])
-        C += w * w * observations_to_map(pose, S_v, z[None], np.zeros((1, 3, 3)))[1][0]
+        D = rest[0] if rest and rest[0] is not None else np.zeros((3, 3))
+        C += w * w * observations_to_map(pose, S_v, z[None], np.asarray(D, dtype=float)[None])[1][0]
     return C
 
 

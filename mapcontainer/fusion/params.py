@@ -219,6 +219,22 @@ class FusionParams(BaseModel):
         ),
     )
 
+    detection_persistent_fraction: float = Field(
+        0.5,
+        ge=0,
+        lt=1,
+        description=(
+            "share of a detection's reported variance that persists from frame to frame (the same object's shape,"
+            " size prior and box fit: Schlager et al. 2020, SAE Int. J. CAV 3(3); configs/sensors/default.yaml"
+            " detector.errors.persistent_fraction): it does not average out over one observer's detections of an"
+            " object, so the object's covariance takes it in as a consider term (hostcore.observer_bias); 0: none"
+        ),
+    )
+    detection_persistence_s: float = Field(
+        2.0,
+        gt=0,
+        description="correlation time of that persistent part (first-order Gauss-Markov, per observer and object) (s)",
+    )
     pose_error_persistence_s: float = Field(
         1.0,
         gt=0,

@@ -19,12 +19,12 @@ pytestmark = pytest.mark.integration
 WARMUP = 20  # frames before errors count (tracks need birth_hits frames and some history)
 
 
-def run_views(scenario, seed: int, frames: int, views: dict[str, list[str] | None]):
+def run_views(scenario, seed: int, frames: int, views: dict[str, list[str] | None], params: FusionParams | None = None):
     """One simulated episode fed to one container per view (the senders it hears). Yields per frame
     (tick, {view: FusedState}, {view: Container})."""
     world = World(load_scenario(scenario) if isinstance(scenario, str) else scenario, seed=seed, fleet="t")
     feed = OraclePriors("t", seed=1000 + seed)
-    boxes = {name: Container(FusionParams(), "t", "cv0") for name in views}
+    boxes = {name: Container(params or FusionParams(), "t", "cv0") for name in views}
     for k in range(frames):
         tick = world.tick(k)
         priors = feed.priors(tick)
@@ -61,8 +61,9 @@ def test_overlap_fusion_beats_each_vehicle_alone():
     err = {v: [] for v in views}
     nees = []
     scene = with_error_sources(load_scenario("overlap"), ())
+    white = FusionParams(detection_persistent_fraction=0.0)  # this scene's detector errors are white
     for seed in (1, 2):
-        for k, (tick, fused, _) in enumerate(run_views(scene, seed, 170, views)):
+        for k, (tick, fused, _) in enumerate(run_views(scene, seed, 170, views, white)):
             if k < WARMUP:
                 continue
             for v in views:

@@ -13,6 +13,7 @@ from mapcontainer.fusion.association import (
     mahalanobis_logdet,
     mahalanobis_matrix,
     observations_to_map,
+    protection_gate,
 )
 from schemas import ObjectClass
 
@@ -229,3 +230,27 @@ def test_a_track_that_is_a_connected_vehicle_is_deleted():
     assert tr.vehicle_shadows(0.2, [good, at_3, vague]) == [1]
     assert sorted(tr.confirmed()) == [2, 3, 4] and tr.counts["vehicle_shadow"] == 1
     assert tr.vehicle_shadows(0.3, []) == [] and tr._shadow_streak == {}
+
+
+def test_a_vehicle_is_gated_by_its_protection_levels_where_it_claims_integrity():
+    """A vehicle whose reported covariance is wide (here 1.5 m: the host adds the repeated error and the motion
+    since its frame) but which claims integrity with protection levels of 0.6 m across and 1.0 m along cannot
+    take a detection 2.5 m across its road: that is another car. Without a protection level its covariance
+    alone gates it, and it takes the detection."""
+    cov = np.diag([1.5, 1.5, 0.2]) ** 2
+    k = 3.29  # the Gaussian quantile of an integrity risk of 1e-3 per axis
+    claims = VehicleCandidate("cv1", np.array([20.0, 0.0, 0.0]), cov, (0.0, 0.6, 1.0, k))
+    silent = VehicleCandidate("cv1", np.array([20.0, 0.0, 0.0]), cov)
+    det = _det([20.0, 2.5, 0.0], 0.0, cov=np.diag([0.2, 0.1, 0.05]) ** 2)
+    along = _det([20.9, 0.1, 0.0], 0.0, cov=np.diag([0.2, 0.1, 0.05]) ** 2)
+    ok = protection_gate(np.array([det.p_map, along.p_map]), np.array([det.cov_map, along.cov_map]), [claims, silent])
+    assert ok.tolist() == [[False, True], [True, True]]
+    # rotated: the vehicle heads north, so y is along its road: within 1.0 + k * 0.1 = 1.33 m
+    north = VehicleCandidate("cv1", np.array([20.0, 0.0, 0.0]), cov, (np.pi / 2, 0.6, 1.0, k))
+    assert not protection_gate(np.array([det.p_map]), np.array([det.cov_map]), [north])[0, 0]  # 2.5 > 1.33
+    near = _det([20.0, 1.2, 0.0], 0.0, cov=np.diag([0.2, 0.1, 0.05]) ** 2)
+    assert protection_gate(np.array([near.p_map]), np.array([near.cov_map]), [north])[0, 0]  # 1.2 <= 1.33
+    a, _ = Tracker(FusionParams()).associate([det], [claims])
+    assert not [x for x in a if x.kind == "vehicle"]
+    a, _ = Tracker(FusionParams()).associate([det], [silent])
+    assert [(x.kind, x.target) for x in a] == [("vehicle", "cv1")]

@@ -239,6 +239,7 @@ def _model_world_nees(persistent: float, persistent_model: float, **params) -> l
         vehicle_accel_sigma_mps2=1e-3,
         vehicle_rate_sigma_radps=1e-4,
         pose_error_persistent_fraction=persistent_model,
+        detection_persistent_fraction=0.0,  # this world's detections carry white noise only
         **params,
     )
     q = np.array([params.accel_psd_vehicle, params.accel_psd_vehicle, params.accel_psd_vertical])

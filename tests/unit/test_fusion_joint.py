@@ -165,3 +165,73 @@ def test_a_detection_reported_to_the_millimetre_cannot_pin_the_state(host):
     st = host._sl(("o", 3))
     assert np.all(np.diag(host.P) > 0) and np.all(np.diag(host.P) <= np.diag(before) + 1e-12)
     assert np.linalg.eigvalsh(host.P[st, st][:3, :3]).min() > 1e-4  # not pinned below the floor
+
+
+def _modes(host: JointHost, **modes) -> None:
+    from types import SimpleNamespace
+
+    host._results = {vid: SimpleNamespace(mode=m) for vid, m in modes.items()}
+
+
+def test_a_vehicle_in_fallback_is_not_tightened_through_shared_objects(host):
+    """Traced (suburban development seed 1004, centralized): a vehicle in GNSS fallback 5 m off saw the
+    objects a map-matched vehicle saw; the detections of both, through the track they shared, shrank its
+    sigma from 2.7 to 0.25 m with the error unchanged, and its map matching, started from that, locked on a
+    wrong basin (11 m off, NEES 1,899). A vehicle whose localizer is not map matching is a consider state of
+    the detection updates (Schmidt): its block does not move, the track takes its uncertainty in, and the
+    covariances stay those of the update actually made."""
+    rng = np.random.default_rng(13)
+    _joint(host, rng, [("v", "a"), ("v", "b"), ("o", 1)])
+    sa, sb, so = host._sl(("v", "a")), host._sl(("v", "b")), host._sl(("o", 1))
+    host.P[sa, :] = host.P[:, sa] = 0.0
+    host.P[sb, :] = host.P[:, sb] = 0.0
+    host.P[sa, sa] = np.diag([4.0, 4.0, 1.0, 1e-4, 1e-4, 1e-3, 1e-4, 1e-6, 2.0, 2.0])  # fallback: GNSS-grade
+    host.P[sb, sb] = np.diag([0.01, 0.01, 0.01, 1e-5, 1e-5, 1e-5, 1e-4, 1e-6, 2.0, 2.0])  # map matched
+    host.mu[so][:3] = host.mu[sa][:3] + np.array([10.0, 2.0, 0.0])
+    host.mu[sb][:3] = host.mu[so][:3] - np.array([12.0, -3.0, 0.0])
+
+    def detect(obs: str, z_off=None):
+        s = host._sl(("v", obs))
+        x = host.mu[s]
+        from mapcontainer.geometry import rpy_to_matrix
+
+        z = rpy_to_matrix(*x[3:6]).T @ (host.mu[so][:3] - x[:3]) + (0.0 if z_off is None else z_off)
+        host._ekf_update(("v", obs), [(("o", 1), z, 0.04 * np.eye(3))])
+
+    _modes(host, a="fallback", b="map_matching")
+    mu_a, P_a = host.mu[sa].copy(), host.P[sa, sa].copy()
+    p_true = host.mu[so][:3].copy()
+    for _ in range(20):
+        detect("a", np.array([0.5, -0.3, 0.0]))
+        detect("b")
+    np.testing.assert_allclose(host.mu[sa], mu_a, atol=1e-12)
+    np.testing.assert_allclose(host.P[sa, sa], P_a, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(host.P) > -1e-9)
+    # the track is where b saw it, with b's accuracy; a's detections do not pin it
+    assert np.linalg.norm(host.mu[so][:3] - p_true) < 0.15
+    assert np.sqrt(host.P[so, so][0, 0]) < 0.15
+    # the same detections with a map matching: a is tightened (the update is not switched off)
+    _modes(host, a="map_matching", b="map_matching")
+    detect("a")
+    detect("b")
+    assert np.trace(host.P[sa, sa][:2, :2]) < 0.5 * np.trace(P_a[:2, :2])
+
+
+def test_a_detection_is_ambiguous_when_two_tracks_share_its_gate(host):
+    """A GNSS-grade observer's frame constrains its pose only if each detection has one track alone in its
+    gate: parked cars 5 m apart seen from a pose good to 2 m are not told apart."""
+    from mapcontainer.fusion.association import Detection
+
+    rng = np.random.default_rng(17)
+    _joint(host, rng, [("v", "a"), ("o", 1), ("o", 2)])
+    for k, x in ((("o", 1)), np.array([10.0, 0.0, 0.0])), ((("o", 2)), np.array([15.0, 0.0, 0.0])):
+        s = host._sl(k)
+        host.mu[s][:3] = x
+        host.P[s, :] = host.P[:, s] = 0.0
+        host.P[s, s] = 0.01 * np.eye(6)
+
+    def det(cov_map):
+        return Detection("a", 0.0, 0, np.zeros(3), np.eye(3) * 0.04, 0, np.array([10.2, 0.0, 0.0]), cov_map)
+
+    assert host._unambiguous([det(np.eye(3) * 0.09)])  # a map-matched observer: o1 alone
+    assert not host._unambiguous([det(np.eye(3) * 4.0)])  # 2 m: o1 and o2 both in the gate

@@ -145,3 +145,24 @@ def test_the_observers_repeated_error_is_added_to_an_objects_covariance_with_its
     np.testing.assert_allclose(two, 0.5 * S_t[:3, :3], atol=1e-15)
     w = observer_weights({("cv0", 1): 0.1, ("cv0", 2): 0.2, ("cv1", 2): 0.2, ("cv1", -5): -0.5}, t_min=0.0)
     assert w == {"cv0": 2 / 3, "cv1": 1 / 3}
+
+
+def test_the_persistent_part_of_an_observers_detection_error_is_added_rotated_to_the_map() -> None:
+    """The part of a detection's error that persists (detector.errors.persistent_fraction of the sensor profile)
+    does not average out over one observer's detections: observer_bias adds w^2 R D R^T, D its body-frame
+    covariance; persistent_share is f times the variance of the mean of a Gauss-Markov process over the window
+    (the whole of it for a window much shorter than its correlation time, nothing for a much longer one)."""
+    from mapcontainer.fusion import FusionParams
+    from mapcontainer.fusion.hostcore import observer_bias, persistent_share
+
+    pose = np.array([5.0, 1.0, 0.0, 0.0, 0.0, np.pi / 2])  # heading north: body x is map y
+    D = np.diag([0.3, 0.1, 0.05]) ** 2
+    got = observer_bias([5.0, 21.0, 0.0], [(pose, np.zeros((6, 6)), 0.5, D)])
+    np.testing.assert_allclose(got, 0.25 * np.diag([0.1, 0.3, 0.05]) ** 2, atol=1e-15)
+    assert persistent_share(FusionParams(window_s=0.01, detection_persistence_s=100.0)) == pytest.approx(0.5, rel=1e-3)
+    assert persistent_share(FusionParams(window_s=100.0, detection_persistence_s=0.01)) < 1e-3
+    assert persistent_share(FusionParams(detection_persistent_fraction=0.0)) == 0.0
+    x = 1.0 / 2.0
+    assert persistent_share(FusionParams(window_s=1.0, detection_persistence_s=2.0)) == pytest.approx(
+        0.5 * 2 * (x - 1 + np.exp(-x)) / x**2
+    )
