@@ -42,6 +42,7 @@ __all__ = [
     "ObjectClass",
     "ObjectObservations",
     "Odometry",
+    "PoseDownlink",
     "RawObservations",
     "SecuredMessage",
     "SensorFrame",
@@ -359,6 +360,33 @@ class VehiclePrior(Envelope):
             if np.any(self.protection_level_m < 0) or self.integrity_risk is None:
                 raise ValueError("protection_level_m must be non-negative and come with integrity_risk")
         return self
+
+
+class PoseDownlink(Envelope):
+    """Host -> one vehicle (the V2X downlink): what the other vehicles know about ``target``'s pose at t_meas.
+
+    The host's estimate of the target's pose with the target's own information taken out (its newest prior,
+    subtracted in information form: a channel filter on the link of the star), so that the vehicle can fuse
+    it as independent evidence. t_meas is the time of the target's frame it is about; ``sender`` the host.
+    Directions the others know nothing about carry a standard deviation of DOWNLINK_UNINFORMED_SIGMA
+    (m or rad): a receiver treats a direction at least that wide as no information.
+    """
+
+    target: str = Field(pattern=NAME_PATTERN, description="the vehicle this message is about and for")
+    pose: F32(6) = Field(description="[x, y, z, roll, pitch, yaw] of the target's body in the map frame")
+    pose_cov: Cov(6, corr="int16") = Field(
+        description="6x6 covariance of what the others know, upper triangle; on the wire standard deviations "
+        "(float16) and correlations (int16)"
+    )
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_bound("pose position", self.pose[:3], MAX_COORD_M)
+        _check_bound("pose angles", self.pose[3:], 2 * np.pi)
+        return self
+
+
+DOWNLINK_UNINFORMED_SIGMA = 1000.0  # m or rad: a PoseDownlink direction this wide says "nothing known"
 
 
 def body_pose_cov(prior: VehiclePrior) -> np.ndarray:

@@ -142,7 +142,9 @@ TAGS: dict[str, int] = {
     "integrity_risk": 101,
     # LocalizationQuality (added, optional)
     "lock": 102,
-    # new fields: next tag 103
+    # PoseDownlink (added, optional message): pose (6) and pose_cov (7) as in VehiclePrior
+    "target": 103,
+    # new fields: next tag 104
 }
 
 
