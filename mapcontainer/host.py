@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.codec import encode, peek
-from schemas.models import FusedState
+from schemas.models import FusedState, PoseDownlink
 
 from .fusion.gate import MAX_WAIT_S, FrameGate
 from .fusion.params import FusionParams
@@ -139,6 +139,7 @@ class HostLoop:
         self.core = core
         self.gate = gate
         self._inputs: list[list] = []
+        self._downlink_seq = 0
 
     def receive(self, payload: bytes, t_recv: float, now: float | None = None) -> IngestResult:
         """Into the core; an accepted message tells the gate its sender and frame. A defect of the core (it
@@ -188,6 +189,18 @@ class HostLoop:
         cpu_s, wall_s = time.thread_time() - c0, time.perf_counter() - w0
         inputs, self._inputs = self._inputs, []
         return Fused(state, t, tolerance_s, inputs, wall_s, cpu_s, now)
+
+    def downlink(self, t_sent: float) -> list[PoseDownlink]:
+        """What the host owes each vehicle after a solve: what the others know about its pose, its own share
+        removed (:mod:`mapcontainer.downlink`), one PoseDownlink per vehicle the others know something about.
+        Empty for a core that cannot separate a vehicle's own share (the centralized host: its vehicles
+        send raw observations and keep no estimate of their own to fuse it with)."""
+        make = getattr(self.core, "downlink", None)
+        if make is None:
+            return []
+        out = make(t_sent, self._downlink_seq)
+        self._downlink_seq += len(out)
+        return out
 
     def stats(self) -> dict[str, Any]:
         """The core's figures and the gate's frame counts (a core's figures failing leaves the reason)."""

@@ -1,0 +1,126 @@
+"""The downlink, host side: what the other vehicles know about each vehicle's pose, its own share removed.
+
+The host fuses every vehicle's self-localization with what the others see of it (cross-detections, and the
+objects it sees that others see too). Sent back as it is, that estimate would hand a vehicle its own
+information again: fused with the vehicle's estimate it would be counted twice, and the next prior would
+carry it back to the host (rumour). The topology is a star (vehicle -> host -> vehicle), so the exact remedy
+is a channel filter per link: the host knows exactly what the vehicle itself sent and takes it out.
+
+In the host's window a vehicle's own information is one factor: the prior on its newest frame (a filtered
+prior holds everything the vehicle knows, so the graph keeps only the newest, :mod:`.fusion.graph`). Every
+other factor (its motion, the others' detections of it, its detections of objects that others also see) is
+independent of the vehicle's own estimate. For a unary Gaussian factor the posterior's information is the
+sum, so on the newest frame's pose x (Pose3 tangent at the host's estimate, first order):
+
+    Y_host = Y_own + Y_others,      Y_host * 0 = Y_own * d_own + Y_others * d_others
+
+with Y = P^-1, d the mean's offset from the host's estimate (d_own = Log(T_host^-1 T_own)). Hence
+
+    Y_others = Y_host - Y_own,      d_others = -Y_others^+ Y_own d_own          (:func:`remove_own`)
+
+exact for a linear-Gaussian model (``tests/unit/test_downlink.py`` checks it against the posterior of the
+others' measurements alone). Y_others is only positive semi-definite: the others see a position, rarely a
+heading. Directions with information below ``1 / DOWNLINK_UNINFORMED_SIGMA^2`` carry that sigma on the
+wire (no information); a vehicle whose horizontal position the others know to no better than
+``max_sigma_m`` gets no message at all (a vehicle nobody sees gets nothing).
+
+Where the correlation is not known (the receiving vehicle's filter carries downlink information it was
+seeded with) the vehicle fuses by covariance intersection: :mod:`.onboard`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from schemas import PoseDownlink
+from schemas.arrays import cov_to_upper
+from schemas.models import DOWNLINK_UNINFORMED_SIGMA
+
+from .fusion.poses import pose_cov_from_tangent, vector_from_pose3
+
+__all__ = ["MAX_DOWNLINK_SIGMA_M", "OthersOnly", "downlink_messages", "others_only", "remove_own"]
+
+MAX_DOWNLINK_SIGMA_M = 5.0  # no message when the others know the vehicle's position to no better than this (1 sigma)
+_MIN_INFO = 1.0 / DOWNLINK_UNINFORMED_SIGMA**2
+
+
+@dataclass(frozen=True)
+class OthersOnly:
+    """What the others know about one vehicle's pose: ``mean`` (offset or pose) and ``cov`` (6x6; the
+    uninformed directions at DOWNLINK_UNINFORMED_SIGMA^2), ``rank`` the informed directions' count."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    rank: int
+
+
+def remove_own(cov_host: np.ndarray, d_own: np.ndarray, cov_own: np.ndarray, min_info: float = _MIN_INFO) -> OthersOnly:
+    """The others' share of a posterior N(0, cov_host) (the mean is the origin of the coordinates) from which
+    the factor N(d_own, cov_own) is removed, in information form (module docstring):
+
+        Y_o = P_host^-1 - P_own^-1 (eigenvalues below ``min_info`` set to 0),  d_o = -Y_o^+ P_own^-1 d_own,
+        cov_o = U diag(1 / lambda) U^T on the informed eigenvectors, DOWNLINK_UNINFORMED_SIGMA^2 elsewhere.
+
+    Returns ``mean`` d_o (an offset from the posterior's mean). ValueError on shapes or non-finite values."""
+    P_h, P_o, d = (np.asarray(a, dtype=float) for a in (cov_host, cov_own, d_own))
+    n = len(d)
+    if P_h.shape != (n, n) or P_o.shape != (n, n):
+        raise ValueError(f"covariances must be {n}x{n}, got {P_h.shape} and {P_o.shape}")
+    if not (np.all(np.isfinite(P_h)) and np.all(np.isfinite(P_o)) and np.all(np.isfinite(d))):
+        raise ValueError("remove_own needs finite covariances and offsets")
+    Y_own = np.linalg.inv(P_o)
+    Y = np.linalg.inv(P_h) - Y_own
+    w, U = np.linalg.eigh(0.5 * (Y + Y.T))
+    keep = w > min_info
+    Uk, wk = U[:, keep], w[keep]
+    d_o = -(Uk / wk) @ (Uk.T @ (Y_own @ d))  # the pseudo-inverse on the informed directions
+    var = np.full(n, DOWNLINK_UNINFORMED_SIGMA**2)
+    var[keep] = 1.0 / wk
+    cov = (U * var) @ U.T
+    return OthersOnly(d_o, 0.5 * (cov + cov.T), int(keep.sum()))
+
+
+def others_only(T_host: gtsam.Pose3, cov_host_xi: np.ndarray, T_own: gtsam.Pose3, cov_own_xi: np.ndarray) -> OthersOnly:
+    """:func:`remove_own` on a pose: the host's estimate ``T_host`` with its tangent covariance, the vehicle's
+    own prior ``T_own`` with its own; returns the others' pose [x, y, z, roll, pitch, yaw] and its covariance
+    over those six numbers (:func:`~.fusion.poses.pose_cov_from_tangent`)."""
+    d_own = gtsam.Pose3.Logmap(T_host.between(T_own))
+    o = remove_own(cov_host_xi, d_own, cov_own_xi)
+    T = T_host.compose(gtsam.Pose3.Expmap(o.mean))
+    pose = vector_from_pose3(T)
+    return OthersOnly(pose, pose_cov_from_tangent(pose, o.cov), o.rank)
+
+
+def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
+                      max_sigma_m: float = MAX_DOWNLINK_SIGMA_M) -> list[PoseDownlink]:  # fmt: skip
+    """One PoseDownlink per vehicle of ``graph`` (a solved :class:`~.fusion.graph.FusionGraph`) that the others
+    know something about: its newest frame, which holds its own prior, with that prior removed; numbered from
+    ``seq0``. Skipped: a vehicle whose newest frame has no covariance yet or no prior (a late frame), one that
+    sends per-frame priors (``pose_filtered`` false: its own share is spread over the window, not one factor),
+    and one whose horizontal position the others know to no better than ``max_sigma_m``."""
+    out = []
+    for vid in sorted(graph.vehicles):
+        chain = graph.vehicles[vid]
+        s = chain.latest()
+        cov_h = graph.covariances.get(s.key)
+        if cov_h is None or list(chain.pose_prior_fids) != [chain.tkeys[-1]]:
+            continue  # not solved yet; a late frame; or per-frame priors, the own share spread over the window
+        o = others_only(graph.values.atPose3(s.key), cov_h, s.T, s.cov_xi)
+        if o.rank == 0 or np.linalg.eigvalsh(o.cov[:2, :2])[-1] > max_sigma_m**2:
+            continue
+        out.append(
+            PoseDownlink(
+                fleet=fleet,
+                sender=host_id,
+                seq=seq0 + len(out),
+                t_meas=float(s.t),
+                t_sent=float(t_sent),
+                target=vid,
+                pose=o.mean.astype(np.float32),
+                pose_cov=cov_to_upper(o.cov).astype(np.float32),
+            )
+        )
+    return out
