@@ -20,9 +20,11 @@ with Y = P^-1, d the mean's offset from the host's estimate (d_own = Log(T_host^
 
 exact for a linear-Gaussian model (``tests/unit/test_downlink.py`` checks it against the posterior of the
 others' measurements alone). Y_others is only positive semi-definite: the others see a position, rarely a
-heading. Directions with information below ``1 / DOWNLINK_UNINFORMED_SIGMA^2`` carry that sigma on the
-wire (no information); a vehicle whose horizontal position the others know to no better than
-``max_sigma_m`` gets no message at all (a vehicle nobody sees gets nothing).
+heading; so the message carries it as it is, in information form (PoseDownlink.pose_info, over the wire
+pose's six numbers: Y_p = J^T Y_xi J with xi = J p, :mod:`.fusion.poses`). Eigenvalues below ``MIN_INFO``
+(a 1-sigma of 100 m or rad) are set to zero, numerical noise of the subtraction; a vehicle whose horizontal
+position the others know to no better than ``max_sigma_m`` (the information of the position given the rest)
+gets no message at all (a vehicle nobody sees gets nothing).
 
 Where the correlation is not known (the receiving vehicle's filter carries downlink information it was
 seeded with) the vehicle fuses by covariance intersection: :mod:`.onboard`.
@@ -37,34 +39,38 @@ import numpy as np
 
 from schemas import PoseDownlink
 from schemas.arrays import cov_to_upper
-from schemas.models import DOWNLINK_UNINFORMED_SIGMA
 
-from .fusion.poses import pose_cov_from_tangent, vector_from_pose3
+from .fusion.poses import tangent_jacobian, vector_from_pose3
 
-__all__ = ["MAX_DOWNLINK_SIGMA_M", "OthersOnly", "downlink_messages", "others_only", "remove_own"]
+__all__ = ["MAX_DOWNLINK_SIGMA_M", "MIN_INFO", "OthersOnly", "downlink_messages", "others_only", "remove_own"]
 
 MAX_DOWNLINK_SIGMA_M = 5.0  # no message when the others know the vehicle's position to no better than this (1 sigma)
-_MIN_INFO = 1.0 / DOWNLINK_UNINFORMED_SIGMA**2
+MIN_INFO = 1e-4  # information below this (a 1-sigma of 100 m or rad) is no information
 
 
 @dataclass(frozen=True)
 class OthersOnly:
-    """What the others know about one vehicle's pose: ``mean`` (offset or pose) and ``cov`` (6x6; the
-    uninformed directions at DOWNLINK_UNINFORMED_SIGMA^2), ``rank`` the informed directions' count."""
+    """What the others know about one vehicle's pose: ``mean`` (offset or pose), ``info`` (6x6 information
+    matrix, positive semi-definite), ``rank`` its informed directions' count."""
 
     mean: np.ndarray
-    cov: np.ndarray
+    info: np.ndarray
     rank: int
 
+    def position_sigma_m(self) -> float:
+        """The largest horizontal 1-sigma the others know the position to, the rest of the pose given (inf: none)."""
+        w = np.linalg.eigvalsh(self.info[:2, :2])[0]
+        return float(np.inf) if w <= MIN_INFO else float(1.0 / np.sqrt(w))
 
-def remove_own(cov_host: np.ndarray, d_own: np.ndarray, cov_own: np.ndarray, min_info: float = _MIN_INFO) -> OthersOnly:
+
+def remove_own(cov_host: np.ndarray, d_own: np.ndarray, cov_own: np.ndarray, min_info: float = MIN_INFO) -> OthersOnly:
     """The others' share of a posterior N(0, cov_host) (the mean is the origin of the coordinates) from which
     the factor N(d_own, cov_own) is removed, in information form (module docstring):
 
-        Y_o = P_host^-1 - P_own^-1 (eigenvalues below ``min_info`` set to 0),  d_o = -Y_o^+ P_own^-1 d_own,
-        cov_o = U diag(1 / lambda) U^T on the informed eigenvectors, DOWNLINK_UNINFORMED_SIGMA^2 elsewhere.
+        Y_o = P_host^-1 - P_own^-1 (eigenvalues below ``min_info`` set to 0),  d_o = -Y_o^+ P_own^-1 d_own.
 
-    Returns ``mean`` d_o (an offset from the posterior's mean). ValueError on shapes or non-finite values."""
+    Returns ``mean`` d_o (an offset from the posterior's mean) and ``info`` Y_o. ValueError on shapes or
+    non-finite values."""
     P_h, P_o, d = (np.asarray(a, dtype=float) for a in (cov_host, cov_own, d_own))
     n = len(d)
     if P_h.shape != (n, n) or P_o.shape != (n, n):
@@ -77,21 +83,21 @@ def remove_own(cov_host: np.ndarray, d_own: np.ndarray, cov_own: np.ndarray, min
     keep = w > min_info
     Uk, wk = U[:, keep], w[keep]
     d_o = -(Uk / wk) @ (Uk.T @ (Y_own @ d))  # the pseudo-inverse on the informed directions
-    var = np.full(n, DOWNLINK_UNINFORMED_SIGMA**2)
-    var[keep] = 1.0 / wk
-    cov = (U * var) @ U.T
-    return OthersOnly(d_o, 0.5 * (cov + cov.T), int(keep.sum()))
+    info = (Uk * wk) @ Uk.T
+    return OthersOnly(d_o, 0.5 * (info + info.T), int(keep.sum()))
 
 
 def others_only(T_host: gtsam.Pose3, cov_host_xi: np.ndarray, T_own: gtsam.Pose3, cov_own_xi: np.ndarray) -> OthersOnly:
     """:func:`remove_own` on a pose: the host's estimate ``T_host`` with its tangent covariance, the vehicle's
-    own prior ``T_own`` with its own; returns the others' pose [x, y, z, roll, pitch, yaw] and its covariance
-    over those six numbers (:func:`~.fusion.poses.pose_cov_from_tangent`)."""
+    own prior ``T_own`` with its own; returns the others' pose [x, y, z, roll, pitch, yaw] and its information
+    over those six numbers (J^T Y_xi J, J = :func:`~.fusion.poses.tangent_jacobian` at that pose)."""
     d_own = gtsam.Pose3.Logmap(T_host.between(T_own))
     o = remove_own(cov_host_xi, d_own, cov_own_xi)
     T = T_host.compose(gtsam.Pose3.Expmap(o.mean))
     pose = vector_from_pose3(T)
-    return OthersOnly(pose, pose_cov_from_tangent(pose, o.cov), o.rank)
+    J = tangent_jacobian(pose)
+    info = J.T @ o.info @ J
+    return OthersOnly(pose, 0.5 * (info + info.T), o.rank)
 
 
 def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
@@ -100,7 +106,8 @@ def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
     know something about: its newest frame, which holds its own prior, with that prior removed; numbered from
     ``seq0``. Skipped: a vehicle whose newest frame has no covariance yet or no prior (a late frame), one that
     sends per-frame priors (``pose_filtered`` false: its own share is spread over the window, not one factor),
-    and one whose horizontal position the others know to no better than ``max_sigma_m``."""
+    and one whose horizontal position the others know to no better than ``max_sigma_m``
+    (:meth:`OthersOnly.position_sigma_m`)."""
     out = []
     for vid in sorted(graph.vehicles):
         chain = graph.vehicles[vid]
@@ -109,7 +116,7 @@ def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
         if cov_h is None or list(chain.pose_prior_fids) != [chain.tkeys[-1]]:
             continue  # not solved yet; a late frame; or per-frame priors, the own share spread over the window
         o = others_only(graph.values.atPose3(s.key), cov_h, s.T, s.cov_xi)
-        if o.rank == 0 or np.linalg.eigvalsh(o.cov[:2, :2])[-1] > max_sigma_m**2:
+        if o.rank == 0 or o.position_sigma_m() > max_sigma_m:
             continue
         out.append(
             PoseDownlink(
@@ -120,7 +127,7 @@ def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
                 t_sent=float(t_sent),
                 target=vid,
                 pose=o.mean.astype(np.float32),
-                pose_cov=cov_to_upper(o.cov).astype(np.float32),
+                pose_info=cov_to_upper(o.info).astype(np.float32),
             )
         )
     return out

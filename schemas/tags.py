@@ -142,9 +142,12 @@ TAGS: dict[str, int] = {
     "integrity_risk": 101,
     # LocalizationQuality (added, optional)
     "lock": 102,
-    # PoseDownlink (added, optional message): pose (6) and pose_cov (7) as in VehiclePrior
+    # PoseDownlink (a new message): and pose (6) as in VehiclePrior
     "target": 103,
-    # new fields: next tag 104
+    "pose_info": 104,
+    # VehiclePrior (added, optional)
+    "downlink": 105,
+    # new fields: next tag 106
 }
 
 

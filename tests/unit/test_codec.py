@@ -210,12 +210,12 @@ def secured_message(full: bool) -> SecuredMessage:
 
 
 def pose_downlink() -> PoseDownlink:
-    """What the others know of cv1: a position, no heading (the uninformed directions at their wire sigma)."""
-    cov = np.diag([0.09, 0.16, 0.25, 1e6, 1e6, 1e6])
-    cov[0, 1] = cov[1, 0] = 0.05
+    """What the others know of cv1: a position, no heading (no information on the angles)."""
+    info = np.zeros((6, 6))
+    info[:3, :3] = np.linalg.inv(np.array([[0.09, 0.05, 0], [0.05, 0.16, 0], [0, 0, 0.25]]))
     return PoseDownlink(
         fleet="run1", sender="host", seq=7, t_meas=12.3, t_sent=12.41, target="cv1",
-        pose=np.array([10.5, -3.25, 0.5, 0.0, 0.01, 1.2], np.float32), pose_cov=cov_to_upper(cov),
+        pose=np.array([10.5, -3.25, 0.5, 0.0, 0.01, 1.2], np.float32), pose_info=cov_to_upper(info),
     )  # fmt: skip
 
 

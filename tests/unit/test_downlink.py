@@ -9,7 +9,6 @@ from mapcontainer.downlink import downlink_messages, others_only, remove_own
 from mapcontainer.fusion import Container, FusionParams
 from mapcontainer.fusion.poses import pose_cov_to_tangent, pose3_from_vector, sym_from_upper
 from schemas import PoseDownlink, decode, encode
-from schemas.models import DOWNLINK_UNINFORMED_SIGMA
 
 from .test_fusion_container import prior
 
@@ -39,7 +38,7 @@ def test_removing_the_own_prior_leaves_the_posterior_of_the_others_measurements(
     out = remove_own(P_h, m_own - m_h, P_own)
     assert out.rank == 6
     np.testing.assert_allclose(m_h + out.mean, m_o, rtol=1e-7, atol=1e-8)
-    np.testing.assert_allclose(np.linalg.inv(out.cov), Y_o, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(out.info, Y_o, rtol=1e-6, atol=1e-6)
 
 
 def test_directions_the_others_do_not_see_are_uninformed():
@@ -56,15 +55,15 @@ def test_directions_the_others_do_not_see_are_uninformed():
     out = remove_own(P_h, m_own - m_h, P_own)
     assert out.rank == 3
     np.testing.assert_allclose((m_h + out.mean)[:3], z, atol=1e-8)
-    np.testing.assert_allclose(out.cov[:3, :3], R, atol=1e-8)
-    np.testing.assert_allclose(np.diag(out.cov)[3:], DOWNLINK_UNINFORMED_SIGMA**2, rtol=1e-6)
+    np.testing.assert_allclose(out.info[:3, :3], np.linalg.inv(R), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(out.info[3:], 0.0, atol=1e-6)
 
 
 def test_nothing_but_the_own_prior_leaves_nothing():
     P = np.diag([0.1, 0.1, 0.05, 0.01, 0.01, 0.01]) ** 2
     out = remove_own(P, np.zeros(6), P * (1 + 1e-12))
     assert out.rank == 0
-    np.testing.assert_allclose(np.diag(out.cov), DOWNLINK_UNINFORMED_SIGMA**2)
+    np.testing.assert_array_equal(out.info, 0.0)
 
 
 def test_bad_shapes_and_values_are_refused():
@@ -87,7 +86,8 @@ def test_on_a_pose_the_subtraction_works_in_the_tangent():
     o = others_only(T_h, cov_h, T_own, cov_own_xi)
     assert o.rank == 3
     # the others' horizontal sigmas, turned into the map frame (yaw 1 rad): 0.3 m each, so unchanged
-    np.testing.assert_allclose(np.linalg.eigvalsh(o.cov[:2, :2]), [0.09, 0.09], rtol=1e-3)
+    np.testing.assert_allclose(np.linalg.eigvalsh(o.info[:2, :2]), [0.09**-1, 0.09**-1], rtol=1e-3)
+    assert o.position_sigma_m() == pytest.approx(0.3, rel=1e-3)
 
 
 def _three_vehicles(n=20):
@@ -116,13 +116,13 @@ def test_a_vehicle_nobody_sees_gets_nothing_and_the_seen_ones_get_the_others_vie
     for m in msgs:
         back = decode(encode(m), PoseDownlink)
         assert isinstance(back, PoseDownlink) and back.target == m.target and back.sender == "host"
-        cov = sym_from_upper(m.pose_cov)
+        info = sym_from_upper(m.pose_info)
         # the others' view: about the partner's detection of it (its noise, the partner's pose) -- wider than own
-        assert 0.05 < np.sqrt(np.linalg.eigvalsh(cov[:2, :2])[-1]) < 1.0
+        assert 0.05 < np.linalg.eigvalsh(info[:2, :2])[0] ** -0.5 < 1.0
         truth = {"cv0": [8 * 1.9, 0.0], "cv1": [8 * 1.9 + 8, -3.5]}[m.target]
         assert abs(m.t_meas - 1.9) < 1e-9
         d = np.asarray(m.pose[:2], float) - truth
-        assert d @ np.linalg.solve(cov[:2, :2], d) < 13.8  # chi2(2) at 1e-3
+        assert d @ info[:2, :2] @ d < 13.8  # chi2(2) at 1e-3 (the angles known: the conditional information)
     assert [m.seq for m in msgs] == [0, 1]
 
 
