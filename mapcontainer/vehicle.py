@@ -18,6 +18,7 @@ which would otherwise move the localizer's time ahead and make every later frame
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -132,7 +133,7 @@ class VehicleAgent:
         if self.localizer.phase is not Phase.SEARCHING or res is None or res.pose_filtered is None:
             return
         speed = float(obs.odometry.speed) if obs.odometry is not None else 0.0
-        seed = self.downlink.seed(res.t, res.pose_filtered, res.cov_filtered, speed, float(obs.t_meas))
+        seed = self.downlink.seed(res.t, res.pose_filtered, res.cov_camera, speed, float(obs.t_meas))
         if seed is not None:
             self.localizer.reset(initial_pose=seed)
             self._seeded_start = self.localizer.stats.get("initialised", 0) + 1
@@ -142,10 +143,16 @@ class VehicleAgent:
         return self._seeded_start is not None and self.localizer.stats.get("initialised", 0) == self._seeded_start
 
     def _fuse_downlink(self, res: LocalizationResult) -> Onboard | None:
+        """The on-board estimate of the body: the downlink is about the pose as the camera sees the map (the host's
+        state: the others' objects sit where their cameras put them, and its cross-detections carry the error
+        every frame repeats in their noise), so it is fused with the camera's covariance and that error
+        (cov_filtered - cov_camera, common to both) is added after: fused with cov_filtered it would count
+        the common error twice (the NEES of a 20 s urban run rose from about 2.7 to 4.2 of 2)."""
         if res.pose_filtered is None:
             return None
-        self.downlink.record(res.t, res.pose_filtered, res.cov_filtered)
-        return self.downlink.fuse(res.t, res.pose_filtered, res.cov_filtered, correlated=self._seeded())
+        self.downlink.record(res.t, res.pose_filtered, res.cov_camera)
+        out = self.downlink.fuse(res.t, res.pose_filtered, res.cov_camera, correlated=self._seeded())
+        return replace(out, cov=out.cov + (res.cov_filtered - res.cov_camera))
 
     def localize(self, t: float, obs: Observations) -> VehiclePrior | Rejection:
         """Self-localization of this frame as a VehiclePrior."""
