@@ -73,6 +73,9 @@ class HostSetup(BaseModel):
     max_wait_s: float = Field(MAX_WAIT_S, ge=0, description="how long a frame waits for its late senders")
     params: FusionParams = Field(default_factory=FusionParams)
     map_file: str | None = Field(None, description="the HD map (any supported format); the centralized host needs one")
+    downlink: bool = Field(
+        False, description="after each solve, send every vehicle what the others know about it (HostLoop.downlink)"
+    )
 
     @property
     def reference(self) -> str | None:
@@ -223,6 +226,12 @@ def add_host_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--known-senders", default=None, help="comma-separated vehicle ids (default: anyone)")
     p.add_argument("--local", action="append", default=[], help="on-board source, e.g. cv0 (repeatable)")
     p.add_argument("--params", default=None, help="YAML file of FusionParams fields")
+    p.add_argument(
+        "--downlink",
+        action=argparse.BooleanOptionalAction,
+        default=HostSetup.model_fields["downlink"].default,
+        help="send every vehicle what the others know about its pose (distributed mode)",
+    )
 
 
 def host_setup_from_args(a: argparse.Namespace, fleet: str, host_id: str) -> HostSetup:
@@ -239,4 +248,5 @@ def host_setup_from_args(a: argparse.Namespace, fleet: str, host_id: str) -> Hos
         max_wait_s=a.max_wait,
         params=params,
         map_file=a.map,
+        downlink=a.downlink,
     )

@@ -7,7 +7,8 @@ thread sleeps until ``Channel.next_arrival()`` or a new message, takes ``deliver
 republishes each delivery on ``mc/{fleet}/v2x/rx/{dst}/{src}/prior`` (or ``raw``) with the sender's
 attachment (the world's clock) plus ``t_wall_ns``. A receiver can have on-board sources
 (``--receiver host=cv0``: the host runs on cv0, whose messages reach it without the radio) —
-those are not relayed to it.
+those are not relayed to it. The host's downlink (``mc/{fleet}/v2x/tx/{hid}/downlink/{vid}``, one
+message per vehicle) goes over link hid->vid to that vehicle alone, on ``mc/{fleet}/v2x/rx/{vid}/{hid}/downlink``.
 
 The processing latency in the health status is the scheduler's lateness: the time a delivery is
 published minus the time the link model said it arrives (about 0.5 ms in the prototype).
@@ -29,6 +30,7 @@ from collections import OrderedDict
 
 from pydantic import Field
 
+from mapcontainer.admission import Gate
 from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate, unwrap
 from schemas import GroundTruth
 from schemas.codec import Rejection
@@ -49,7 +51,8 @@ from ..runtime import (
 
 __all__ = ["ChannelSettings", "Relay", "main", "parse_args", "parse_receivers"]
 
-KINDS = ("prior", "raw")
+KINDS = ("prior", "raw")  # broadcast to every receiver; the downlink goes to its one vehicle (Relay.offer_to)
+DOWNLINK_TARGETS = 64  # the vehicles one host's downlink may serve at the full rate
 
 
 class ChannelSettings(ServiceSettings):
@@ -151,6 +154,17 @@ class Relay:
                 self.accepted += bool(self.channel.send(src, dst, payload, now))
             self._cond.notify()
 
+    def offer_to(self, kind: str, src: str, dst: str, payload: bytes, attachment: dict) -> None:
+        """One message for one receiver (the host's downlink to a vehicle) over link src->dst."""
+        with self._cond:
+            now = self.now()
+            self._meta.setdefault((src, hash(payload)), (kind, attachment))
+            while len(self._meta) > self.MAX_PENDING:
+                self._meta.popitem(last=False)
+            self.offered += 1
+            self.accepted += bool(self.channel.send(src, dst, payload, now))
+            self._cond.notify()
+
     def observe(self, truth) -> None:
         """The world's truth: where the vehicles are now (a geometric link only)."""
         if self.radio:
@@ -229,6 +243,25 @@ def main(s: ChannelSettings) -> int:
 
         for kind in KINDS:
             svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), on_tx(kind))
+
+        # the host's downlink: one message per vehicle and frame from one sender, so its budget is per target
+        down = topic("downlink_tx")
+        down_rate = 2.0 * (down.rate_hz or 10.0) * max(s.time_scale, 1.0) * DOWNLINK_TARGETS
+        down_gate = Gate(verifier, down_rate, down_rate)
+
+        def on_downlink(msg: Received) -> None:
+            where = down.parse(msg.key)
+            if where is None:
+                svc.metrics.reject("bad_key", f"{msg.key} is not a downlink_tx key of ours", log)
+                return
+            with gate_lock:
+                out = down_gate.admit(msg.payload, where["src"], time.monotonic(), time.time())
+            if isinstance(out, Rejection):
+                svc.metrics.reject(out.reason, f"downlink from {where['src']}: {out.detail}", log)
+            else:
+                relay.offer_to("downlink", where["src"], where["dst"], msg.payload, msg.attachment)
+
+        svc.subscribe(down.pattern(fleet=s.fleet), on_downlink)
 
         if relay.radio:
 
