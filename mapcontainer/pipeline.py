@@ -116,6 +116,8 @@ class TickRecord:
     per_frame: dict[str, np.ndarray] = field(default_factory=dict)
     per_frame_covs: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> 6x6, of the body pose
     released: dict[str, float] = field(default_factory=dict)  # view name -> when its gate released this frame
+    # vid -> what the vehicle did with the host's downlink this frame (Onboard.status; downlink runs only)
+    downlink: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -342,6 +344,8 @@ def run_pipeline(
                 if est is not None:  # None until the localizer has initialised
                     rec.onboard[vid] = np.asarray(est.pose, dtype=float)  # the own estimate, with the downlink
                     rec.onboard_covs[vid] = np.asarray(est.cov, dtype=float)
+                    if downlink:
+                        rec.downlink[vid] = est.status
                     if res.pose_frame is not None:
                         bias = res.cov_filtered - res.cov_camera  # the error every frame repeats
                         rec.per_frame[vid], rec.per_frame_covs[vid] = res.pose_frame, res.cov_frame + bias
