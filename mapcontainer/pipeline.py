@@ -205,8 +205,9 @@ def run_pipeline(
     faults = {v: FaultInjector(v, sc.faults) for v in world.vehicle_ids}
     if mode != "distributed" and any(faults.values()):
         raise ValueError("faults act on a vehicle's priors: they need mode='distributed'")
-    if downlink and mode != "distributed":
-        raise ValueError("the downlink is fused by the vehicles' own localizers: it needs mode='distributed'")
+    if downlink and (mode != "distributed" or not views):
+        raise ValueError("the downlink is fused by the vehicles' own localizers and sent by a host view: it needs "
+                         "mode='distributed' and a view")
     if cpm_rules and mode != "distributed":
         raise ValueError("cpm_rules thin the objects of a vehicle's prior: they need mode='distributed'")
     cpm = {v: CpmRules() for v in world.vehicle_ids[1:]} if cpm_rules else {}
@@ -238,7 +239,7 @@ def run_pipeline(
     duration = sc.duration_s if duration_s is None else duration_s
     result = PipelineResult(sc.name, seed, mode, profile.name, ego, duration_s=duration, start=start, signing=signing)
     result.downlink = downlink
-    down_view = views[0].name
+    down_view = views[0].name if views else None  # the host that sends the downlink
     carried: list = []  # uplink deliveries taken from the channel early (with the downlink's), for ``advance``
 
     def send_downlink(f: Fused) -> None:
