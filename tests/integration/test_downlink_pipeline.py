@@ -47,7 +47,8 @@ def test_the_downlink_is_used_and_leaves_no_confidence_behind(run):
     for rec in run.records:
         for vid, status in rec.downlink.items():
             if status not in ("fused", "fused_ci"):
-                assert np.allclose(rec.onboard_covs[vid], rec.prior_covs[vid], rtol=1e-5, atol=1e-12), (rec.t, vid)
+                # the prior's covariance as the wire quantises it (float16 sigmas, int16 correlations)
+                assert np.allclose(rec.onboard_covs[vid], rec.prior_covs[vid], rtol=2e-3, atol=1e-9), (rec.t, vid)
 
 
 def test_a_vehicle_the_host_does_not_hear_gets_nothing():
