@@ -92,7 +92,11 @@ def summarize(runs: list[dict], burnin_s: float) -> dict[str, Any]:
         },
         "onboard_anees_2dof": float(n.mean()) if len(n) else math.nan,
         "onboard_nees_in_95": float(np.mean((n >= lo) & (n <= hi))) if len(n) else math.nan,
-        "time_to_localize_s": {"p50": percentile(ttl, 50), "p95": percentile(ttl, 95), "never": int(np.sum(np.isinf(ttl)))},
+        "time_to_localize_s": {
+            "p50": percentile(ttl, 50),
+            "p95": percentile(ttl, 95),
+            "never": int(np.sum(np.isinf(ttl))),
+        },
         "uplink_bytes_per_s": sum(r["tx_bytes"] for r in runs) / seconds,
         "downlink_bytes_per_s": sum(r["rx_bytes"] for r in runs) / seconds,
         "downlink": dict(sorted(counts.items())),
@@ -110,19 +114,31 @@ def compare(scenarios: list[str], seeds: list[int], duration_s: float, burnin_s:
     return out
 
 
+_COLUMNS = (
+    "scenario | downlink | on-board RMSE (m) | ANEES (2 dof) | in 95 % | TTL p50 / p95 (s) | never | up B/s | down B/s"
+)
+
+
 def markdown(res: dict) -> str:
-    head = "| scenario | downlink | on-board RMSE (m) | ANEES (2 dof) | in 95 % | TTL p50 / p95 (s) | never | up B/s | down B/s |"
-    lines = [head, "|" + "---|" * 9]
+    """The on/off table of :func:`compare`'s result."""
+    lines = [f"| {_COLUMNS} |", "|" + "---|" * 9]
     for sc, by in res.items():
         if not isinstance(by, dict) or "on" not in by:
             continue
         for key in ("off", "on"):
-            f = by[key]
-            t = f["time_to_localize_s"]
-            lines.append(
-                f"| {sc} | {key} | {f['onboard_rmse_m']:.3f} | {f['onboard_anees_2dof']:.2f} | {f['onboard_nees_in_95']:.2f} "
-                f"| {t['p50']:.2f} / {t['p95']:.2f} | {t['never']} | {f['uplink_bytes_per_s']:.0f} | {f['downlink_bytes_per_s']:.0f} |"
-            )
+            f, t = by[key], by[key]["time_to_localize_s"]
+            cells = [
+                sc,
+                key,
+                f"{f['onboard_rmse_m']:.3f}",
+                f"{f['onboard_anees_2dof']:.2f}",
+                f"{f['onboard_nees_in_95']:.2f}",
+                f"{t['p50']:.2f} / {t['p95']:.2f}",
+                str(t["never"]),
+                f"{f['uplink_bytes_per_s']:.0f}",
+                f"{f['downlink_bytes_per_s']:.0f}",
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -54,6 +54,8 @@ def test_the_downlink_is_used_and_leaves_no_confidence_behind(run):
 def test_a_vehicle_the_host_does_not_hear_gets_nothing():
     from mapcontainer.pipeline import View
 
-    res = run_pipeline("paper-urban", seed=SEED, duration_s=4.0, downlink=True, views=(View("c", ("cv0", "cv1", "cv2")),))
+    res = run_pipeline(
+        "paper-urban", seed=SEED, duration_s=4.0, downlink=True, views=(View("c", ("cv0", "cv1", "cv2")),)
+    )
     assert res.rx_msgs.get("cv3", 0) == 0
     assert {rec.downlink.get("cv3") for rec in res.records} <= {None, "none"}

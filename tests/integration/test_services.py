@@ -498,7 +498,9 @@ def test_a_session_close_that_never_returns_does_not_keep_the_service_alive(tmp_
     assert "did not finish within" in proc.stderr and "Thread 0x" in proc.stderr, proc.stderr[-3000:]
 
 
-def test_the_host_downlink_reaches_each_vehicle_through_the_channel(rendezvous, fleet_name, spawn, wait_for, watch_liveliness):
+def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
+    rendezvous, fleet_name, spawn, wait_for, watch_liveliness
+):
     """host --downlink: two vehicles that see each other each get what the other knows about them, on their own
     downlink_rx key, through the channel relay (link host -> vehicle)."""
     session, endpoint = rendezvous

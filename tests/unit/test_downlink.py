@@ -7,7 +7,7 @@ import pytest
 from mapcontainer import geometry as geo
 from mapcontainer.downlink import downlink_messages, others_only, remove_own
 from mapcontainer.fusion import Container, FusionParams
-from mapcontainer.fusion.poses import pose_cov_to_tangent, pose3_from_vector, sym_from_upper
+from mapcontainer.fusion.poses import pose3_from_vector, pose_cov_to_tangent, sym_from_upper
 from schemas import PoseDownlink, decode, encode
 
 from .test_fusion_container import prior
@@ -95,7 +95,11 @@ def _three_vehicles(n=20):
     msgs = []
     for k in range(n):
         t = 0.1 * k
-        poses = {"cv0": [8 * t, 0, 0, 0, 0, 0.0], "cv1": [8 * t + 8, -3.5, 0, 0, 0, 0.0], "cv2": [200 + 8 * t, 50, 0, 0, 0, 0]}
+        poses = {
+            "cv0": [8 * t, 0, 0, 0, 0, 0.0],
+            "cv1": [8 * t + 8, -3.5, 0, 0, 0, 0.0],
+            "cv2": [200 + 8 * t, 50, 0, 0, 0, 0],
+        }
         for vid, pose in poses.items():
             other = {"cv0": "cv1", "cv1": "cv0"}.get(vid)
             seen = [poses[other][:3]] if other else []
