@@ -225,7 +225,11 @@ def main(s: ChannelSettings) -> int:
 
         def on_tx(kind: str):
             tx = topic(f"{kind}_tx")
-            gate = topic_gate(tx.name, verifier, s.time_scale)  # a flooding source loses its own excess only
+            if kind == "downlink":  # one message per vehicle and frame from one host: its budget is per target
+                rate = 2.0 * (tx.rate_hz or 10.0) * max(s.time_scale, 1.0) * DOWNLINK_TARGETS
+                gate = Gate(verifier, rate, rate)
+            else:
+                gate = topic_gate(tx.name, verifier, s.time_scale)  # a flooding source loses its own excess only
 
             def cb(msg: Received) -> None:
                 where = tx.parse(msg.key)
@@ -236,32 +240,15 @@ def main(s: ChannelSettings) -> int:
                     out = gate.admit(msg.payload, where["src"], time.monotonic(), time.time())
                 if isinstance(out, Rejection):
                     svc.metrics.reject(out.reason, f"{tx.name} from {where['src']}: {out.detail}", log)
+                elif kind == "downlink":  # to its one vehicle
+                    relay.offer_to(kind, where["src"], where["dst"], msg.payload, msg.attachment)
                 else:  # relayed as it came: the receiver verifies the signature again, end to end
                     relay.offer(kind, where["src"], msg.payload, msg.attachment)
 
             return cb
 
-        for kind in KINDS:
+        for kind in (*KINDS, "downlink"):
             svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), on_tx(kind))
-
-        # the host's downlink: one message per vehicle and frame from one sender, so its budget is per target
-        down = topic("downlink_tx")
-        down_rate = 2.0 * (down.rate_hz or 10.0) * max(s.time_scale, 1.0) * DOWNLINK_TARGETS
-        down_gate = Gate(verifier, down_rate, down_rate)
-
-        def on_downlink(msg: Received) -> None:
-            where = down.parse(msg.key)
-            if where is None:
-                svc.metrics.reject("bad_key", f"{msg.key} is not a downlink_tx key of ours", log)
-                return
-            with gate_lock:
-                out = down_gate.admit(msg.payload, where["src"], time.monotonic(), time.time())
-            if isinstance(out, Rejection):
-                svc.metrics.reject(out.reason, f"downlink from {where['src']}: {out.detail}", log)
-            else:
-                relay.offer_to("downlink", where["src"], where["dst"], msg.payload, msg.attachment)
-
-        svc.subscribe(down.pattern(fleet=s.fleet), on_downlink)
 
         if relay.radio:
 
