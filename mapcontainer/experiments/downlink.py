@@ -19,6 +19,7 @@ import argparse
 import json
 import math
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,7 @@ from ..metrics import chi2_quantile, percentile
 from ..pipeline import run_pipeline
 from .paper.figures import localized_index
 
-__all__ = ["compare", "main", "run_one", "summarize"]
+__all__ = ["compare", "from_runs", "main", "run_one", "summarize"]
 
 
 def run_one(scenario: str, seed: int, duration_s: float, downlink: bool, network: str = "ideal") -> dict[str, Any]:
@@ -52,6 +53,7 @@ def run_one(scenario: str, seed: int, duration_s: float, downlink: bool, network
         "seed": seed,
         "downlink": downlink,
         "duration_s": duration_s,
+        "network": network,
         "rows": rows,
         "tx_bytes": int(sum(res.tx_bytes.values())),
         "rx_bytes": int(sum(res.rx_bytes.values())),
@@ -103,14 +105,49 @@ def summarize(runs: list[dict], burnin_s: float) -> dict[str, Any]:
     }
 
 
-def compare(scenarios: list[str], seeds: list[int], duration_s: float, burnin_s: float, network: str) -> dict:
-    """Every scenario with the downlink off and on, the same seeds."""
-    out: dict[str, Any] = {"seeds": seeds, "duration_s": duration_s, "burnin_s": burnin_s, "network": network}
-    for sc in scenarios:
-        out[sc] = {}
-        for on in (False, True):
-            runs = [run_one(sc, s, duration_s, on, network) for s in seeds]
-            out[sc]["on" if on else "off"] = summarize(runs, burnin_s)
+def compare(
+    scenarios: list[str],
+    seeds: list[int],
+    duration_s: float,
+    burnin_s: float,
+    network: str,
+    runs_file: str | None = None,
+) -> dict:
+    """Every scenario with the downlink off and on, the same seeds; the runs in pairs (seed by seed, off then on,
+    scenario by scenario), each appended to ``runs_file`` (JSON lines) as it ends if given, and taken from it
+    when it is there already (a cut-off comparison resumes; :func:`from_runs` summarises what a file holds)."""
+    done = {}
+    if runs_file is not None and Path(runs_file).exists():
+        for line in Path(runs_file).read_text().splitlines():
+            r = json.loads(line)
+            done[(r["scenario"], r["seed"], r["downlink"], r["duration_s"], r.get("network", "ideal"))] = r
+    runs = []
+    for seed in seeds:
+        for sc in scenarios:
+            for on in (False, True):
+                r = done.get((sc, seed, on, duration_s, network))
+                if r is None:
+                    r = run_one(sc, seed, duration_s, on, network)
+                    if runs_file is not None:
+                        with open(runs_file, "a") as f:
+                            f.write(json.dumps(r, default=float) + "\n")
+                runs.append(r)
+    return from_runs(runs, burnin_s, network)
+
+
+def from_runs(runs: list[dict], burnin_s: float, network: str = "ideal") -> dict:
+    """:func:`compare`'s result from its runs."""
+    out: dict[str, Any] = {
+        "seeds": sorted({r["seed"] for r in runs}),
+        "duration_s": sorted({r["duration_s"] for r in runs}),
+        "burnin_s": burnin_s,
+        "network": network,
+    }
+    for sc in dict.fromkeys(r["scenario"] for r in runs):
+        out[sc] = {
+            key: summarize([r for r in runs if r["scenario"] == sc and r["downlink"] == on], burnin_s)
+            for key, on in (("off", False), ("on", True))
+        }
     return out
 
 
@@ -151,8 +188,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--burnin", type=float, default=3.0)
     p.add_argument("--network", default="ideal")
     p.add_argument("--markdown", action="store_true")
+    p.add_argument("--runs-file", default=None, help="JSON lines of the runs: appended as they end, reused when there")
     a = p.parse_args(argv)
-    res = compare(a.scenarios.split(","), [a.seed + i for i in range(a.runs)], a.duration, a.burnin, a.network)
+    seeds = [a.seed + i for i in range(a.runs)]
+    res = compare(a.scenarios.split(","), seeds, a.duration, a.burnin, a.network, a.runs_file)
     print(markdown(res) if a.markdown else json.dumps(res, indent=1, default=float))
     return 0
 
