@@ -548,3 +548,34 @@ def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
         assert abs(float(msg.pose[1]) - ys[vid]) < 1.0  # where the other sees it
     views = {(v.role, v.id): v.status for v in fleet_health(session, fleet_name, timeout_s=2.0)}
     assert views[("host", "host")].figures["downlink_sent"] >= 6
+
+
+def test_a_vehicle_takes_its_downlink_before_its_next_frame(rendezvous, fleet_name, spawn, watch_liveliness):
+    """The vehicle service subscribes its own downlink_rx key; what arrives is handed to its agent with the next
+    sensor frame (health figures downlink_received); a downlink for another vehicle is refused and counted."""
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    common = ["--fleet", fleet_name, "--connect", endpoint]
+    spawn("services.vehicle", *common, "--id", "cv1")
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="vehicle", id="cv1"), timeout=60)
+    pub = session.declare_publisher(topic("downlink_rx").key(fleet=fleet_name, dst="cv1", src="host"))
+    info = np.diag([25.0, 25.0, 4.0, 0, 0, 0])[np.triu_indices(6)]
+
+    def downlink(seq: int, target: str) -> bytes:
+        msg = PoseDownlink(fleet=fleet_name, sender="host", seq=seq, t_meas=0.1 * seq, t_sent=0.1 * seq,
+                           target=target, pose=np.zeros(6, np.float32), pose_info=info.astype(np.float32))  # fmt: skip
+        return encode(msg)
+
+    spawn("services.world", *common, "--vehicles", "2", "--duration", "3", "--wait-subscribers", "1")
+    deadline = time.monotonic() + 60
+    figures: dict = {}
+    seq = 0
+    while time.monotonic() < deadline and figures.get("downlink_received", 0) < 2:
+        pub.put(downlink(seq, "cv1" if seq % 2 == 0 else "cv2"))
+        seq += 1
+        time.sleep(0.1)
+        views = {(v.role, v.id): v.status for v in fleet_health(session, fleet_name, timeout_s=0.5)}
+        if ("vehicle", "cv1") in views:
+            figures = views[("vehicle", "cv1")].figures
+    assert figures.get("downlink_received", 0) >= 2, figures
+    assert figures.get("downlink_rejected_not_for_us", 0) >= 1, figures
