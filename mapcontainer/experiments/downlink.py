@@ -144,10 +144,10 @@ def from_runs(runs: list[dict], burnin_s: float, network: str = "ideal") -> dict
         "network": network,
     }
     for sc in dict.fromkeys(r["scenario"] for r in runs):
-        out[sc] = {
-            key: summarize([r for r in runs if r["scenario"] == sc and r["downlink"] == on], burnin_s)
-            for key, on in (("off", False), ("on", True))
+        by = {
+            key: [r for r in runs if r["scenario"] == sc and r["downlink"] == on] for key, on in (("off", 0), ("on", 1))
         }
+        out[sc] = {key: summarize(rs, burnin_s) for key, rs in by.items() if rs}
     return out
 
 
@@ -160,9 +160,9 @@ def markdown(res: dict) -> str:
     """The on/off table of :func:`compare`'s result."""
     lines = [f"| {_COLUMNS} |", "|" + "---|" * 9]
     for sc, by in res.items():
-        if not isinstance(by, dict) or "on" not in by:
+        if not isinstance(by, dict):
             continue
-        for key in ("off", "on"):
+        for key in (k for k in ("off", "on") if k in by):
             f, t = by[key], by[key]["time_to_localize_s"]
             cells = [
                 sc,
