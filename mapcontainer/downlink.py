@@ -21,7 +21,8 @@ with Y = P^-1, d the mean's offset from the host's estimate (d_own = Log(T_host^
 exact for a linear-Gaussian model (``tests/unit/test_downlink.py`` checks it against the posterior of the
 others' measurements alone). Y_others is only positive semi-definite: the others see a position, rarely a
 heading; so the message carries it as it is, in information form (PoseDownlink.pose_info, over the wire
-pose's six numbers: Y_p = J^T Y_xi J with xi = J p, :mod:`.fusion.poses`). Eigenvalues below ``MIN_INFO``
+pose's six numbers: Y_p = J^T Y_xi J with xi = J p, :mod:`.fusion.poses`), of which the message keeps
+the marginal of the horizontal position (:func:`horizontal` says why). Eigenvalues below ``MIN_INFO``
 (a 1-sigma of 100 m or rad) are set to zero, numerical noise of the subtraction; a vehicle whose horizontal
 position the others know to no better than ``max_sigma_m`` (the information of the position given the rest)
 gets no message at all (a vehicle nobody sees gets nothing).
@@ -42,7 +43,15 @@ from schemas.arrays import cov_to_upper
 
 from .fusion.poses import tangent_jacobian, vector_from_pose3
 
-__all__ = ["MAX_DOWNLINK_SIGMA_M", "MIN_INFO", "OthersOnly", "downlink_messages", "others_only", "remove_own"]
+__all__ = [
+    "MAX_DOWNLINK_SIGMA_M",
+    "MIN_INFO",
+    "OthersOnly",
+    "downlink_messages",
+    "horizontal",
+    "others_only",
+    "remove_own",
+]
 
 MAX_DOWNLINK_SIGMA_M = 5.0  # no message when the others know the vehicle's position to no better than this (1 sigma)
 MIN_INFO = 1e-4  # information below this (a 1-sigma of 100 m or rad) is no information
@@ -100,14 +109,33 @@ def others_only(T_host: gtsam.Pose3, cov_host_xi: np.ndarray, T_own: gtsam.Pose3
     return OthersOnly(pose, 0.5 * (info + info.T), o.rank)
 
 
+def horizontal(o: OthersOnly) -> OthersOnly:
+    """Only what the others know about the horizontal position: the marginal information of x, y (the generalised
+    Schur complement Y_aa - Y_ab Y_bb^+ Y_ba, exact for a positive semi-definite Y), nothing about the rest.
+
+    Why: beyond the cross-detections (a position), the others' knowledge of a vehicle comes through the objects
+    it sees, entangled with its heading; that conditional part is where the host's own model errors land (the
+    detector errors repeated from frame to frame, counted as independent), and the subtraction hands all of it
+    to the vehicle. On development seed 12 (urban, 10 s) the full 6-D downlink's NIS against the truth averaged
+    2.6-6.2 per dimension (1 when consistent), its horizontal marginal 0.5-1.9."""
+    Y = o.info
+    a, b = slice(0, 2), slice(2, 6)
+    m = Y[a, a] - Y[a, b] @ np.linalg.pinv(Y[b, b]) @ Y[b, a]
+    w, U = np.linalg.eigh(0.5 * (m + m.T))
+    keep = w > MIN_INFO
+    info = np.zeros((6, 6))
+    info[a, a] = (U[:, keep] * w[keep]) @ U[:, keep].T
+    return OthersOnly(o.mean, info, int(keep.sum()))
+
+
 def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
                       max_sigma_m: float = MAX_DOWNLINK_SIGMA_M) -> list[PoseDownlink]:  # fmt: skip
     """One PoseDownlink per vehicle of ``graph`` (a solved :class:`~.fusion.graph.FusionGraph`) that the others
-    know something about: its newest frame, which holds its own prior, with that prior removed; numbered from
-    ``seq0``. Skipped: a vehicle whose newest frame has no covariance yet or no prior (a late frame), one that
-    sends per-frame priors (``pose_filtered`` false: its own share is spread over the window, not one factor),
-    and one whose horizontal position the others know to no better than ``max_sigma_m``
-    (:meth:`OthersOnly.position_sigma_m`)."""
+    know something about: its newest frame, which holds its own prior, with that prior removed, of the horizontal
+    position only (:func:`horizontal`); numbered from ``seq0``. Skipped: a vehicle whose newest frame has no
+    covariance yet or no prior (a late frame), one that sends per-frame priors (``pose_filtered`` false: its own
+    share is spread over the window, not one factor), and one whose horizontal position the others know to no
+    better than ``max_sigma_m`` (:meth:`OthersOnly.position_sigma_m`)."""
     out = []
     for vid in sorted(graph.vehicles):
         chain = graph.vehicles[vid]
@@ -115,7 +143,7 @@ def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
         cov_h = graph.covariances.get(s.key)
         if cov_h is None or list(chain.pose_prior_fids) != [chain.tkeys[-1]]:
             continue  # not solved yet; a late frame; or per-frame priors, the own share spread over the window
-        o = others_only(graph.values.atPose3(s.key), cov_h, s.T, s.cov_xi)
+        o = horizontal(others_only(graph.values.atPose3(s.key), cov_h, s.T, s.cov_xi))
         if o.rank == 0 or o.position_sigma_m() > max_sigma_m:
             continue
         out.append(

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mapcontainer import geometry as geo
-from mapcontainer.downlink import downlink_messages, others_only, remove_own
+from mapcontainer.downlink import OthersOnly, downlink_messages, horizontal, others_only, remove_own
 from mapcontainer.fusion import Container, FusionParams
 from mapcontainer.fusion.poses import pose3_from_vector, pose_cov_to_tangent, sym_from_upper
 from schemas import PoseDownlink, decode, encode
@@ -140,3 +140,17 @@ def test_no_downlink_before_a_solve_nor_for_per_frame_priors():
         if m.sender == "cv2":
             per_frame.fuse(m.t_meas)
     assert per_frame.downlink(2.0, 0) == []
+
+
+def test_the_horizontal_marginal_is_the_information_of_x_y_with_the_rest_unknown():
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(4, 6))
+    Y = A.T @ A  # rank 4: positive semi-definite, as the others' information is
+    out = horizontal(OthersOnly(np.zeros(6), Y, 4))
+    Sab = Y[:2, 2:] @ np.linalg.pinv(Y[2:, 2:]) @ Y[2:, :2]
+    np.testing.assert_allclose(out.info[:2, :2], Y[:2, :2] - Sab, atol=1e-8)
+    np.testing.assert_array_equal(out.info[2:], 0.0)
+    assert out.rank <= 2 and np.all(np.linalg.eigvalsh(out.info) > -1e-9)
+    # a whole pose known: the marginal is the x, y block of its covariance
+    full = OthersOnly(np.zeros(6), np.linalg.inv(np.diag([0.2, 0.3, 0.1, 0.01, 0.01, 0.02]) ** 2), 6)
+    np.testing.assert_allclose(np.linalg.inv(horizontal(full).info[:2, :2]), np.diag([0.04, 0.09]), rtol=1e-9)
