@@ -60,6 +60,7 @@ class DownlinkParams:
     seed_inflation: float = 4.0  # the seed's covariance takes the downlink's times this
     seed_interval_s: float = 3.0  # at most one seed per this many seconds (the verification takes frames)
     history_s: float = 2.0  # own poses kept for moving a downlink to the present
+    always_ci: bool = False  # covariance intersection always, not only where the correlation is known to be unknown
 
 
 @dataclass(frozen=True)
@@ -156,7 +157,7 @@ class DownlinkFusion:
         m = self.measurement(t, pose, cov)
         if m is None:
             return Onboard(pose, cov, "none" if self.latest is None else "stale")
-        out = _update(pose, cov, *m, self.params.gate_p, correlated)
+        out = _update(pose, cov, *m, self.params.gate_p, correlated or self.params.always_ci)
         self.counts[out.status] += 1
         return out
 

@@ -47,6 +47,7 @@ from .radio import RadioChannel, make_channel
 from .radio.cpm import CpmRules
 from .sim import Tick, World, load_scenario
 from .sim.config import ScenarioConfig
+from .onboard import DownlinkParams
 from .vehicle import Mode, VehicleAgent
 
 __all__ = [
@@ -165,6 +166,7 @@ def run_pipeline(
     max_wait_s: float = MAX_WAIT_S,
     cpm_rules: bool = False,
     downlink: bool = False,
+    downlink_params: DownlinkParams | None = None,
 ) -> PipelineResult:
     """Run one episode and return per-frame records for evaluation.
 
@@ -184,7 +186,8 @@ def run_pipeline(
     ``downlink``: after each solve the first view's host sends every vehicle what the others know about it
     (:meth:`~mapcontainer.host.HostLoop.downlink`) through the channel (the ego's on board), signed when
     ``signing``; each vehicle fuses what has arrived by its next frame (:mod:`~mapcontainer.onboard`), and the
-    records' ``onboard`` poses are its on-board estimate. Distributed mode only.
+    records' ``onboard`` poses are its on-board estimate. Distributed mode only. ``downlink_params``: how the
+    vehicles use it (:class:`~mapcontainer.onboard.DownlinkParams`).
 
     ``max_wait_s``: scenario seconds a view's frame waits for its late senders (the FrameGate's; the
     live host's ``--max-wait`` is wall seconds, i.e. ``max_wait * time_scale`` scenario seconds).
@@ -201,7 +204,10 @@ def run_pipeline(
     if start == "warm":
         states0 = world.states(0.0)  # a pure function of time: does not advance the sensors
         initial.update(warm_start_poses({v: np.asarray(states0[v].pose, float) for v in world.vehicle_ids}, seed))
-    agents = {v: VehicleAgent(world.hdmap, v, fleet, mode, initial_pose=initial[v]) for v in world.vehicle_ids}
+    agents = {
+        v: VehicleAgent(world.hdmap, v, fleet, mode, initial_pose=initial[v], downlink=downlink_params)
+        for v in world.vehicle_ids
+    }
     faults = {v: FaultInjector(v, sc.faults) for v in world.vehicle_ids}
     if mode != "distributed" and any(faults.values()):
         raise ValueError("faults act on a vehicle's priors: they need mode='distributed'")
