@@ -43,11 +43,11 @@ from .faults import FaultInjector
 from .fusion import FusionParams
 from .fusion.gate import MAX_WAIT_S
 from .host import Fused, HostSetup, build_host
+from .onboard import DownlinkParams
 from .radio import RadioChannel, make_channel
 from .radio.cpm import CpmRules
 from .sim import Tick, World, load_scenario
 from .sim.config import ScenarioConfig
-from .onboard import DownlinkParams
 from .vehicle import Mode, VehicleAgent
 
 __all__ = [
