@@ -55,6 +55,7 @@ class DownlinkParams:
     gate_p: float = 1e-3  # false-alarm probability of the consistency gate (chi^2 on the innovation)
     max_age_s: float = 1.0  # a downlink about a frame older than this is not used
     transport_fraction: float = 0.02  # 1-sigma error of the own displacement since t_D, per metre
+    seed_search: bool = True  # while searching, propose a start from the downlink (the hypothesis source)
     seed_max_sigma_m: float = 1.5  # a searching localizer is seeded only by a downlink at least this good (1 sigma)
     seed_max_yaw_sigma_rad: float = 0.2  # ... and only when the heading is known that well (its or the downlink's)
     seed_inflation: float = 4.0  # the seed's covariance takes the downlink's times this
@@ -166,7 +167,7 @@ class DownlinkFusion:
         estimate at ``t`` moved by ``speed`` along its heading), or None: no fresh downlink good enough, the
         heading unknown, refused by the gate, or seeded within ``seed_interval_s``."""
         p = self.params
-        if t - self._last_seed_t < p.seed_interval_s:
+        if not p.seed_search or t - self._last_seed_t < p.seed_interval_s:
             return None
         pose, cov = np.asarray(pose, dtype=float), np.asarray(cov, dtype=float)
         m = self.measurement(t, pose, cov)

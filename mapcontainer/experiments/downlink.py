@@ -33,11 +33,17 @@ __all__ = ["compare", "from_runs", "main", "run_one", "summarize"]
 
 
 def run_one(
-    scenario: str, seed: int, duration_s: float, downlink: bool, network: str = "ideal", ci: bool = False
+    scenario: str,
+    seed: int,
+    duration_s: float,
+    downlink: bool,
+    network: str = "ideal",
+    ci: bool = False,
+    seed_search: bool = True,
 ) -> dict[str, Any]:
     """One run's on-board errors per vehicle: rows [t, horizontal error, NEES (2 dof)], and its bytes; ``ci``: the
     vehicles fuse the downlink by covariance intersection always (DownlinkParams.always_ci)."""
-    params = DownlinkParams(always_ci=ci)
+    params = DownlinkParams(always_ci=ci, seed_search=seed_search)
     res = run_pipeline(
         scenario, seed=seed, duration_s=duration_s, network=network, downlink=downlink, downlink_params=params
     )
@@ -62,6 +68,7 @@ def run_one(
         "duration_s": duration_s,
         "network": network,
         "ci": ci,
+        "seed_search": seed_search,
         "rows": rows,
         "tx_bytes": int(sum(res.tx_bytes.values())),
         "rx_bytes": int(sum(res.rx_bytes.values())),
@@ -121,6 +128,7 @@ def compare(
     network: str,
     runs_file: str | None = None,
     ci: bool = False,
+    seed_search: bool = True,
 ) -> dict:
     """Every scenario with the downlink off and on, the same seeds; the runs in pairs (seed by seed, off then on,
     scenario by scenario), each appended to ``runs_file`` (JSON lines) as it ends if given, and taken from it
@@ -137,7 +145,7 @@ def compare(
             for on in (False, True):
                 r = done.get((sc, seed, on, duration_s, network))
                 if r is None:
-                    r = run_one(sc, seed, duration_s, on, network, ci)
+                    r = run_one(sc, seed, duration_s, on, network, ci, seed_search)
                     if runs_file is not None:
                         with open(runs_file, "a") as f:
                             f.write(json.dumps(r, default=float) + "\n")
@@ -199,10 +207,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--network", default="ideal")
     p.add_argument("--markdown", action="store_true")
     p.add_argument("--ci", action="store_true", help="the vehicles fuse the downlink by covariance intersection always")
+    p.add_argument("--no-seed", action="store_true", help="a searching vehicle is not seeded by the downlink")
     p.add_argument("--runs-file", default=None, help="JSON lines of the runs: appended as they end, reused when there")
     a = p.parse_args(argv)
     seeds = [a.seed + i for i in range(a.runs)]
-    res = compare(a.scenarios.split(","), seeds, a.duration, a.burnin, a.network, a.runs_file, a.ci)
+    res = compare(a.scenarios.split(","), seeds, a.duration, a.burnin, a.network, a.runs_file, a.ci, not a.no_seed)
     print(markdown(res) if a.markdown else json.dumps(res, indent=1, default=float))
     return 0
 
