@@ -83,6 +83,10 @@ def test_a_searching_vehicle_is_seeded_only_with_a_known_heading():
     y, P = f.seed(1.0, own, OWN_COV, 8.0, 1.1)
     assert y[0] == pytest.approx(10.0 + 0.3 * 0.16 / 0.2 + 0.8 * np.cos(0.5), abs=1e-3)  # downlink inflated x4
     assert f.seed(1.5, own, OWN_COV, 8.0, 1.6) is None  # within seed_interval_s
+    off = fusion()
+    off.params = DownlinkParams(seed_search=False)
+    off.receive(downlink(1.0, (10.3, 5.0)))
+    assert off.seed(1.0, own, OWN_COV, 8.0, 1.1) is None
 
 
 def test_a_prior_says_what_the_downlink_did():
