@@ -55,7 +55,10 @@ class DownlinkParams:
     gate_p: float = 1e-3  # false-alarm probability of the consistency gate (chi^2 on the innovation)
     max_age_s: float = 1.0  # a downlink about a frame older than this is not used
     transport_fraction: float = 0.02  # 1-sigma error of the own displacement since t_D, per metre
-    seed_search: bool = True  # while searching, propose a start from the downlink (the hypothesis source)
+    # while searching, propose a start from the downlink (the hypothesis source). Off: on development seeds 11-13
+    # (urban, 10 s) the seeds cost accuracy (on-board RMSE 0.239 m with, 0.188 m without; off 0.324 m): a seed
+    # resets the localizer, whose own hypotheses are lost (docs/downlink.md)
+    seed_search: bool = False
     seed_max_sigma_m: float = 1.5  # a searching localizer is seeded only by a downlink at least this good (1 sigma)
     seed_max_yaw_sigma_rad: float = 0.2  # ... and only when the heading is known that well (its or the downlink's)
     seed_inflation: float = 4.0  # the seed's covariance takes the downlink's times this

@@ -39,7 +39,7 @@ def run_one(
     downlink: bool,
     network: str = "ideal",
     ci: bool = False,
-    seed_search: bool = True,
+    seed_search: bool = False,
 ) -> dict[str, Any]:
     """One run's on-board errors per vehicle: rows [t, horizontal error, NEES (2 dof)], and its bytes; ``ci``: the
     vehicles fuse the downlink by covariance intersection always (DownlinkParams.always_ci)."""
@@ -128,7 +128,7 @@ def compare(
     network: str,
     runs_file: str | None = None,
     ci: bool = False,
-    seed_search: bool = True,
+    seed_search: bool = False,
 ) -> dict:
     """Every scenario with the downlink off and on, the same seeds; the runs in pairs (seed by seed, off then on,
     scenario by scenario), each appended to ``runs_file`` (JSON lines) as it ends if given, and taken from it
@@ -207,11 +207,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--network", default="ideal")
     p.add_argument("--markdown", action="store_true")
     p.add_argument("--ci", action="store_true", help="the vehicles fuse the downlink by covariance intersection always")
-    p.add_argument("--no-seed", action="store_true", help="a searching vehicle is not seeded by the downlink")
+    p.add_argument("--seed-search", action="store_true", help="a searching vehicle is seeded by the downlink")
     p.add_argument("--runs-file", default=None, help="JSON lines of the runs: appended as they end, reused when there")
     a = p.parse_args(argv)
     seeds = [a.seed + i for i in range(a.runs)]
-    res = compare(a.scenarios.split(","), seeds, a.duration, a.burnin, a.network, a.runs_file, a.ci, not a.no_seed)
+    res = compare(a.scenarios.split(","), seeds, a.duration, a.burnin, a.network, a.runs_file, a.ci, a.seed_search)
     print(markdown(res) if a.markdown else json.dumps(res, indent=1, default=float))
     return 0
 

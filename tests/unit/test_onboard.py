@@ -17,7 +17,7 @@ def downlink(t, xy, sigma=0.1, target="cv1", fleet="f"):
 
 
 def fusion(t_own=1.0, own=(10.0, 5.0)):
-    f = DownlinkFusion("cv1", "f", DownlinkParams())
+    f = DownlinkFusion("cv1", "f", DownlinkParams(seed_search=True))
     f.record(t_own, np.array([*own, 0, 0, 0, 0.5]), OWN_COV)
     return f
 
