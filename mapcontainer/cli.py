@@ -248,6 +248,7 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
             rv_runs=args.rv_runs,
             sensitivity_runs=args.sensitivity_runs,
             start=args.start,
+            downlink=args.downlink,
         )
     except ValueError as exc:
         print(f"mapc: {exc}", file=sys.stderr)
@@ -575,6 +576,13 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("cold", "warm"),
         default="cold",
         help="vehicles start from GNSS alone (cold, default) or localized (warm: truth + stated noise, a variant)",
+    )
+    ep.add_argument(
+        "--downlink",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="the host sends every vehicle what the others know about its pose (vehicle estimates are then the "
+        "vehicles' own with it fused); default off",
     )
     ep.add_argument(
         "--scenario",

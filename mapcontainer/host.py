@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.codec import encode, peek
-from schemas.models import FusedState
+from schemas.models import FusedState, PoseDownlink
 
 from .fusion.gate import MAX_WAIT_S, FrameGate
 from .fusion.params import FusionParams
@@ -73,6 +73,9 @@ class HostSetup(BaseModel):
     max_wait_s: float = Field(MAX_WAIT_S, ge=0, description="how long a frame waits for its late senders")
     params: FusionParams = Field(default_factory=FusionParams)
     map_file: str | None = Field(None, description="the HD map (any supported format); the centralized host needs one")
+    downlink: bool = Field(
+        False, description="after each solve, send every vehicle what the others know about it (HostLoop.downlink)"
+    )
 
     @property
     def reference(self) -> str | None:
@@ -139,6 +142,7 @@ class HostLoop:
         self.core = core
         self.gate = gate
         self._inputs: list[list] = []
+        self._downlink_seq = 0
 
     def receive(self, payload: bytes, t_recv: float, now: float | None = None) -> IngestResult:
         """Into the core; an accepted message tells the gate its sender and frame. A defect of the core (it
@@ -189,6 +193,18 @@ class HostLoop:
         inputs, self._inputs = self._inputs, []
         return Fused(state, t, tolerance_s, inputs, wall_s, cpu_s, now)
 
+    def downlink(self, t_sent: float) -> list[PoseDownlink]:
+        """What the host owes each vehicle after a solve: what the others know about its pose, its own share
+        removed (:mod:`mapcontainer.downlink`), one PoseDownlink per vehicle the others know something about.
+        Empty for a core that cannot separate a vehicle's own share (the centralized host: its vehicles
+        send raw observations and keep no estimate of their own to fuse it with)."""
+        make = getattr(self.core, "downlink", None)
+        if make is None:
+            return []
+        out = make(t_sent, self._downlink_seq)
+        self._downlink_seq += len(out)
+        return out
+
     def stats(self) -> dict[str, Any]:
         """The core's figures and the gate's frame counts (a core's figures failing leaves the reason)."""
         try:
@@ -210,6 +226,12 @@ def add_host_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--known-senders", default=None, help="comma-separated vehicle ids (default: anyone)")
     p.add_argument("--local", action="append", default=[], help="on-board source, e.g. cv0 (repeatable)")
     p.add_argument("--params", default=None, help="YAML file of FusionParams fields")
+    p.add_argument(
+        "--downlink",
+        action=argparse.BooleanOptionalAction,
+        default=HostSetup.model_fields["downlink"].default,
+        help="send every vehicle what the others know about its pose (distributed mode)",
+    )
 
 
 def host_setup_from_args(a: argparse.Namespace, fleet: str, host_id: str) -> HostSetup:
@@ -226,4 +248,5 @@ def host_setup_from_args(a: argparse.Namespace, fleet: str, host_id: str) -> Hos
         max_wait_s=a.max_wait,
         params=params,
         map_file=a.map,
+        downlink=a.downlink,
     )

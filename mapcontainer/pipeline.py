@@ -43,6 +43,7 @@ from .faults import FaultInjector
 from .fusion import FusionParams
 from .fusion.gate import MAX_WAIT_S
 from .host import Fused, HostSetup, build_host
+from .onboard import DownlinkParams
 from .radio import RadioChannel, make_channel
 from .radio.cpm import CpmRules
 from .sim import Tick, World, load_scenario
@@ -116,6 +117,8 @@ class TickRecord:
     per_frame: dict[str, np.ndarray] = field(default_factory=dict)
     per_frame_covs: dict[str, np.ndarray] = field(default_factory=dict)  # vid -> 6x6, of the body pose
     released: dict[str, float] = field(default_factory=dict)  # view name -> when its gate released this frame
+    # vid -> what the vehicle did with the host's downlink this frame (Onboard.status; downlink runs only)
+    downlink: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -141,6 +144,12 @@ class PipelineResult:
     # every vehicle) and fuse, the host's whole work; and each fuse call's CPU milliseconds
     host_cpu_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     fuse_cpu_ms: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    # the downlink (``downlink=True``): vid -> bytes and messages the host put on the air for it (signed if
+    # signing; the ego's own go on board, not counted), and what each vehicle did with what arrived
+    downlink: bool = False
+    rx_bytes: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    rx_msgs: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    downlink_counts: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 def run_pipeline(
@@ -156,6 +165,8 @@ def run_pipeline(
     signing: bool = False,
     max_wait_s: float = MAX_WAIT_S,
     cpm_rules: bool = False,
+    downlink: bool = False,
+    downlink_params: DownlinkParams | None = None,
 ) -> PipelineResult:
     """Run one episode and return per-frame records for evaluation.
 
@@ -172,6 +183,12 @@ def run_pipeline(
     ``cpm_rules``: every vehicle but the ego thins the objects of the prior it sends with the ETSI CPM
     inclusion rules (:class:`~mapcontainer.radio.cpm.CpmRules`; distributed mode).
 
+    ``downlink``: after each solve the first view's host sends every vehicle what the others know about it
+    (:meth:`~mapcontainer.host.HostLoop.downlink`) through the channel (the ego's on board), signed when
+    ``signing``; each vehicle fuses what has arrived by its next frame (:mod:`~mapcontainer.onboard`), and the
+    records' ``onboard`` poses are its on-board estimate. Distributed mode only. ``downlink_params``: how the
+    vehicles use it (:class:`~mapcontainer.onboard.DownlinkParams`).
+
     ``max_wait_s``: scenario seconds a view's frame waits for its late senders (the FrameGate's; the
     live host's ``--max-wait`` is wall seconds, i.e. ``max_wait * time_scale`` scenario seconds).
     """
@@ -187,10 +204,16 @@ def run_pipeline(
     if start == "warm":
         states0 = world.states(0.0)  # a pure function of time: does not advance the sensors
         initial.update(warm_start_poses({v: np.asarray(states0[v].pose, float) for v in world.vehicle_ids}, seed))
-    agents = {v: VehicleAgent(world.hdmap, v, fleet, mode, initial_pose=initial[v]) for v in world.vehicle_ids}
+    agents = {
+        v: VehicleAgent(world.hdmap, v, fleet, mode, initial_pose=initial[v], downlink=downlink_params)
+        for v in world.vehicle_ids
+    }
     faults = {v: FaultInjector(v, sc.faults) for v in world.vehicle_ids}
     if mode != "distributed" and any(faults.values()):
         raise ValueError("faults act on a vehicle's priors: they need mode='distributed'")
+    if downlink and (mode != "distributed" or not views):
+        raise ValueError("the downlink is fused by the vehicles' own localizers and sent by a host view: it needs "
+                         "mode='distributed' and a view")
     if cpm_rules and mode != "distributed":
         raise ValueError("cpm_rules thin the objects of a vehicle's prior: they need mode='distributed'")
     cpm = {v: CpmRules() for v in world.vehicle_ids[1:]} if cpm_rules else {}
@@ -214,9 +237,46 @@ def run_pipeline(
         )
         for view in views
     }
-    signers, verifiers = _security(world.vehicle_ids, [view.name for view in views]) if signing else ({}, {})
+    signers, verifiers = (
+        _security(world.vehicle_ids, [view.name for view in views], HOST_ID if downlink else None)
+        if signing
+        else ({}, {})
+    )
     duration = sc.duration_s if duration_s is None else duration_s
     result = PipelineResult(sc.name, seed, mode, profile.name, ego, duration_s=duration, start=start, signing=signing)
+    result.downlink = downlink
+    down_view = views[0].name if views else None  # the host that sends the downlink
+    carried: list = []  # uplink deliveries taken from the channel early (with the downlink's), for ``advance``
+
+    def send_downlink(f: Fused) -> None:
+        """The host's downlink after a solve, on the air to each vehicle (on board to the ego)."""
+        t_sent = f.t if f.released is None else f.released
+        for msg in hosts[down_view].downlink(t_sent):
+            message = encode(msg)
+            payload = signers[HOST_ID].sign(message, SIGNING_EPOCH_S + t_sent) if signing else message
+            if msg.target == ego:
+                take_downlink(ego, payload, t_sent)
+            else:
+                result.rx_bytes[msg.target] += len(payload)
+                result.rx_msgs[msg.target] += 1
+                channel.send(HOST_ID, msg.target, payload, t_sent)
+
+    def take_downlink(vid: str, payload: bytes, t_arrive: float) -> None:
+        if signing:
+            out = verifiers[f"vehicle:{vid}"].verify(payload, SIGNING_EPOCH_S + t_arrive, expected_sender=HOST_ID)
+            if isinstance(out, Rejection):
+                result.security_rejected[out.reason] += 1
+                return
+            payload = out.payload
+        agents[vid].receive_downlink(payload)
+
+    def downlinks_until(t_end: float) -> None:
+        """Hand the vehicles the downlinks that have arrived by ``t_end`` (uplinks kept for ``advance``)."""
+        for d in channel.deliver(t_end):
+            if d.dst == HOST_ID:
+                carried.append(d)
+            else:
+                take_downlink(d.dst, d.payload, d.t_arrive)
 
     records: dict[int, TickRecord] = {}  # frame index k (t = k dt) -> its record
 
@@ -239,6 +299,8 @@ def run_pipeline(
         result.host_cpu_s[name] += f.cpu_s
         result.fuse_cpu_ms[name].append(1e3 * f.cpu_s)
         rec.released[name] = f.released
+        if downlink and name == down_view:
+            send_downlink(f)
 
     def timeouts(until: float) -> None:
         """Release what times out by ``until`` (a deadline falls before an arrival at the same instant)."""
@@ -250,7 +312,11 @@ def run_pipeline(
         """Every arrival up to ``t_end`` in time order (on-board messages at ``t_end``, before the
         channel's of the same instant), each view's gate asked after each."""
         events = [(t_end, 0, i, src, payload) for i, (src, payload) in enumerate(onboard)]
-        for i, d in enumerate(channel.deliver(t_end)):
+        if downlink:
+            downlinks_until(t_end)
+        arrived = [*carried, *channel.deliver(t_end)]
+        carried.clear()
+        for i, d in enumerate(arrived):
             result.deliveries.append((d.src, d.t_sent, d.t_arrive))
             events.append((d.t_arrive, 1, i, d.src, d.payload))
         events.sort(key=lambda e: e[:3])
@@ -270,6 +336,8 @@ def run_pipeline(
         if radio:
             channel.observe_truth(tick.truth)
         onboard: list[tuple[str, bytes]] = []
+        if downlink:
+            downlinks_until(t)  # what has arrived by this frame
         for vid, frame in tick.frames.items():
             msg = agents[vid].handle(t, frame)
             if isinstance(msg, Rejection):  # the simulator's own frames: a bug, not bad input
@@ -279,10 +347,12 @@ def run_pipeline(
                 rec.priors[vid] = np.asarray(msg.pose, dtype=float)
                 rec.prior_covs[vid] = body_pose_cov(msg)
                 rec.loc_mode[vid] = msg.quality.mode
-                res = agents[vid].last_result
-                if res.pose_filtered is not None:  # None until the localizer has initialised
-                    rec.onboard[vid] = np.asarray(res.pose_filtered, dtype=float)
-                    rec.onboard_covs[vid] = np.asarray(res.cov_filtered, dtype=float)
+                res, est = agents[vid].last_result, agents[vid].onboard
+                if est is not None:  # None until the localizer has initialised
+                    rec.onboard[vid] = np.asarray(est.pose, dtype=float)  # the own estimate, with the downlink
+                    rec.onboard_covs[vid] = np.asarray(est.cov, dtype=float)
+                    if downlink:
+                        rec.downlink[vid] = est.status
                     if res.pose_frame is not None:
                         bias = res.cov_filtered - res.cov_camera  # the error every frame repeats
                         rec.per_frame[vid], rec.per_frame_covs[vid] = res.pose_frame, res.cov_frame + bias
@@ -308,6 +378,7 @@ def run_pipeline(
     advance(t_last + max_wait_s, [])  # the last frames: their late messages and time-outs
     result.channel_stats = channel.stats()
     result.host_stats = {name: host.core.stats() for name, host in hosts.items()}
+    result.downlink_counts = {v: dict(a.downlink.counts) for v, a in agents.items()} if downlink else {}
     result.gate_stats = {name: {"complete": h.gate.complete, "timed_out": h.gate.timed_out} for name, h in hosts.items()}
     return result
 
@@ -323,11 +394,14 @@ def _closing(world: World, duration_s: float) -> Iterator[Tick]:
 SIGNING_EPOCH_S = 1.8e9  # Unix time of scenario time 0 in the pipeline's signatures (a fixed date in 2027)
 
 
-def _security(vehicles: list[str], views: list[str]) -> tuple[dict, dict]:
-    """A CA made for the run, a Signer per vehicle and a Verifier per host view."""
+def _security(vehicles: list[str], views: list[str], host: str | None = None) -> tuple[dict, dict]:
+    """A CA made for the run, a Signer per vehicle and a Verifier per host view; with ``host`` (the downlink)
+    a Signer for the host too and a Verifier per vehicle (keyed "vehicle:<id>")."""
     from .security import Signer, Verifier, issue, make_ca
 
     now = SIGNING_EPOCH_S - 3600.0
     ca = make_ca("pipeline-ca", now=now, validity_s=30 * 86400.0)
-    signers = {v: Signer(issue(ca, v, 30 * 86400.0, now)) for v in vehicles}
-    return signers, {name: Verifier(ca.certificate, window_s=5.0) for name in views}
+    senders = [*vehicles, host] if host is not None else vehicles
+    signers = {v: Signer(issue(ca, v, 30 * 86400.0, now)) for v in senders}
+    readers = [*views, *(f"vehicle:{v}" for v in vehicles)] if host is not None else views
+    return signers, {name: Verifier(ca.certificate, window_s=5.0) for name in readers}

@@ -42,6 +42,7 @@ __all__ = [
     "ObjectClass",
     "ObjectObservations",
     "Odometry",
+    "PoseDownlink",
     "RawObservations",
     "SecuredMessage",
     "SensorFrame",
@@ -343,6 +344,13 @@ class VehiclePrior(Envelope):
     integrity_risk: float | None = Field(
         None, gt=0, lt=1, description="the per-axis probability protection_level_m is stated at"
     )
+    downlink: Literal["fused", "refused", "seeded"] | None = Field(
+        None,
+        description="what the host's downlink (PoseDownlink) did this frame: 'fused' into the vehicle's on-board "
+        "estimate (pose here stays the vehicle's own), 'refused' by its consistency gate, 'seeded': the vehicle's "
+        "localizer runs from a start the downlink proposed, so pose holds some of the others' information. Absent: "
+        "none used (or an older sender)",
+    )
     # pose_cov is positive definite: checked by its type (Cov, schemas.arrays.CovSpec)
 
     @model_validator(mode="after")
@@ -358,6 +366,36 @@ class VehiclePrior(Envelope):
             _check_bound("protection_level_m", self.protection_level_m, MAX_COORD_M)
             if np.any(self.protection_level_m < 0) or self.integrity_risk is None:
                 raise ValueError("protection_level_m must be non-negative and come with integrity_risk")
+        return self
+
+
+class PoseDownlink(Envelope):
+    """Host -> one vehicle (the V2X downlink): what the other vehicles know about ``target``'s pose at t_meas.
+
+    The host's estimate of the target's pose with the target's own information taken out (its newest prior,
+    subtracted in information form: a channel filter on the link of the star), so that the vehicle can fuse
+    it as independent evidence. t_meas is the time of the target's frame it is about; ``sender`` the host.
+    In information form because the others rarely know a whole pose (they see a position, seldom a heading):
+    a direction they know nothing about has zero information, which no covariance can say.
+    """
+
+    target: str = Field(pattern=NAME_PATTERN, description="the vehicle this message is about and for")
+    pose: F32(6) = Field(
+        description="[x, y, z, roll, pitch, yaw] of the target's body in the map frame, as the others see it (in "
+        "the directions without information, the host's own estimate: no information)"
+    )
+    pose_info: F32(21) = Field(
+        description="6x6 information matrix (inverse covariance) of what the others know, over pose's six numbers, "
+        "upper triangle; positive semi-definite"
+    )
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_bound("pose position", self.pose[:3], MAX_COORD_M)
+        _check_bound("pose angles", self.pose[3:], 2 * np.pi)
+        w = np.linalg.eigvalsh(cov_from_upper(np.asarray(self.pose_info, dtype=float)))
+        if w[0] < -1e-5 * max(w[-1], 1.0):
+            raise ValueError("pose_info is not positive semi-definite")
         return self
 
 

@@ -142,7 +142,12 @@ TAGS: dict[str, int] = {
     "integrity_risk": 101,
     # LocalizationQuality (added, optional)
     "lock": 102,
-    # new fields: next tag 103
+    # PoseDownlink (a new message): and pose (6) as in VehiclePrior
+    "target": 103,
+    "pose_info": 104,
+    # VehiclePrior (added, optional)
+    "downlink": 105,
+    # new fields: next tag 106
 }
 
 

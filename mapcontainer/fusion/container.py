@@ -378,6 +378,14 @@ class Container:
             sorted(self.monitor.flagged),
         )
 
+    # ------------------------------------------------------------------ downlink
+    def downlink(self, t_sent: float, seq0: int) -> list:
+        """What the others know about each vehicle's newest frame, its own prior removed (:mod:`..downlink`):
+        PoseDownlink messages numbered from ``seq0``, sent at ``t_sent``."""
+        from ..downlink import downlink_messages
+
+        return downlink_messages(self.graph, self.fleet, self.host_id, t_sent, seq0)
+
     # ------------------------------------------------------------------ health
     def stats(self) -> dict:
         """Counters and figures of the last cycle (for health status and benchmarks)."""

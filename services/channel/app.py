@@ -7,7 +7,8 @@ thread sleeps until ``Channel.next_arrival()`` or a new message, takes ``deliver
 republishes each delivery on ``mc/{fleet}/v2x/rx/{dst}/{src}/prior`` (or ``raw``) with the sender's
 attachment (the world's clock) plus ``t_wall_ns``. A receiver can have on-board sources
 (``--receiver host=cv0``: the host runs on cv0, whose messages reach it without the radio) —
-those are not relayed to it.
+those are not relayed to it. The host's downlink (``mc/{fleet}/v2x/tx/{hid}/downlink/{vid}``, one
+message per vehicle) goes over link hid->vid to that vehicle alone, on ``mc/{fleet}/v2x/rx/{vid}/{hid}/downlink``.
 
 The processing latency in the health status is the scheduler's lateness: the time a delivery is
 published minus the time the link model said it arrives (about 0.5 ms in the prototype).
@@ -29,6 +30,7 @@ from collections import OrderedDict
 
 from pydantic import Field
 
+from mapcontainer.admission import Gate
 from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Verifier, load_certificate, unwrap
 from schemas import GroundTruth
 from schemas.codec import Rejection
@@ -49,7 +51,8 @@ from ..runtime import (
 
 __all__ = ["ChannelSettings", "Relay", "main", "parse_args", "parse_receivers"]
 
-KINDS = ("prior", "raw")
+KINDS = ("prior", "raw")  # broadcast to every receiver; the downlink goes to its one vehicle (Relay.offer_to)
+DOWNLINK_TARGETS = 64  # the vehicles one host's downlink may serve at the full rate
 
 
 class ChannelSettings(ServiceSettings):
@@ -151,6 +154,17 @@ class Relay:
                 self.accepted += bool(self.channel.send(src, dst, payload, now))
             self._cond.notify()
 
+    def offer_to(self, kind: str, src: str, dst: str, payload: bytes, attachment: dict) -> None:
+        """One message for one receiver (the host's downlink to a vehicle) over link src->dst."""
+        with self._cond:
+            now = self.now()
+            self._meta.setdefault((src, hash(payload)), (kind, attachment))
+            while len(self._meta) > self.MAX_PENDING:
+                self._meta.popitem(last=False)
+            self.offered += 1
+            self.accepted += bool(self.channel.send(src, dst, payload, now))
+            self._cond.notify()
+
     def observe(self, truth) -> None:
         """The world's truth: where the vehicles are now (a geometric link only)."""
         if self.radio:
@@ -211,7 +225,11 @@ def main(s: ChannelSettings) -> int:
 
         def on_tx(kind: str):
             tx = topic(f"{kind}_tx")
-            gate = topic_gate(tx.name, verifier, s.time_scale)  # a flooding source loses its own excess only
+            if kind == "downlink":  # one message per vehicle and frame from one host: its budget is per target
+                rate = 2.0 * (tx.rate_hz or 10.0) * max(s.time_scale, 1.0) * DOWNLINK_TARGETS
+                gate = Gate(verifier, rate, rate)
+            else:
+                gate = topic_gate(tx.name, verifier, s.time_scale)  # a flooding source loses its own excess only
 
             def cb(msg: Received) -> None:
                 where = tx.parse(msg.key)
@@ -222,12 +240,14 @@ def main(s: ChannelSettings) -> int:
                     out = gate.admit(msg.payload, where["src"], time.monotonic(), time.time())
                 if isinstance(out, Rejection):
                     svc.metrics.reject(out.reason, f"{tx.name} from {where['src']}: {out.detail}", log)
+                elif kind == "downlink":  # to its one vehicle
+                    relay.offer_to(kind, where["src"], where["dst"], msg.payload, msg.attachment)
                 else:  # relayed as it came: the receiver verifies the signature again, end to end
                     relay.offer(kind, where["src"], msg.payload, msg.attachment)
 
             return cb
 
-        for kind in KINDS:
+        for kind in (*KINDS, "downlink"):
             svc.subscribe(topic(f"{kind}_tx").pattern(fleet=s.fleet), on_tx(kind))
 
         if relay.radio:

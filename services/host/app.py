@@ -6,7 +6,9 @@ cross the radio), ``mc/{fleet}/v2x/tx/{src}/prior`` directly. Every payload is h
 loop with its receive time in scenario seconds (from the world's clock carried in the
 attachments); the loop solves once per camera frame (10 Hz), when every known sender's message for
 the frame is in or ``--max-wait`` seconds after its first one (``mapcontainer.fusion.gate.FrameGate``), and the
-service publishes the FusedState on ``mc/{fleet}/host/{hid}/fused``. The attachment carries the
+service publishes the FusedState on ``mc/{fleet}/host/{hid}/fused`` and, with ``--downlink``, each vehicle's
+PoseDownlink on ``mc/{fleet}/v2x/tx/{hid}/downlink/{vid}`` (signed like the fused state; the channel
+emulator relays it to that vehicle). The attachment carries the
 world's clock, ``t_wall_ns``, the solve time ``t_fused`` and frame tolerance ``tol``, and ``inputs``: the
 ``[sender, seq, t_recv]`` of every payload the container ingested since its previous solve, in order, which
 makes a recording re-fusable exactly (``mapc replay --refuse``).
@@ -37,9 +39,9 @@ from pydantic import Field, model_validator
 from mapcontainer.admission import Gate
 from mapcontainer.host import HostSetup, add_host_args, host_setup_from_args
 from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Signer, Verifier, load_certificate, load_credentials
-from schemas import FusedState
+from schemas import FusedState, PoseDownlink
 from schemas.codec import Rejection, peek, with_fields
-from schemas.topics import topic
+from schemas.topics import is_chunk, topic
 
 from ..runtime import (
     Received,
@@ -217,6 +219,8 @@ def main(s: HostSettings) -> int:
     clock = SimClock()
     fig: dict[str, Any] = {
         "fused_published": 0,
+        "downlink_sent": 0,
+        "downlink_bytes": 0,
         "solve_ms": 0.0,
         "worker_alive": 1.0,
         "inbox": 0,
@@ -316,6 +320,22 @@ def main(s: HostSettings) -> int:
         for src in s.host.local:
             svc.subscribe(topic(f"{kind}_tx").key(fleet=s.fleet, src=src), subscriber(f"{kind}_tx"))
 
+        down_pubs: dict[str, Any] = {}
+
+        def send_downlink(vid: str, payload: bytes) -> None:
+            """The downlink to ``vid``, through the channel emulator, signed like the fused state."""
+            if not is_chunk(vid):
+                return
+            pub = down_pubs.get(vid)
+            if pub is None:
+                pub = down_pubs[vid] = svc.publisher(topic("downlink_tx").key(fleet=s.fleet, src=hid, dst=vid))
+            payload = with_fields(payload, PoseDownlink, **clock.fields())
+            if signer is not None:
+                payload = signer.sign(payload, time.time())
+            pub.put(payload, attachment=make_attachment(t_wall_ns=time.time_ns(), **clock.fields()))
+            fig["downlink_sent"] += 1
+            fig["downlink_bytes"] += len(payload)
+
         def drain() -> None:
             nonlocal rc
             while not svc.stop_requested.is_set():
@@ -334,7 +354,7 @@ def main(s: HostSettings) -> int:
                     continue
                 results = item[-1]
                 if item[0] == "fused":
-                    _, payload, t, solve_s, stats, solved, results = item
+                    _, payload, t, solve_s, stats, solved, downlinks, results = item
                     active = primary is None or not primary.is_set()
                     if active:
                         payload = with_fields(payload, FusedState, **clock.fields())  # the clock, under the signature
@@ -345,6 +365,8 @@ def main(s: HostSettings) -> int:
                             attachment=make_attachment(t_wall_ns=time.time_ns(), t_fused=t, **solved, **clock.fields()),
                         )
                         fig["fused_published"] += 1
+                        for vid, down in downlinks:
+                            send_downlink(vid, down)
                     if primary is not None:
                         fig["standby_active"] = float(active)
                     svc.metrics.latency.add(solve_s)

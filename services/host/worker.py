@@ -10,12 +10,13 @@ process's monotonic clock.
 Protocol (tuples on the queues):
   inbox:  ("ingest", payload: bytes, t_recv: float) | ("stop",)
   outbox: ("ready", pid) | ("error", text)
-          | ("fused", payload: bytes, t: float, solve_s: float, stats: dict, solved, results)
+          | ("fused", payload: bytes, t: float, solve_s: float, stats: dict, solved, downlinks, results)
           | ("results", results)
   results: [(accepted: bool, reason: str | None, ingest_s: float), ...]
   solved: {"tol": the frame tolerance passed to fuse, "inputs": [[sender, seq, t_recv], ...]}: every payload
           ingested since the previous solve, in order (the host publishes it in the fused state's attachment,
           so that a recording can be re-fused exactly: mapcontainer.recording.replay)
+  downlinks: [(vehicle id, PoseDownlink bytes), ...] after the solve when the set-up asks for the downlink
 The loop solves once per camera frame, at the frame's ``t_meas`` (so the evaluator compares the
 state with the ground truth of that very frame), when :class:`mapcontainer.fusion.gate.FrameGate`
 releases it: the same gate decides when :func:`mapcontainer.pipeline.run_pipeline` solves, there on
@@ -31,6 +32,7 @@ import time
 import traceback
 
 from mapcontainer.host import HostSetup
+from schemas import encode
 
 __all__ = ["fusion_loop", "fusion_process"]
 
@@ -88,7 +90,8 @@ def fusion_loop(setup: HostSetup, inbox, outbox, parent_pid: int | None = None) 
             fused = None
         if fused is not None:
             solved = {"tol": fused.tolerance_s, "inputs": fused.inputs}
-            outbox.put(("fused", fused.payload(), fused.t, fused.wall_s, host.stats(), solved, results))
+            down = [(m.target, encode(m)) for m in host.downlink(fused.t)] if setup.downlink else []
+            outbox.put(("fused", fused.payload(), fused.t, fused.wall_s, host.stats(), solved, down, results))
             results = []
             last_flush = time.monotonic()
         if results and time.monotonic() - last_flush > 0.5:

@@ -232,6 +232,12 @@ def add_fleet_args(p: argparse.ArgumentParser, defaults: FleetParams | None = No
         help="no warm standby: after a crash of the host, no fused output until it is restarted (seconds)",
     )
     p.add_argument(
+        "--downlink",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the host sends every vehicle what the others know about its pose, through the channel emulator",
+    )
+    p.add_argument(
         "--record",
         action="store_true",
         default=None,
@@ -282,6 +288,7 @@ def settings_from_args(a: argparse.Namespace) -> LauncherSettings:
         "time_scale": a.time_scale,
         "standby": a.standby,
         "record": a.record,
+        "downlink": a.downlink,
         "signing": True if a.keys is not None and a.signing is None else a.signing,  # keys given: signed
         "keys": a.keys,
         "zenoh_config": a.zenoh_config,

@@ -104,6 +104,9 @@ class FleetParams(_Strict):
     ego: str = Field("cv0", pattern=NAME, description="the vehicle the host container runs on")
     standby: bool = Field(False, description="run a warm standby host that takes over when the host is gone")
     record: bool = Field(False, description="record every message of the fleet to {run_dir}/recording.mcap")
+    downlink: bool = Field(
+        False, description="the host sends every vehicle what the others know about its pose (host --downlink)"
+    )
     signing: bool = Field(True, description="vehicles sign their V2X messages, the host accepts signed ones only")
     keys: str | None = Field(
         None, description="the fleet's keys directory (mapc keys init); None: a test CA made for the run"
@@ -254,6 +257,7 @@ def resolve(
         "connect": connect,
         "vehicle_ids": ",".join(vids),
         "clock_scale": params.clock_scale,
+        "downlink_flag": "--downlink" if params.downlink else "--no-downlink",
         "python": python,
     }
     specs: list[ProcessSpec] = []

@@ -9,8 +9,9 @@ the fleet registry). A session without a login is refused when it connects, so n
 can publish or subscribe on the fleet's keys without the run directory's files.
 
 The access control (Zenoh's ``access_control``, default deny) gives each process only its own keys
-(:func:`acl`): a vehicle puts only its V2X messages and reads only its sensors; the host reads only its
-receive keys (and its on-board vehicle's transmit key) and puts only its own fused state; the channel
+(:func:`acl`): a vehicle puts only its V2X messages and reads only its sensors and its own downlink; the host
+reads only its receive keys (and its on-board vehicle's transmit key) and puts only its own fused state and
+its downlink; the channel
 reads the transmit keys and the world's truth (a geometric radio places its radios there) and puts the
 receive keys; the world puts the simulation's keys (and, for its adaptive clock, reads the vehicles'
 transmit keys and the fused states and watches who is alive); the evaluator reads and puts its metrics;
@@ -72,7 +73,10 @@ def _grants(spec: ProcessSpec, params: FleetParams) -> list[tuple[tuple[tuple[st
     ]
     hid, ego = params.host_id, params.ego
     by_role = {
-        "vehicle": [(_PUB, [f"{f}/v2x/tx/{spec.id}/**"]), (_SUB, [f"{f}/sim/{spec.id}/sensors"])],
+        "vehicle": [
+            (_PUB, [f"{f}/v2x/tx/{spec.id}/**"]),
+            (_SUB, [f"{f}/sim/{spec.id}/sensors", f"{f}/v2x/rx/{spec.id}/*/downlink"]),  # its own downlink only
+        ],
         "world": [
             (_PUB, [f"{f}/sim/**"]),
             # the adaptive clock follows the services it waits for: the vehicles' messages, the fused states, and
@@ -83,7 +87,7 @@ def _grants(spec: ProcessSpec, params: FleetParams) -> list[tuple[tuple[tuple[st
         "channel": [(_SUB, [f"{f}/v2x/tx/**", f"{f}/sim/truth"]), (_PUB, [f"{f}/v2x/rx/**"])],
         "host": [
             (_SUB, [f"{f}/v2x/rx/{hid}/**", f"{f}/v2x/tx/{ego}/**"]),
-            (_PUB, [f"{f}/host/{hid}/fused"]),
+            (_PUB, [f"{f}/host/{hid}/fused", f"{f}/v2x/tx/{hid}/downlink/*"]),
             (_WATCH, [f"{f}/alive/host/{hid}"]),  # a standby watches its host
         ],
         "evaluator": [

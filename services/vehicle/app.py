@@ -10,6 +10,11 @@ Frames are handled in order. When the vehicle cannot keep up, new frames are cou
 GNSS fix to the localizer, in order (``VehicleAgent.skip``), so that no stretch of the path goes
 unmeasured.
 
+The host's downlink (distributed mode): ``mc/{fleet}/v2x/rx/{vid}/*/downlink`` (PoseDownlink, through the
+channel emulator; on a signed fleet verified against the host id in the key) is kept by the Zenoh callback
+and handed to the agent by the frame worker before its next frame (``VehicleAgent.receive_downlink``): the
+agent is only ever used from that one thread.
+
 Health (distributed mode, ``VehicleAgent.health``): degraded while the vehicle does not know where it
 is -- from the first frame after a gap longer than ``health.gap_s`` (a freeze, frames lost), a restart
 or a reset of its localizer, and in any phase of the localizer but tracking, until it has been
@@ -21,6 +26,7 @@ more than ``health.unlocalized_s`` (its priors are then GNSS-grade); all in scen
 from __future__ import annotations
 
 import argparse
+import threading
 import time
 from typing import Literal
 
@@ -28,7 +34,7 @@ from pydantic import Field
 
 from mapcontainer.faults import FaultInjector
 from mapcontainer.localization.health import PoseHealthParams
-from mapcontainer.security import Signer, load_credentials
+from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Signer, Verifier, load_certificate, load_credentials, unwrap
 from mapcontainer.sim.config import load_scenario
 from mapcontainer.sim.errors import published_map
 from schemas import Rejection, SensorFrame, encode
@@ -132,10 +138,36 @@ def main(s: VehicleSettings) -> int:
                 return True
             return False
 
+        downlinks: list[bytes] = []  # verified downlinks, for the frame worker
+        down_lock = threading.Lock()
+        down_verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
+
+        def on_downlink(msg: Received) -> None:
+            where = topic("downlink_rx").parse(msg.key)
+            if where is None or where["dst"] != s.id:
+                svc.metrics.reject("bad_key", f"{msg.key} is not a downlink for {s.id}", log)
+                return
+            inner = unwrap(msg.payload, down_verifier, time.time(), where["src"])
+            if isinstance(inner, Rejection):
+                svc.metrics.reject(inner.reason, f"downlink on {msg.key}: {inner.detail}", log)
+                return
+            with down_lock:
+                downlinks.append(inner)
+                del downlinks[:-4]  # only the newest counts
+
+        def take_downlinks() -> None:
+            with down_lock:
+                got, downlinks[:] = list(downlinks), []
+            for payload in got:
+                reason = agent.receive_downlink(payload)
+                if reason is not None:
+                    svc.metrics.reject(f"downlink_{reason}", "downlink refused by the vehicle", log)
+
         def on_frame(msg: Received) -> None:
             got = frame_of(msg)
             if got is None:
                 return
+            take_downlinks()
             out = agent.handle(got[1], got[0])
             if refused(out):
                 return
@@ -158,6 +190,8 @@ def main(s: VehicleSettings) -> int:
             if got is not None and not refused(agent.skip(got[1], got[0])):
                 extra["skipped"] += 1
 
+        if s.mode == "distributed":
+            svc.subscribe(topic("downlink_rx").pattern(fleet=s.fleet, dst=s.id), on_downlink)
         svc.subscribe_queued(
             topic("sensors").key(fleet=s.fleet, vid=s.id),
             on_frame,

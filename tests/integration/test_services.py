@@ -22,6 +22,7 @@ from schemas import (
     HealthStatus,
     LocalizationQuality,
     ObjectObservations,
+    PoseDownlink,
     SensorFrame,
     VehiclePrior,
     decode,
@@ -495,3 +496,86 @@ def test_a_session_close_that_never_returns_does_not_keep_the_service_alive(tmp_
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "did not finish within" in proc.stderr and "Thread 0x" in proc.stderr, proc.stderr[-3000:]
+
+
+def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
+    rendezvous, fleet_name, spawn, wait_for, watch_liveliness
+):
+    """host --downlink: two vehicles that see each other each get what the other knows about them, on their own
+    downlink_rx key, through the channel relay (link host -> vehicle)."""
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    common = ["--fleet", fleet_name, "--connect", endpoint]
+    spawn("services.channel", *common, "--network", "ideal", "--receiver", "host=")
+    spawn("services.host", *common, "--known-senders", "cv0,cv1", "--downlink", "--inline")
+    for role, sid in (("channel", "channel"), ("host", "host")):
+        alive.wait_alive(topic("alive").key(fleet=fleet_name, role=role, id=sid), timeout=90)
+    got: dict[str, list[bytes]] = {"cv0": [], "cv1": []}
+    subs = [
+        session.declare_subscriber(
+            topic("downlink_rx").pattern(fleet=fleet_name, dst=vid),
+            lambda s, vid=vid: got[vid].append(s.payload.to_bytes()),
+        )
+        for vid in got
+    ]
+    pubs = {v: session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src=v)) for v in got}
+    epoch = time.time_ns()
+    attachment = make_attachment(epoch_wall_ns=epoch, time_scale=1.0)
+    ys = {"cv0": 0.0, "cv1": -6.0}
+    seq = 0
+
+    def send() -> None:
+        nonlocal seq
+        t = round((time.time_ns() - epoch) * 1e-9, 1)
+        for vid, y in ys.items():
+            other = [[0.0, ys["cv1" if vid == "cv0" else "cv0"] - y, 0.0]]  # the other vehicle, beside it
+            objs = ObjectObservations.from_metres(np.array(other), np.diag([0.2, 0.15, 0.05])[None] ** 2, [2])
+            msg = moving_prior(fleet_name, vid, seq, t, y=y, objects=objs, epoch=epoch)
+            pubs[vid].put(encode(msg.model_copy(update={"pose_filtered": True})), attachment=attachment)
+        seq += 1
+
+    def both() -> bool:
+        send()
+        time.sleep(0.1)
+        return all(len(v) >= 3 for v in got.values())
+
+    wait_for(both, timeout=60, what="a downlink for each vehicle")
+    for s in subs:
+        s.undeclare()
+    for vid, payloads in got.items():
+        msg = decode(inner_payload(payloads[-1]), PoseDownlink)
+        assert isinstance(msg, PoseDownlink) and msg.target == vid and msg.sender == "host", msg
+        assert abs(float(msg.pose[1]) - ys[vid]) < 1.0  # where the other sees it
+    views = {(v.role, v.id): v.status for v in fleet_health(session, fleet_name, timeout_s=2.0)}
+    assert views[("host", "host")].figures["downlink_sent"] >= 6
+
+
+def test_a_vehicle_takes_its_downlink_before_its_next_frame(rendezvous, fleet_name, spawn, watch_liveliness):
+    """The vehicle service subscribes its own downlink_rx key; what arrives is handed to its agent with the next
+    sensor frame (health figures downlink_received); a downlink for another vehicle is refused and counted."""
+    session, endpoint = rendezvous
+    alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
+    common = ["--fleet", fleet_name, "--connect", endpoint]
+    spawn("services.vehicle", *common, "--id", "cv1")
+    alive.wait_alive(topic("alive").key(fleet=fleet_name, role="vehicle", id="cv1"), timeout=60)
+    pub = session.declare_publisher(topic("downlink_rx").key(fleet=fleet_name, dst="cv1", src="host"))
+    info = np.diag([25.0, 25.0, 4.0, 0, 0, 0])[np.triu_indices(6)]
+
+    def downlink(seq: int, target: str) -> bytes:
+        msg = PoseDownlink(fleet=fleet_name, sender="host", seq=seq, t_meas=0.1 * seq, t_sent=0.1 * seq,
+                           target=target, pose=np.zeros(6, np.float32), pose_info=info.astype(np.float32))  # fmt: skip
+        return encode(msg)
+
+    spawn("services.world", *common, "--vehicles", "2", "--duration", "3", "--wait-subscribers", "1")
+    deadline = time.monotonic() + 60
+    figures: dict = {}
+    seq = 0
+    while time.monotonic() < deadline and figures.get("downlink_received", 0) < 2:
+        pub.put(downlink(seq, "cv1" if seq % 2 == 0 else "cv2"))
+        seq += 1
+        time.sleep(0.1)
+        views = {(v.role, v.id): v.status for v in fleet_health(session, fleet_name, timeout_s=0.5)}
+        if ("vehicle", "cv1") in views:
+            figures = views[("vehicle", "cv1")].figures
+    assert figures.get("downlink_received", 0) >= 2, figures
+    assert figures.get("downlink_rejected_not_for_us", 0) >= 1, figures

@@ -28,6 +28,7 @@ from schemas import (
     ObjectClass,
     ObjectObservations,
     Odometry,
+    PoseDownlink,
     RawObservations,
     Rejection,
     SecuredMessage,
@@ -208,7 +209,18 @@ def secured_message(full: bool) -> SecuredMessage:
     )
 
 
+def pose_downlink() -> PoseDownlink:
+    """What the others know of cv1: a position, no heading (no information on the angles)."""
+    info = np.zeros((6, 6))
+    info[:3, :3] = np.linalg.inv(np.array([[0.09, 0.05, 0], [0.05, 0.16, 0], [0, 0, 0.25]]))
+    return PoseDownlink(
+        fleet="run1", sender="host", seq=7, t_meas=12.3, t_sent=12.41, target="cv1",
+        pose=np.array([10.5, -3.25, 0.5, 0.0, 0.01, 1.2], np.float32), pose_info=cov_to_upper(info),
+    )  # fmt: skip
+
+
 CASES = {
+    "pose_downlink": pose_downlink,
     "sensor_frame_full": lambda: observations(SensorFrame, True),
     "sensor_frame_min": lambda: observations(SensorFrame, False),
     "raw_observations_full": lambda: observations(RawObservations, True),
@@ -229,7 +241,7 @@ CASES = {
 
 # Every wire model: the messages and the parts nested in them.
 WIRE_MODELS = [
-    SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus, EvalMetrics,
+    SensorFrame, RawObservations, VehiclePrior, FusedState, GroundTruth, HealthStatus, EvalMetrics, PoseDownlink,
     CameraInfo, GnssFix, Odometry, ObjectObservations, LocalizationQuality, SecuredMessage, Certificate,
 ]  # fmt: skip
 

@@ -43,3 +43,15 @@ def test_the_channel_may_read_the_truth_that_places_its_radios_but_not_put_it() 
     assert _granted("channel", "channel", _SUB, topic("truth").key(fleet=FLEET))
     assert _granted("channel", "channel", _SUB, topic("prior_tx").pattern(fleet=FLEET))
     assert not _granted("channel", "channel", _PUB, topic("truth").key(fleet=FLEET))
+
+
+def test_the_downlink_host_puts_it_the_channel_relays_it_each_vehicle_reads_only_its_own() -> None:
+    hid = FleetParams(fleet=FLEET).host_id
+    assert _granted("host", hid, _PUB, topic("downlink_tx").key(fleet=FLEET, src=hid, dst="cv1"))
+    assert not _granted("host", hid, _PUB, topic("downlink_tx").key(fleet=FLEET, src="other", dst="cv1"))
+    assert not _granted("vehicle", "cv1", _PUB, topic("downlink_tx").key(fleet=FLEET, src=hid, dst="cv1"))
+    assert _granted("channel", "channel", _SUB, topic("downlink_tx").pattern(fleet=FLEET))
+    assert _granted("channel", "channel", _PUB, topic("downlink_rx").key(fleet=FLEET, dst="cv1", src=hid))
+    assert _granted("vehicle", "cv1", _SUB, topic("downlink_rx").pattern(fleet=FLEET, dst="cv1"))
+    assert not _granted("vehicle", "cv1", _SUB, topic("downlink_rx").pattern(fleet=FLEET, dst="cv2"))
+    assert not _granted("vehicle", "cv1", _SUB, topic("downlink_rx").pattern(fleet=FLEET))  # not everyone's

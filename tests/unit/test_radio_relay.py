@@ -63,3 +63,17 @@ def test_channel_service_takes_a_scenario_for_the_buildings():
     s = parse_args(["--network", "its-g5", "--scenario", "blindspot-occluded", "--receiver", "host=cv0"])
     assert s.scenario == "blindspot-occluded" and s.receivers == {"host": ["cv0"]}
     assert parse_args([]).scenario is None
+
+
+def test_the_downlink_goes_to_its_one_vehicle():
+    """Relay.offer_to: the host's downlink over link host->vid only (not broadcast to the receivers)."""
+    from mapcontainer.channel import Channel
+
+    clk = [0.0]
+    relay = Relay(Channel(load_profile("ideal"), 1), {"host": ["cv0"]}, clock=lambda: clk[0])
+    relay.offer_to("downlink", "host", "cv1", b"for cv1", {"k": 1})
+    got = relay.due(threading.Event(), max_wait_s=0.0)
+    assert [(d.src, d.dst, d.payload, kind, att) for d, kind, att, _ in got] == [
+        ("host", "cv1", b"for cv1", "downlink", {"k": 1})
+    ]
+    assert relay.offered == relay.accepted == 1

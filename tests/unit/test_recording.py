@@ -265,7 +265,7 @@ def _host_run(tmp_path: Path, frames: int = 25, fakes: bool = False):
             item = outbox.get(timeout=30)
             if item[0] == "fused":
                 break
-        _, payload, t_f, _, _, solved, _ = item
+        _, payload, t_f, _, _, solved, _, _ = item
         signed = signers["host"].sign(payload, time.time())  # the host service signs its fused state
         w.add("mc/f/host/host/fused", signed, att(t_wall_ns=t_ns + 60_000_000, t_fused=t_f, **solved), t_ns + 60_000_000)
         w.add("mc/f/sim/truth", signers["world"].sign(encode(truth(t)), time.time()), None, t_ns + 70_000_000)

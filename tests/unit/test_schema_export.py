@@ -25,6 +25,7 @@ def test_export_writes_one_file_per_model_plus_topics(tmp_path: Path) -> None:
             "sensor_frame.json",
             "raw_observations.json",
             "vehicle_prior.json",
+            "pose_downlink.json",
             "fused_state.json",
             "ground_truth.json",
             "health_status.json",

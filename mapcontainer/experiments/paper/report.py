@@ -65,6 +65,13 @@ def _method(res: dict) -> list[str]:
         "camera calibration error, time-correlated detector errors with approximately right covariances, class "
         "confusion and clutter, per-vehicle clock offsets. The sensitivity table turns each off in turn.",
         f"* **Start**: {start}.",
+        "* **Downlink**: "
+        + (
+            "on: after each solve the host sends every vehicle what the others know about it (its own share "
+            "removed); *vehicle alone* is then the vehicle's on-board estimate with it fused (docs/downlink.md)."
+            if s.get("downlink")
+            else "off: the vehicles localize alone (`--downlink`: the host's downlink fused on board)."
+        ),
         f"* **Duration and burn-in**: {s['duration_s']:g} s per run; every frame from t = {s['burnin_s']:g} s on is "
         "scored (steady state); the error against time covers the whole run, start-up included.",
         f"* **Runs**: {res['runs']} per simulated scenario; {s['real_vehicle_runs']} per test-site scenario and "

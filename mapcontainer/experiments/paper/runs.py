@@ -149,7 +149,7 @@ def _sim_run(scenario, seed: int, s: PaperSettings, centralized: bool = False) -
     ego's);
     ``centralized``: the same run in centralized mode too (:func:`_centralized`)."""
     views = (View("cooperative"), View("ego_only", (EGO,)))
-    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start)
+    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start, downlink=s.downlink)
     if res.ego != EGO:
         raise ValueError(f"scenario {res.scenario}: the pipeline's ego is {res.ego}, expected {EGO}")
     sc = _Scorer(res, s.radius_m)
@@ -187,7 +187,7 @@ def _centralized(scenario, seed: int, s: PaperSettings, sc: _Scorer) -> dict:
 def _overlap_run(scenario, seed: int, s: PaperSettings) -> dict:
     """Table res1: the obstacle in the map frame from the ego car's messages, the connected car's, both."""
     views = (View("ego_car", (EGO,)), View("connected_car", (CONNECTED,)), View("fused"))
-    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start)
+    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start, downlink=s.downlink)
     sc = _Scorer(res, s.radius_m)
     for k, rec in enumerate(res.records):
         sc.vehicles(k, rec, (EGO, CONNECTED), {})
@@ -200,7 +200,7 @@ def _blindspot_run(scenario, seed: int, s: PaperSettings) -> dict:
     """Table res2: the connected car's fused pose (and its own estimates) and the obstacle, cooperative
     and ego-only views."""
     views = (View("cooperative"), View("ego_only", (EGO,)))
-    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start)
+    res = run_pipeline(scenario, seed=seed, duration_s=s.duration_s, views=views, start=s.start, downlink=s.downlink)
     sc = _Scorer(res, s.radius_m)
     for k, rec in enumerate(res.records):
         scores = {view: sc.score(rec, view, scoped=False) for view in ("ego_only", "cooperative")}

@@ -79,6 +79,7 @@ class PaperSettings:
     sensitivity_runs: int | None = None  # runs per scenario and error setting (None: min(runs, 5))
     radius_m: float = 50.0  # the ego's perception range for rms2 and the multi-object metric
     start: str = "cold"
+    downlink: bool = False  # the host sends every vehicle what the others know about it (run_pipeline(downlink=))
     scenarios: tuple[str, ...] = ()  # presets of the simulation part instead of the paper's (SIM_SCENARIOS)
 
     def __post_init__(self):
