@@ -80,6 +80,24 @@ __all__ = ["FusionGraph"]
 _UNIT6 = gtsam.noiseModel.Unit.Create(6)
 
 
+def _vector_table(values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+    """Every Vector6 of the graph (track states ``s``, persistent errors ``b``) at once: (keys, rows), keys
+    sorted, for :func:`_vectors`; two C++ calls instead of one ``atVector`` per key."""
+    keys = np.array(values.keys(), dtype=np.uint64)  # sorted; a key's symbol character is its top byte
+    sym = keys >> np.uint64(56)
+    out_k, out_v = [], []
+    for c in "bs":  # in key order
+        out_k.append(keys[sym == ord(c)])
+        out_v.append(gtsam.utilities.extractVectors(values, c).reshape(-1, 6))
+    return np.concatenate(out_k), np.concatenate(out_v)
+
+
+def _vectors(table: tuple[np.ndarray, np.ndarray], keys) -> np.ndarray:
+    """The rows (N, 6) of ``keys`` in a :func:`_vector_table`."""
+    k, v = table
+    return v[np.searchsorted(k, np.asarray(keys, dtype=np.uint64))]
+
+
 def _sqrt_info(cov: np.ndarray) -> np.ndarray:
     """W with W^T W = cov^-1 (upper triangular)."""
     return np.linalg.cholesky(np.linalg.inv(cov)).T
@@ -337,13 +355,17 @@ class FusionGraph:
         jf = gtsam.JacobianFactor(a.key, A_a, b.key, A_b, -r, _UNIT6)  # about the current values
         chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values))
 
-    def _set_prior(self, chain: Chain, prior: TrackPrior, sqrt: tuple | None = None) -> None:
+    def _set_prior(
+        self, chain: Chain, prior: TrackPrior, sqrt: tuple | None = None, table: tuple | None = None
+    ) -> None:
         """Put the prior in the graph (replacing the track's prior), about the current values
-        (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them)."""
+        (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them; ``table``: the
+        values' :func:`_vector_table`, if the caller has it)."""
         self._remove_factor(chain.prior_fid)
         chain.prior = prior
         keys = [chain.states[prior.tkey].key] + [self.vehicles[v].bias_key for v in prior.vids]
-        f = marginalize.prior_factor(prior, keys, self.values, sqrt)
+        y0 = None if table is None else _vectors(table, keys).ravel()
+        f = marginalize.prior_factor(prior, keys, self.values, sqrt, y0)
         chain.prior_fid = self._add_factor(f, tuple(keys))
 
     def _detection_information(
@@ -379,9 +401,9 @@ class FusionGraph:
                     owner.append(i)
                     dets.append(d)
         info = None
+        table = _vector_table(self.values)
         if dets:
-            p0 = np.array([self.values.atVector(d.target_key)[:3] for d in dets])
-            info = self._detection_information(dets, p0)
+            info = self._detection_information(dets, _vectors(table, [d.target_key for d in dets])[:, :3])
         summaries = marginalize.summarize_first(
             [c.prior for c in chains],
             [c.tkeys[1] for c in chains],
@@ -393,7 +415,7 @@ class FusionGraph:
             _BATCH_UNITS,
         )
         for i, prior, sqrt in summaries:
-            self._set_prior(chains[i], prior, sqrt)
+            self._set_prior(chains[i], prior, sqrt, table)
 
     def fold_detection(self, track_id: int, pose_key: int, z_body, cov_body, weight: float = 1.0) -> None:
         """A detection older than the track's first state (a late message) into the track's prior, whose
