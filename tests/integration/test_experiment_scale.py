@@ -22,7 +22,12 @@ def test_experiment_scale_runs_both_modes_and_measures_cost_traffic_and_accuracy
     )  # fmt: skip
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["points"] == 4
-    rows = json.loads((out / "results.json").read_text())["rows"]
+    doc = json.loads((out / "results.json").read_text())
+    rows = doc["rows"]
+    from mapcontainer.fusion.compiled import COMPILED
+
+    assert doc["meta"]["host_compiled"] is COMPILED
+    assert doc["analysis"]["distributed"]["realtime_vehicles"] in (None, 2, 4)  # where the cycle fits 100 ms
     by = {(r["mode"], r["vehicles"]): r for r in rows}
     for mode in ("distributed", "centralized"):
         small, large = by[(mode, 2)], by[(mode, 4)]
