@@ -1,14 +1,18 @@
 """The host's inner loops, compiled with numba when it is installed (the ``fast`` extra), else run as the
 same numpy code in the interpreter: one algorithm, two ways to run it.
 
-``COMPILED`` says which. The kernels take flat arrays (no Python objects), so that numba can compile
-them; the callers (:mod:`.solver`) gather those arrays. Compiled kernels are cached on disk
-(numba's ``cache=True``): the first process compiles them (a few seconds), later ones load them.
-Compiled and interpreted results agree to rounding (the matrix products run in different BLAS calls,
-and the triangular inverse is a compiled loop against LAPACK's ``dtrtri``).
+``COMPILED`` says whether numba is there. The kernels take flat arrays (no Python objects), so that
+numba can compile them; the callers (:mod:`.solver`) gather those arrays. Compiled kernels are cached
+on disk (numba's ``cache=True``): the first process that needs one compiles it (seconds, more on a busy
+machine), later ones load it (under a second). So a caller uses the compiled kernel only for work large
+enough to need it (:func:`clique_recursion`'s ``compiled``), and a small window (the unit tests, a
+handful of vehicles) never waits for numba. Compiled and interpreted results agree to rounding (the
+triangular inverse is a compiled loop against LAPACK's ``dtrtri``; the products the same BLAS calls).
 """
 
 from __future__ import annotations
+
+import types
 
 import numpy as np
 from scipy.linalg import lapack
@@ -155,4 +159,16 @@ def _clique_recursion(
     return out, -1
 
 
-clique_recursion = numba.njit(cache=True)(_clique_recursion) if COMPILED else _clique_recursion
+# the same code with the numpy helpers, whether or not numba compiled the module's
+_interpreted = types.FunctionType(
+    _clique_recursion.__code__,
+    {**_clique_recursion.__globals__, "_upper_inverse": _upper_inverse_lapack, "_gather": _gather_numpy},
+    "_clique_recursion",
+)
+_compiled = numba.njit(cache=True)(_clique_recursion) if COMPILED else None
+
+
+def clique_recursion(*args, compiled: bool = True) -> tuple[np.ndarray, int]:
+    """:func:`_clique_recursion` (its arguments), compiled if numba is installed and ``compiled``, else
+    interpreted."""
+    return (_compiled if COMPILED and compiled else _interpreted)(*args)

@@ -33,6 +33,10 @@ __all__ = ["Solution", "SolveReport", "latest_covariances", "solve"]
 
 _UNIT6 = gtsam.noiseModel.Unit.Create(6)
 
+# The compiled clique recursion from this many cliques on the paths: below it the interpreted one costs a few
+# ms at most, and a small window (tests, a few vehicles) never waits for numba's compile (see .compiled).
+COMPILE_FROM_CLIQUES = 256
+
 # With this few latest states "sparse" orders them last too: one dense root of at most 6 x 24 dimensions costs
 # less than the recursion over more, smaller cliques (4 vehicles / 14 objects: 15.4 against 18.1 ms a cycle).
 DENSE_ROOT_KEYS = 24
@@ -223,6 +227,7 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
         np.array([w[2] for w in wants], dtype=np.int64)[by_clique],
         np.searchsorted(want_clique[by_clique], np.arange(nc + 1)).astype(np.int64),
         len(wanted),
+        compiled=nc >= COMPILE_FROM_CLIQUES,
     )
     roots = parent < 0
     if failed >= 0:
