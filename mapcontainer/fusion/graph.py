@@ -73,29 +73,12 @@ from .motion import accel_psd, cv_model, speed_prior
 from .params import FusionParams
 from .poses import pose3_from_vector, pose_cov_to_tangent
 from .solver import SolveReport
+from .values import vector_table, vectors
 from .window import Chain, PoseState, TrackState
 
 __all__ = ["FusionGraph"]
 
 _UNIT6 = gtsam.noiseModel.Unit.Create(6)
-
-
-def _vector_table(values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
-    """Every Vector6 of the graph (track states ``s``, persistent errors ``b``) at once: (keys, rows), keys
-    sorted, for :func:`_vectors`; two C++ calls instead of one ``atVector`` per key."""
-    keys = np.array(values.keys(), dtype=np.uint64)  # sorted; a key's symbol character is its top byte
-    sym = keys >> np.uint64(56)
-    out_k, out_v = [], []
-    for c in "bs":  # in key order
-        out_k.append(keys[sym == ord(c)])
-        out_v.append(gtsam.utilities.extractVectors(values, c).reshape(-1, 6))
-    return np.concatenate(out_k), np.concatenate(out_v)
-
-
-def _vectors(table: tuple[np.ndarray, np.ndarray], keys) -> np.ndarray:
-    """The rows (N, 6) of ``keys`` in a :func:`_vector_table`."""
-    k, v = table
-    return v[np.searchsorted(k, np.asarray(keys, dtype=np.uint64))]
 
 
 def _sqrt_info(cov: np.ndarray) -> np.ndarray:
@@ -360,11 +343,11 @@ class FusionGraph:
     ) -> None:
         """Put the prior in the graph (replacing the track's prior), about the current values
         (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them; ``table``: the
-        values' :func:`_vector_table`, if the caller has it)."""
+        values' :func:`.values.vector_table`, if the caller has it)."""
         self._remove_factor(chain.prior_fid)
         chain.prior = prior
         keys = [chain.states[prior.tkey].key] + [self.vehicles[v].bias_key for v in prior.vids]
-        y0 = None if table is None else _vectors(table, keys).ravel()
+        y0 = None if table is None else vectors(table, keys).ravel()
         f = marginalize.prior_factor(prior, keys, self.values, sqrt, y0)
         chain.prior_fid = self._add_factor(f, tuple(keys))
 
@@ -401,9 +384,9 @@ class FusionGraph:
                     owner.append(i)
                     dets.append(d)
         info = None
-        table = _vector_table(self.values)
+        table = vector_table(self.values)
         if dets:
-            info = self._detection_information(dets, _vectors(table, [d.target_key for d in dets])[:, :3])
+            info = self._detection_information(dets, vectors(table, [d.target_key for d in dets])[:, :3])
         summaries = marginalize.summarize_first(
             [c.prior for c in chains],
             [c.tkeys[1] for c in chains],
