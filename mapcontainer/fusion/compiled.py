@@ -7,7 +7,8 @@ on disk (numba's ``cache=True``): the first process that needs one compiles it (
 machine), later ones load it (under a second). So a caller uses the compiled kernel only for work large
 enough to need it (:func:`clique_recursion`'s ``compiled``), and a small window (the unit tests, a
 handful of vehicles) never waits for numba. Compiled and interpreted results agree to rounding (the
-triangular inverse is a compiled loop against LAPACK's ``dtrtri``; the products the same BLAS calls).
+triangular inverse is a compiled loop against LAPACK's ``dtrtri``; the matrix products go to BLAS in
+both: at 50 vehicles / 500 objects the covariances differ by 1e-15 of their size).
 """
 
 from __future__ import annotations
