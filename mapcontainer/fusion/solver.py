@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+
 from .compiled import clique_recursion
 from .laps import Laps
 from .params import FusionParams
