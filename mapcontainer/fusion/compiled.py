@@ -92,7 +92,8 @@ def _clique_recursion(
     """The top-down recursion of :func:`.solver.latest_covariances` over cliques in depth-first preorder.
 
     Clique c has ``nf[c]`` frontal and ``ns[c]`` separator dimensions, its conditional's R (nf x nf,
-    row-major at ``R_flat[R_off[c]:]``) and S (nf x ns at ``S_flat[S_off[c]:]``), ``parent[c]`` (an
+    column-major, as GTSAM holds it, at ``R_flat[R_off[c]:]``) and S (nf x ns, column-major at
+    ``S_flat[S_off[c]:]``), ``parent[c]`` (an
     earlier clique, -1 for a root), its separator's dimensions' positions in the parent's joint
     (``sep_pos[sep_off[c]:sep_off[c] + ns[c]]``), and whether a clique of the list hangs below it
     (``inner[c]``: its whole joint is formed). Its wanted 6 x 6 frontal blocks: the block rows
@@ -116,7 +117,7 @@ def _clique_recursion(
     out = np.zeros((n_out, 6, 6))
     for c in range(nc):
         n, s = nf[c], ns[c]
-        R = R_flat[R_off[c] : R_off[c] + n * n].reshape(n, n)
+        R = np.ascontiguousarray(R_flat[R_off[c] : R_off[c] + n * n].reshape(n, n).T)
         for i in range(n):
             if R[i, i] == 0.0:
                 return out, c
@@ -132,7 +133,7 @@ def _clique_recursion(
             mp = nf[p] + ns[p]
             Jp = J_flat[J_off[p] : J_off[p] + mp * mp].reshape(mp, mp)
             Sss = _gather(Jp, sep_pos[sep_off[c] : sep_off[c] + s])
-            S = S_flat[S_off[c] : S_off[c] + n * s].reshape(n, s)
+            S = S_flat[S_off[c] : S_off[c] + n * s].reshape(s, n).T
             if inner[c]:
                 m = n + s
                 J = J_flat[J_off[c] : J_off[c] + m * m].reshape(m, m)

@@ -120,6 +120,7 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[
             values, err = new, new_err
             lam = lam / 10 if lam > 1e-3 else 0.0
             if decrease <= max(params.relative_error_tol * new_err, 1e-3) or model_ok:
+                laps.mark("step")
                 break
         else:
             lam = max(10 * lam, 1.0)
@@ -218,9 +219,9 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
         ns,
         parent,
         inner,
-        np.concatenate([it[1].ravel() for it in order]),
+        np.concatenate([it[1].ravel(order="F") for it in order]),  # GTSAM's matrices are column-major: views
         _offsets(nf * nf),
-        np.concatenate([np.zeros(0)] + [it[2].ravel() for it in order if it[2] is not None]),
+        np.concatenate([np.zeros(0)] + [it[2].ravel(order="F") for it in order if it[2] is not None]),
         _offsets(nf * ns),
         sep_pos,
         _offsets(ns),
