@@ -32,6 +32,7 @@ overwrites the filter state after each solve (:meth:`Tracker.sync`).
 from __future__ import annotations
 
 from collections import Counter
+from itertools import chain
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -226,8 +227,10 @@ class _Instant:
         then checked exactly."""
         if self._tree is None:
             self._tree, self._n_tree, self.moved = cKDTree(self.x[:, :3]), len(self.x), 0.0
-        hits = self._tree.query_ball_point(m, radius + self.moved)
-        cand = np.unique(np.concatenate([np.concatenate(hits), np.arange(self._n_tree, len(self.x))]).astype(int))
+        hits = self._tree.query_ball_point(m, radius + self.moved, return_sorted=False)
+        cand = np.unique(
+            np.concatenate([np.fromiter(chain.from_iterable(hits), dtype=int), np.arange(self._n_tree, len(self.x))])
+        )
         if not len(cand):
             return cand
         gap = np.linalg.norm(self.x[cand, None, :3] - m[None], axis=2).min(axis=1)
@@ -318,7 +321,8 @@ class Tracker:
         nll = d2 + logdet  # -2 ln N(m; c, S) - 3 ln 2 pi: a wide candidate pays for its width
         cost = np.where(gated, nll, _INFEASIBLE)
         rows, cols = linear_sum_assignment(cost)
-        matched: dict[int, int] = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if gated[r, c]}
+        ok = gated[rows, cols]
+        matched: dict[int, int] = dict(zip(rows[ok].tolist(), cols[ok].tolist(), strict=True))
         p_match = _match_probability(nll, gated, self.params.clutter_density_m3)
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
@@ -388,8 +392,9 @@ class Tracker:
 
     def _record(self, tr: Track, det: Detection) -> None:
         tr.vote(det.cls)
-        tr.hit_keys.add(time_key(det.t))
-        tr.frames[(det.sender, time_key(det.t))] = det.t
+        tk = time_key(det.t)
+        tr.hit_keys.add(tk)
+        tr.frames[(det.sender, tk)] = det.t
         tr.t_last = max(tr.t_last, det.t)
         tr.t_first = min(tr.t_first, det.t)
 

@@ -338,16 +338,19 @@ class FusionGraph:
         jf = gtsam.JacobianFactor(a.key, A_a, b.key, A_b, -r, _UNIT6)  # about the current values
         chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values))
 
+    def _prior_keys(self, chain: Chain, prior: TrackPrior) -> list[int]:
+        """The keys a track prior is over: its state's, then its vehicles' ``b``."""
+        return [chain.states[prior.tkey].key] + [self.vehicles[v].bias_key for v in prior.vids]
+
     def _set_prior(
-        self, chain: Chain, prior: TrackPrior, sqrt: tuple | None = None, table: tuple | None = None
+        self, chain: Chain, prior: TrackPrior, sqrt: tuple | None = None, y0: np.ndarray | None = None
     ) -> None:
         """Put the prior in the graph (replacing the track's prior), about the current values
-        (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them; ``table``: the
-        values' :func:`.values.vector_table`, if the caller has it)."""
+        (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them; ``y0``: its keys'
+        values stacked, if the caller has them)."""
         self._remove_factor(chain.prior_fid)
         chain.prior = prior
-        keys = [chain.states[prior.tkey].key] + [self.vehicles[v].bias_key for v in prior.vids]
-        y0 = None if table is None else vectors(table, keys).ravel()
+        keys = self._prior_keys(chain, prior)
         f = marginalize.prior_factor(prior, keys, self.values, sqrt, y0)
         chain.prior_fid = self._add_factor(f, tuple(keys))
 
@@ -397,8 +400,11 @@ class FusionGraph:
             self.params,
             _BATCH_UNITS,
         )
-        for i, prior, sqrt in summaries:
-            self._set_prior(chains[i], prior, sqrt, table)
+        keys = [self._prior_keys(chains[i], prior) for i, prior, _ in summaries]
+        y0 = vectors(table, [k for ks in keys for k in ks])  # one look-up for every new prior's keys
+        start = np.cumsum([0] + [len(ks) for ks in keys])
+        for n, (i, prior, sqrt) in enumerate(summaries):
+            self._set_prior(chains[i], prior, sqrt, y0[start[n] : start[n + 1]].ravel())
 
     def fold_detection(self, track_id: int, pose_key: int, z_body, cov_body, weight: float = 1.0) -> None:
         """A detection older than the track's first state (a late message) into the track's prior, whose
