@@ -281,7 +281,7 @@ class FusionGraph:
         s_r = p.vehicle_rate_sigma_radps * dt
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_r, s_r, s_r, s_t, s_t, s_t]))
         f = gtsam.BetweenFactorPose3(a.key, b.key, gtsam.Pose3(gtsam.Rot3(), t_rel), noise)
-        chain.motion[ka] = self._add_factor(f)
+        chain.motion[ka] = self._add_factor(f, (a.key, b.key))
 
     def vehicle_state(self, vid: str, t: float, tol: float) -> PoseState | None:
         chain = self.vehicles.get(vid)
@@ -336,7 +336,7 @@ class FusionGraph:
         A_a, A_b = self._motion_blocks[ck]
         r = A_a @ self.values.atVector(a.key) + A_b @ self.values.atVector(b.key)
         jf = gtsam.JacobianFactor(a.key, A_a, b.key, A_b, -r, _UNIT6)  # about the current values
-        chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values))
+        chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values), (a.key, b.key))
 
     def _prior_keys(self, chain: Chain, prior: TrackPrior) -> list[int]:
         """The keys a track prior is over: its state's, then its vehicles' ``b``."""
