@@ -326,6 +326,7 @@ class Tracker:
         p_match = _match_probability(nll, gated, self.params.clutter_density_m3)
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
+        excluded = (d2_all[:, ~taken] <= self.exclusion_gate).any(axis=1)  # for the unmatched rows
 
         out: list[Assignment] = []
         born: list[int] = []
@@ -333,7 +334,7 @@ class Tracker:
         for i, det in enumerate(dets):
             j = matched.get(i)
             if j is None:
-                if np.any(d2_all[i, ~taken] <= self.exclusion_gate):
+                if excluded[i]:
                     self.counts["birth_suppressed"] += 1
                 else:
                     tr = self._new_track(det)
@@ -416,9 +417,9 @@ class Tracker:
         P = 0.5 * (P + P.transpose(0, 2, 1))
         inst.x[rows], inst.P[rows] = x, P
         inst.moved += float(np.max(np.linalg.norm(step[:, :3], axis=1)))
-        for n, k in enumerate(rows):
+        for k, xn, Pn in zip(rows.tolist(), x, P, strict=True):
             tr = inst.tracks[k]
-            tr.x, tr.P, tr.t = x[n], P[n], inst.t
+            tr.x, tr.P, tr.t = xn, Pn, inst.t
 
     # ---------------------------------------------------------------- maintenance
     def sync(self, track_id: int, t: float, x, P) -> None:
