@@ -32,8 +32,8 @@ overwrites the filter state after each solve (:meth:`Tracker.sync`).
 from __future__ import annotations
 
 from collections import Counter
-from itertools import chain
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
