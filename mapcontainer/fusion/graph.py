@@ -304,10 +304,11 @@ class FusionGraph:
         key = S(self._n["s"])
         self._n["s"] += 1
         i = bisect.bisect_left(chain.tkeys, tk)
+        x_nb = None
         if chain.tkeys:  # warm start from the neighbour: constant velocity, as the motion factor predicts
             nb = chain.states[chain.tkeys[max(i - 1, 0)]]
-            x = self.values.atVector(nb.key)
-            x0 = np.concatenate([x[:3] + x[3:] * (t - nb.t), x[3:]])
+            x_nb = self.values.atVector(nb.key)
+            x0 = np.concatenate([x_nb[:3] + x_nb[3:] * (t - nb.t), x_nb[3:]])
         else:
             x0 = np.concatenate([np.asarray(init_p, dtype=float), np.asarray(init_v, dtype=float)])
         self.values.insert(key, x0)
@@ -316,17 +317,20 @@ class FusionGraph:
         chain.states[tk] = s
         if 0 < i < len(chain.tkeys) - 1:
             self._remove_factor(chain.motion.pop(chain.tkeys[i - 1], -1))
-        if i > 0:
-            self._track_motion(chain, chain.tkeys[i - 1], tk)
+        if i > 0:  # the neighbour before is the warm start's
+            self._track_motion(chain, chain.tkeys[i - 1], tk, x_nb, x0)
         if i < len(chain.tkeys) - 1:
-            self._track_motion(chain, tk, chain.tkeys[i + 1])
+            self._track_motion(chain, tk, chain.tkeys[i + 1], x0)
         if chain.prior is None:
             self._set_prior(chain, marginalize.birth_prior(tk, x0[:3], speed_prior(self.params, chain.cls)))
         return s
 
-    def _track_motion(self, chain: Chain, ka: int, kb: int) -> None:
+    def _track_motion(
+        self, chain: Chain, ka: int, kb: int, xa: np.ndarray | None = None, xb: np.ndarray | None = None
+    ) -> None:
         """Constant velocity from state a to b: e = s_b - F s_a ~ N(0, Q) (linear, so exact as a
-        linear factor about 0: its error at any values is |W (s_b - F s_a)|^2 / 2)."""
+        linear factor about 0: its error at any values is |W (s_b - F s_a)|^2 / 2). ``xa``, ``xb``: the
+        states' current values, if the caller has them."""
         a, b = chain.states[ka], chain.states[kb]
         ck = (round((b.t - a.t) * 1e6), chain.cls)  # fleets sample on one clock: a few distinct dt
         if ck not in self._motion_blocks:
@@ -334,7 +338,9 @@ class FusionGraph:
             W = _sqrt_info(Q)
             self._motion_blocks[ck] = (-W @ F, W)
         A_a, A_b = self._motion_blocks[ck]
-        r = A_a @ self.values.atVector(a.key) + A_b @ self.values.atVector(b.key)
+        xa = self.values.atVector(a.key) if xa is None else xa
+        xb = self.values.atVector(b.key) if xb is None else xb
+        r = A_a @ xa + A_b @ xb
         jf = gtsam.JacobianFactor(a.key, A_a, b.key, A_b, -r, _UNIT6)  # about the current values
         chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values), (a.key, b.key))
 
