@@ -28,7 +28,10 @@ Row keys (``SCALE_COLUMNS``):
   :class:`mapcontainer.evaluation.Totals` over the scored frames; ``anees_objects``: 3-D object ANEES.
 
 ``saturation`` (in the report and ``results.json``): per mode, the smallest N whose queue drops exceed
-``SATURATION_DROPS`` of its messages, or None within the sizes run.
+``SATURATION_DROPS`` of its messages, or None within the sizes run. ``realtime_vehicles``: per mode, the
+largest N up to which every size's host CPU per cycle fits the fleet's 10 Hz cycle (``CYCLE_BUDGET_MS``),
+None if the smallest does not; with ``host_compiled`` in the meta (the host's inner loops compiled by
+numba, the ``fast`` extra, or interpreted) and the BLAS threads (one per worker).
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ import numpy as np
 from .. import jsonout
 from ..channel import load_profile
 from ..evaluation import Totals, score_frame
+from ..fusion.compiled import COMPILED
 from ..jsonout import rounded
 from ..pipeline import View, run_pipeline
 from ..sim import ScenarioConfig, load_scenario
@@ -68,6 +72,7 @@ MODES = ("distributed", "centralized")
 DEFAULT_SCENARIO = "sumo-town"
 NETWORK = "dsrc"
 SATURATION_DROPS = 0.01
+CYCLE_BUDGET_MS = 100.0  # the fleets' 10 Hz cycle
 
 SCALE_COLUMNS = (
     "scenario",
@@ -218,6 +223,7 @@ def run_scale_experiment(
         "warmup_s": warmup_s,
         "network": NETWORK,
         "start": "cold",
+        "host_compiled": COMPILED,
     }
     write_scale_outputs(rows, out_dir, meta)
     write_timing(out_dir, executor, {"points": batch}, time.perf_counter() - t0)
@@ -244,10 +250,16 @@ def analyse(rows: Sequence[dict]) -> dict:
         if not rs:
             continue
         sat = next((r["vehicles"] for r in rs if r["dropped_queue_fraction"] > SATURATION_DROPS), None)
+        realtime = None
+        for r in rs:
+            if r["host_cpu_ms_per_cycle"] is None or not r["host_cpu_ms_per_cycle"] <= CYCLE_BUDGET_MS:
+                break
+            realtime = r["vehicles"]
         out[mode] = {
             "host_cpu_exponent": fit_exponent([r["vehicles"] for r in rs], [r["host_cpu_ms_per_cycle"] for r in rs]),
             "bytes_exponent": fit_exponent([r["vehicles"] for r in rs], [r["bytes_per_s_total"] for r in rs]),
             "saturation_vehicles": sat,
+            "realtime_vehicles": realtime,
         }
     return out
 
@@ -280,6 +292,13 @@ def write_scale_outputs(rows: Sequence[dict], out_dir: str | Path, meta: dict | 
         n = f["saturation_vehicles"]
         top = max(r["vehicles"] for r in rows if r["mode"] == mode)
         return f"from N = {n}" if n is not None else f"not within N <= {top}"
+
+    def realtime_text(mode: str) -> str:
+        f = fits.get(mode)
+        if f is None:
+            return "not run"
+        n = f["realtime_vehicles"]
+        return "at none of the sizes run" if n is None else f"up to N = {n}"
 
     def exp_text(mode: str, key: str) -> str:
         e = fits.get(mode, {}).get(key)
@@ -321,6 +340,11 @@ def write_scale_outputs(rows: Sequence[dict], out_dir: str | Path, meta: dict | 
         f"N^{exp_text('centralized', 'bytes_exponent')} centralized.",
         f"- The medium saturates (queue drops above {100 * SATURATION_DROPS:g} % of messages): distributed "
         f"{sat_text('distributed')}, centralized {sat_text('centralized')}.",
+        f"- The host keeps the 10 Hz cycle (host CPU per cycle <= {CYCLE_BUDGET_MS:g} ms, in process): distributed "
+        f"{realtime_text('distributed')}, centralized {realtime_text('centralized')}; the host's inner loops "
+        + {True: "compiled (numba).", False: "interpreted (numba not installed).", None: "(not recorded)."}[
+            m.get("host_compiled")
+        ],
         "",
         "## All points",
         "",

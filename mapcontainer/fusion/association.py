@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -249,8 +250,10 @@ class _Instant:
         then checked exactly."""
         if self._tree is None:
             self._tree, self._n_tree, self.moved = cKDTree(self.x[:, :3]), len(self.x), 0.0
-        hits = self._tree.query_ball_point(m, radius + self.moved)
-        cand = np.unique(np.concatenate([np.concatenate(hits), np.arange(self._n_tree, len(self.x))]).astype(int))
+        hits = self._tree.query_ball_point(m, radius + self.moved, return_sorted=False)
+        cand = np.unique(
+            np.concatenate([np.fromiter(chain.from_iterable(hits), dtype=int), np.arange(self._n_tree, len(self.x))])
+        )
         if not len(cand):
             return cand
         gap = np.linalg.norm(self.x[cand, None, :3] - m[None], axis=2).min(axis=1)
@@ -342,10 +345,12 @@ class Tracker:
         nll = d2 + logdet  # -2 ln N(m; c, S) - 3 ln 2 pi: a wide candidate pays for its width
         cost = np.where(gated, nll, _INFEASIBLE)
         rows, cols = linear_sum_assignment(cost)
-        matched: dict[int, int] = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if gated[r, c]}
+        ok = gated[rows, cols]
+        matched: dict[int, int] = dict(zip(rows[ok].tolist(), cols[ok].tolist(), strict=True))
         p_match = _match_probability(nll, gated, self.params.clutter_density_m3)
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
+        excluded = (d2_all[:, ~taken] <= self.exclusion_gate).any(axis=1)  # for the unmatched rows
 
         out: list[Assignment] = []
         born: list[int] = []
@@ -353,7 +358,7 @@ class Tracker:
         for i, det in enumerate(dets):
             j = matched.get(i)
             if j is None:
-                if np.any(d2_all[i, ~taken] <= self.exclusion_gate):
+                if excluded[i]:
                     self.counts["birth_suppressed"] += 1
                 else:
                     tr = self._new_track(det)
@@ -413,8 +418,9 @@ class Tracker:
 
     def _record(self, tr: Track, det: Detection) -> None:
         tr.vote(det.cls)
-        tr.hit_keys.add(time_key(det.t))
-        tr.frames[(det.sender, time_key(det.t))] = det.t
+        tk = time_key(det.t)
+        tr.hit_keys.add(tk)
+        tr.frames[(det.sender, tk)] = det.t
         tr.t_last = max(tr.t_last, det.t)
         tr.t_first = min(tr.t_first, det.t)
 
@@ -436,9 +442,9 @@ class Tracker:
         P = 0.5 * (P + P.transpose(0, 2, 1))
         inst.x[rows], inst.P[rows] = x, P
         inst.moved += float(np.max(np.linalg.norm(step[:, :3], axis=1)))
-        for n, k in enumerate(rows):
+        for k, xn, Pn in zip(rows.tolist(), x, P, strict=True):
             tr = inst.tracks[k]
-            tr.x, tr.P, tr.t = x[n], P[n], inst.t
+            tr.x, tr.P, tr.t = xn, Pn, inst.t
 
     # ---------------------------------------------------------------- maintenance
     def sync(self, track_id: int, t: float, x, P) -> None:

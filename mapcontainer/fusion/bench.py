@@ -20,6 +20,7 @@ from schemas import LocalizationQuality, ObjectClass, ObjectObservations, Vehicl
 
 from .. import geometry as geo
 from .blas import limit_blas_threads
+from .compiled import COMPILED
 from .container import Container
 from .params import FusionParams
 from .poses import sym_from_upper, upper_from_sym
@@ -214,6 +215,7 @@ def bench_fusion(
         "window": window,
         "density": density,
         "solver": p.solver,
+        "compiled": COMPILED,  # the host's inner loops compiled by numba (the fast extra) or interpreted
         "seed": seed,
         "ticks": ticks,
         "pose_persistent": pose_persistent,

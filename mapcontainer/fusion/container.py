@@ -42,6 +42,18 @@ from .solver import SolveReport
 __all__ = ["Container", "FusionParams", "IngestResult"]
 
 
+def _sole_source(frames: dict, since: float) -> str:
+    """The one sender of a track's detections (``Track.frames``: (sender, time key) -> t) since ``since``,
+    or "" if none or several did; stops at the second (most tracks are seen by several)."""
+    sole = ""
+    for (sender, _), t in frames.items():
+        if t >= since and sender != sole:
+            if sole:
+                return ""
+            sole = sender
+    return sole
+
+
 class Container:
     """The host's fusion core. See the module docstring; the estimator is described in :mod:`.graph`."""
 
@@ -118,12 +130,12 @@ class Container:
         self._reported_at: dict[float, tuple] = {}
         if self.params.misbehaviour:  # the tracks one vehicle alone reported in the window (ghost check)
             ids, xs, ts, sole = [], [], [], []
+            since = t - self.params.misbehaviour_window_s
             for tid, tr in self.tracker.confirmed().items():
-                sources = {s for (s, _), ts_ in tr.frames.items() if ts_ >= t - self.params.misbehaviour_window_s}
                 ids.append(tid)
                 xs.append(tr.x)
                 ts.append(tr.t)
-                sole.append(sources.pop() if len(sources) == 1 else "")
+                sole.append(_sole_source(tr.frames, since))
             self._lookable = (
                 np.array(ids, dtype=int),
                 np.array(xs).reshape(-1, 6),

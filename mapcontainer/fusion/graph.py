@@ -73,6 +73,7 @@ from .motion import accel_psd, cv_model, speed_prior
 from .params import FusionParams
 from .poses import pose3_from_vector, pose_cov_to_tangent
 from .solver import SolveReport
+from .values import vector_table, vectors
 from .window import Chain, PoseState, TrackState
 
 __all__ = ["FusionGraph"]
@@ -280,7 +281,7 @@ class FusionGraph:
         s_r = p.vehicle_rate_sigma_radps * dt
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_r, s_r, s_r, s_t, s_t, s_t]))
         f = gtsam.BetweenFactorPose3(a.key, b.key, gtsam.Pose3(gtsam.Rot3(), t_rel), noise)
-        chain.motion[ka] = self._add_factor(f)
+        chain.motion[ka] = self._add_factor(f, (a.key, b.key))
 
     def vehicle_state(self, vid: str, t: float, tol: float) -> PoseState | None:
         chain = self.vehicles.get(vid)
@@ -303,10 +304,11 @@ class FusionGraph:
         key = S(self._n["s"])
         self._n["s"] += 1
         i = bisect.bisect_left(chain.tkeys, tk)
+        x_nb = None
         if chain.tkeys:  # warm start from the neighbour: constant velocity, as the motion factor predicts
             nb = chain.states[chain.tkeys[max(i - 1, 0)]]
-            x = self.values.atVector(nb.key)
-            x0 = np.concatenate([x[:3] + x[3:] * (t - nb.t), x[3:]])
+            x_nb = self.values.atVector(nb.key)
+            x0 = np.concatenate([x_nb[:3] + x_nb[3:] * (t - nb.t), x_nb[3:]])
         else:
             x0 = np.concatenate([np.asarray(init_p, dtype=float), np.asarray(init_v, dtype=float)])
         self.values.insert(key, x0)
@@ -315,17 +317,20 @@ class FusionGraph:
         chain.states[tk] = s
         if 0 < i < len(chain.tkeys) - 1:
             self._remove_factor(chain.motion.pop(chain.tkeys[i - 1], -1))
-        if i > 0:
-            self._track_motion(chain, chain.tkeys[i - 1], tk)
+        if i > 0:  # the neighbour before is the warm start's
+            self._track_motion(chain, chain.tkeys[i - 1], tk, x_nb, x0)
         if i < len(chain.tkeys) - 1:
-            self._track_motion(chain, tk, chain.tkeys[i + 1])
+            self._track_motion(chain, tk, chain.tkeys[i + 1], x0)
         if chain.prior is None:
             self._set_prior(chain, marginalize.birth_prior(tk, x0[:3], speed_prior(self.params, chain.cls)))
         return s
 
-    def _track_motion(self, chain: Chain, ka: int, kb: int) -> None:
+    def _track_motion(
+        self, chain: Chain, ka: int, kb: int, xa: np.ndarray | None = None, xb: np.ndarray | None = None
+    ) -> None:
         """Constant velocity from state a to b: e = s_b - F s_a ~ N(0, Q) (linear, so exact as a
-        linear factor about 0: its error at any values is |W (s_b - F s_a)|^2 / 2)."""
+        linear factor about 0: its error at any values is |W (s_b - F s_a)|^2 / 2). ``xa``, ``xb``: the
+        states' current values, if the caller has them."""
         a, b = chain.states[ka], chain.states[kb]
         ck = (round((b.t - a.t) * 1e6), chain.cls)  # fleets sample on one clock: a few distinct dt
         if ck not in self._motion_blocks:
@@ -333,17 +338,26 @@ class FusionGraph:
             W = _sqrt_info(Q)
             self._motion_blocks[ck] = (-W @ F, W)
         A_a, A_b = self._motion_blocks[ck]
-        r = A_a @ self.values.atVector(a.key) + A_b @ self.values.atVector(b.key)
+        xa = self.values.atVector(a.key) if xa is None else xa
+        xb = self.values.atVector(b.key) if xb is None else xb
+        r = A_a @ xa + A_b @ xb
         jf = gtsam.JacobianFactor(a.key, A_a, b.key, A_b, -r, _UNIT6)  # about the current values
-        chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values))
+        chain.motion[ka] = self._add_factor(gtsam.LinearContainerFactor(jf, self.values), (a.key, b.key))
 
-    def _set_prior(self, chain: Chain, prior: TrackPrior, sqrt: tuple | None = None) -> None:
+    def _prior_keys(self, chain: Chain, prior: TrackPrior) -> list[int]:
+        """The keys a track prior is over: its state's, then its vehicles' ``b``."""
+        return [chain.states[prior.tkey].key] + [self.vehicles[v].bias_key for v in prior.vids]
+
+    def _set_prior(
+        self, chain: Chain, prior: TrackPrior, sqrt: tuple | None = None, y0: np.ndarray | None = None
+    ) -> None:
         """Put the prior in the graph (replacing the track's prior), about the current values
-        (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them)."""
+        (:func:`.marginalize.prior_factor`; ``sqrt``: its (A, r) if the caller has them; ``y0``: its keys'
+        values stacked, if the caller has them)."""
         self._remove_factor(chain.prior_fid)
         chain.prior = prior
-        keys = [chain.states[prior.tkey].key] + [self.vehicles[v].bias_key for v in prior.vids]
-        f = marginalize.prior_factor(prior, keys, self.values, sqrt)
+        keys = self._prior_keys(chain, prior)
+        f = marginalize.prior_factor(prior, keys, self.values, sqrt, y0)
         chain.prior_fid = self._add_factor(f, tuple(keys))
 
     def _detection_information(
@@ -379,9 +393,9 @@ class FusionGraph:
                     owner.append(i)
                     dets.append(d)
         info = None
+        table = vector_table(self.values)
         if dets:
-            p0 = np.array([self.values.atVector(d.target_key)[:3] for d in dets])
-            info = self._detection_information(dets, p0)
+            info = self._detection_information(dets, vectors(table, [d.target_key for d in dets])[:, :3])
         summaries = marginalize.summarize_first(
             [c.prior for c in chains],
             [c.tkeys[1] for c in chains],
@@ -392,8 +406,11 @@ class FusionGraph:
             self.params,
             _BATCH_UNITS,
         )
-        for i, prior, sqrt in summaries:
-            self._set_prior(chains[i], prior, sqrt)
+        keys = [self._prior_keys(chains[i], prior) for i, prior, _ in summaries]
+        y0 = vectors(table, [k for ks in keys for k in ks])  # one look-up for every new prior's keys
+        start = np.cumsum([0] + [len(ks) for ks in keys])
+        for n, (i, prior, sqrt) in enumerate(summaries):
+            self._set_prior(chains[i], prior, sqrt, y0[start[n] : start[n + 1]].ravel())
 
     def fold_detection(self, track_id: int, pose_key: int, z_body, cov_body, weight: float = 1.0) -> None:
         """A detection older than the track's first state (a late message) into the track's prior, whose

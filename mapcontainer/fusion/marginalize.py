@@ -97,6 +97,9 @@ def sqrt_information(info: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.
     return L.transpose(0, 2, 1), r
 
 
+_UNIT: dict[int, gtsam.noiseModel.Unit] = {}  # unit noise models by dimension (jacobian_factor)
+
+
 def batches(sizes: np.ndarray, batch_units: float) -> list[tuple[int, np.ndarray]]:
     """Track priors grouped for batched summaries: (number of vehicles m to pad to, indices), largest m
     first. A batch costs about forty numpy calls whatever its size; a prior in it costs ~ (6 + 6 m)^3
@@ -117,21 +120,25 @@ def jacobian_factor(keys: list[int], A: np.ndarray, b: np.ndarray) -> gtsam.Jaco
     (the Python JacobianFactor constructors take at most three; a GaussianConditional takes a list of
     terms and is a JacobianFactor, at twice the cost)."""
     blocks = [A[:, 6 * i : 6 * i + 6] for i in range(len(keys))]
-    unit = gtsam.noiseModel.Unit.Create(len(b))
+    unit = _UNIT.get(len(b))
+    if unit is None:
+        unit = _UNIT[len(b)] = gtsam.noiseModel.Unit.Create(len(b))
     if len(keys) <= 3:
         return gtsam.JacobianFactor(*[x for kb in zip(keys, blocks, strict=True) for x in kb], b, unit)
     return gtsam.JacobianFactor(gtsam.GaussianConditional(list(zip(keys, blocks, strict=True)), 1, b, unit))
 
 
 def prior_factor(
-    prior: TrackPrior, keys: list[int], values: gtsam.Values, sqrt: tuple | None = None
+    prior: TrackPrior, keys: list[int], values: gtsam.Values, sqrt: tuple | None = None, y0: np.ndarray | None = None
 ) -> gtsam.LinearContainerFactor:
     """The prior as a linear factor ||A y - r||^2 / 2 with A^T A = info and A^T r = eta over ``keys`` (the
     track state's, then the vehicles' ``b`` keys in ``prior.vids`` order), about ``values``: y = y0 + dy,
-    ||A dy - (r - A y0)||^2 / 2. ``sqrt``: (A, r) if the caller has them (:func:`sqrt_information`)."""
+    ||A dy - (r - A y0)||^2 / 2. ``sqrt``: (A, r) if the caller has them (:func:`sqrt_information`);
+    ``y0``: the keys' values stacked, if the caller has them."""
     A, r = sqrt_information(prior.info[None], prior.eta[None]) if sqrt is None else sqrt
     A, r = A.reshape(len(prior.eta), -1), r.reshape(-1)
-    y0 = np.concatenate([values.atVector(k) for k in keys])
+    if y0 is None:
+        y0 = np.concatenate([values.atVector(k) for k in keys])
     jf = jacobian_factor(keys, A, r - A @ y0)
     return gtsam.LinearContainerFactor(jf, values)
 

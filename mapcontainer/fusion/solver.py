@@ -25,14 +25,18 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from scipy.linalg import lapack
 
+from .compiled import clique_recursion
 from .laps import Laps
 from .params import FusionParams
 
 __all__ = ["Solution", "SolveReport", "latest_covariances", "solve"]
 
 _UNIT6 = gtsam.noiseModel.Unit.Create(6)
+
+# The compiled clique recursion from this many cliques on the paths: below it the interpreted one costs a few
+# ms at most, and a small window (tests, a few vehicles) never waits for numba's compile (see .compiled).
+COMPILE_FROM_CLIQUES = 256
 
 # With this few latest states "sparse" orders them last too: one dense root of at most 6 x 24 dimensions costs
 # less than the recursion over more, smaller cliques (4 vehicles / 14 objects: 15.4 against 18.1 ms a cycle).
@@ -116,6 +120,7 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, latest: list[
             values, err = new, new_err
             lam = lam / 10 if lam > 1e-3 else 0.0
             if decrease <= max(params.relative_error_tol * new_err, 1e-3) or model_ok:
+                laps.mark("step")
                 break
         else:
             lam = max(10 * lam, 1.0)
@@ -144,81 +149,96 @@ def latest_covariances(bt: gtsam.GaussianBayesTree, latest: list[int]) -> tuple[
     joint is formed only when a visited clique hangs below it, otherwise just its latest keys' blocks.
     The cost follows the cliques' sizes, (frontal + separator)^3 each, not the number of keys.
 
+    Here the paths are gathered from the tree (its conditionals' R and S, parents first); the recursion
+    itself is :func:`.compiled.clique_recursion` (compiled with numba when installed).
+
     Returns (covariances by key, the number of cliques below a root that were visited, the size of the
     largest root clique visited); a degenerate system (a singular conditional) is not an error: its
     covariances are None, the count -1 and the size that of the roots visited before it.
     """
     wanted = list(dict.fromkeys(latest))
-    # pass 1: the cliques on the paths, by their first frontal key, and which of them have a child there
-    cliques: dict[int, tuple] = {}  # id -> (keys, R, S or None, parent id or None)
-    mine: dict[int, list[tuple[int, int]]] = {}  # clique id -> its latest keys (position among its frontals, key)
-    inner: set[int] = set()
-    for key in wanted:
+    # the cliques on the paths, by their first frontal key; each path climbs until a clique already
+    # listed, so its cliques reversed, list after list, put every parent before its children
+    cliques: dict[int, int] = {}  # first frontal key -> position in `order`
+    order: list[tuple] = []  # (keys, R, S or None, parent's first key or None)
+    wants: list[tuple[int, int, int]] = []  # (clique's first key, block row among its frontals, output row)
+    for out_row, key in enumerate(wanted):
         clique = bt[key]
         c = clique.conditional()
         keys = c.keys()
         cid = keys[0]
-        mine.setdefault(cid, []).append((keys.index(key), key))
+        wants.append((cid, keys.index(key), out_row))
+        path = []
         while cid not in cliques:
             R = c.R()
             if len(keys) == R.shape[0] // 6:  # no separator: a root
-                cliques[cid] = (keys, R, None, None)
+                path.append((keys, R, None, None))
                 break
             parent = clique.parent()
             pc = parent.conditional()
             pkeys = pc.keys()
-            cliques[cid] = (keys, R, c.S(), pkeys[0])
-            inner.add(pkeys[0])
+            path.append((keys, R, c.S(), pkeys[0]))
             clique, c, keys, cid = parent, pc, pkeys, pkeys[0]
-    # pass 2: top down
-    joint: dict[int, tuple[dict[int, int], np.ndarray]] = {}  # inner clique id -> (offset by key, joint)
-    blocks: dict[int, np.ndarray] = {}
-    below, root_dims = 0, 0
-    six = np.arange(6)
+        for item in reversed(path):
+            cliques[item[0][0]] = len(order)
+            order.append(item)
+    # depth-first preorder (the recursion keeps one path's joints: .compiled.clique_recursion)
+    nc = len(order)
+    up = [-1 if it[3] is None else cliques[it[3]] for it in order]
+    children: list[list[int]] = [[] for _ in range(nc)]
+    for c, p in enumerate(up):
+        if p >= 0:
+            children[p].append(c)
+    pre: list[int] = []
+    stack = [c for c in reversed(range(nc)) if up[c] < 0]
+    while stack:
+        c = stack.pop()
+        pre.append(c)
+        stack.extend(reversed(children[c]))
+    rank = np.empty(nc, dtype=np.int64)
+    rank[pre] = np.arange(nc)
+    order = [order[c] for c in pre]
+    parent = np.array([-1 if up[c] < 0 else rank[up[c]] for c in pre], dtype=np.int64)
+    nf = np.array([it[1].shape[0] for it in order], dtype=np.int64)
+    ns = np.array([0 if it[2] is None else it[2].shape[1] for it in order], dtype=np.int64)
+    inner = np.zeros(nc, dtype=np.bool_)
+    inner[parent[parent >= 0]] = True
+    sep_blocks: list[int] = []  # each separator key's position among its parent's keys
+    slots: dict[int, dict[int, int]] = {}
+    for it, p in zip(order, parent, strict=True):
+        if p >= 0:
+            at = slots.get(p)
+            if at is None:
+                at = slots[p] = {k: i for i, k in enumerate(order[p][0])}
+            sep_blocks.extend(at[k] for k in it[0][it[1].shape[0] // 6 :])
+    sep_pos = (6 * np.array(sep_blocks, dtype=np.int64)[:, None] + np.arange(6)).ravel()
+    want_clique = rank[[cliques[w[0]] for w in wants]]
+    by_clique = np.argsort(want_clique, kind="stable")
+    blocks, failed = clique_recursion(
+        nf,
+        ns,
+        parent,
+        inner,
+        np.concatenate([it[1].ravel(order="F") for it in order]),  # GTSAM's matrices are column-major: views
+        _offsets(nf * nf),
+        np.concatenate([np.zeros(0)] + [it[2].ravel(order="F") for it in order if it[2] is not None]),
+        _offsets(nf * ns),
+        sep_pos,
+        _offsets(ns),
+        np.array([w[1] for w in wants], dtype=np.int64)[by_clique],
+        np.array([w[2] for w in wants], dtype=np.int64)[by_clique],
+        np.searchsorted(want_clique[by_clique], np.arange(nc + 1)).astype(np.int64),
+        len(wanted),
+        compiled=nc >= COMPILE_FROM_CLIQUES,
+    )
+    roots = parent < 0
+    if failed >= 0:
+        return None, -1, int(nf[:failed][roots[:failed]].max(initial=0))
+    below = int(np.count_nonzero(~roots))
+    blocks = 0.5 * (blocks + blocks.transpose(0, 2, 1))
+    return dict(zip(wanted, blocks, strict=True)), below, int(nf[roots].max(initial=0))
 
-    def visit(cid: int) -> None:
-        nonlocal below, root_dims
-        keys, R, S, parent = cliques[cid]
-        n = R.shape[0]
-        Rinv, info = lapack.dtrtri(R, lower=0)  # unblocked for small n: no BLAS thread wake-ups
-        if info != 0:
-            raise np.linalg.LinAlgError(f"singular conditional at {gtsam.DefaultKeyFormatter(cid)}")
-        latest_here = mine.get(cid, ())
-        if parent is None:
-            root_dims = max(root_dims, n)
-            J = Rinv @ Rinv.T
-        else:
-            below += 1
-            if parent not in joint:
-                visit(parent)
-            at, Jp = joint[parent]
-            idx = (np.array([at[k] for k in keys[n // 6 :]])[:, None] + six).ravel()
-            Sss = Jp.take(idx, axis=0).take(idx, axis=1)
-            if cid in inner:
-                G = -Rinv @ S
-                Sfs = G @ Sss
-                J = np.empty((n + len(idx), n + len(idx)))
-                J[:n, :n] = Rinv @ Rinv.T + Sfs @ G.T
-                J[:n, n:] = Sfs
-                J[n:, :n] = Sfs.T
-                J[n:, n:] = Sss
-            else:  # a leaf of the visited tree: only its latest keys' blocks
-                rows = (6 * np.array([i for i, _ in latest_here])[:, None] + six).ravel()
-                Ri = Rinv[rows]
-                Gr = -Ri @ S
-                C = Ri @ Ri.T + Gr @ Sss @ Gr.T
-                for j, (_, k) in enumerate(latest_here):
-                    blocks[k] = C[6 * j : 6 * j + 6, 6 * j : 6 * j + 6]
-                return
-        for i, k in latest_here:
-            blocks[k] = J[6 * i : 6 * i + 6, 6 * i : 6 * i + 6]
-        if cid in inner:
-            joint[cid] = ({k: 6 * i for i, k in enumerate(keys)}, J)
 
-    try:
-        for cid, here in mine.items():
-            if here[0][1] not in blocks:  # not visited on the way to another
-                visit(cid)
-    except (RuntimeError, np.linalg.LinAlgError):
-        return None, -1, root_dims
-    return {k: 0.5 * (blocks[k] + blocks[k].T) for k in wanted}, below, root_dims
+def _offsets(sizes: np.ndarray) -> np.ndarray:
+    """Start of each item in a flat buffer, and the total: [0, s0, s0 + s1, ...] (int64)."""
+    return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)

@@ -60,7 +60,11 @@ class Chain:
         """The state closest to t if it is within tol, else None."""
         if not self.tkeys:
             return None
-        i = bisect.bisect_left(self.tkeys, time_key(t))
+        tk = time_key(t)
+        s = self.states.get(tk)
+        if s is not None and s.t == t and tol >= 0.0:  # a state at t itself: none is nearer (the common case)
+            return s
+        i = bisect.bisect_left(self.tkeys, tk)
         best = None
         for j in (i - 1, i):
             if 0 <= j < len(self.tkeys):

@@ -22,7 +22,15 @@ def test_experiment_scale_runs_both_modes_and_measures_cost_traffic_and_accuracy
     )  # fmt: skip
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["points"] == 4
-    rows = json.loads((out / "results.json").read_text())["rows"]
+    doc = json.loads((out / "results.json").read_text())
+    rows = doc["rows"]
+    from mapcontainer.fusion.compiled import COMPILED
+
+    assert doc["meta"]["host_compiled"] is COMPILED
+    for mode in ("distributed", "centralized"):  # the largest N up to which every size's cycle fits 100 ms
+        cpu = {r["vehicles"]: r["host_cpu_ms_per_cycle"] for r in rows if r["mode"] == mode}
+        fits = [n for n in (2, 4) if all(cpu[m] <= 100.0 for m in (2, 4) if m <= n)]
+        assert doc["analysis"][mode]["realtime_vehicles"] == (fits[-1] if fits else None)
     by = {(r["mode"], r["vehicles"]): r for r in rows}
     for mode in ("distributed", "centralized"):
         small, large = by[(mode, 2)], by[(mode, 4)]

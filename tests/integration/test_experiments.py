@@ -156,6 +156,9 @@ def test_bench_fusion_prints_json_last(tmp_path):
     for key in ("cycle_ms_p50", "cycle_ms_p99", "iterations_mean", "object_rmse_m", "batch_ms_p50", "cycle_over_batch"):
         assert _finite(result[key]), key
     assert result["vehicles"] == 2 and result["objects"] == 4 and result["window"] == 3
+    from mapcontainer.fusion.compiled import COMPILED
+
+    assert result["compiled"] is COMPILED  # which way the host's inner loops ran
     assert result["object_rmse_m"] < 1.0
     phases = result["phases_ms_p50"]  # where the cycle goes: decoding, the container's phases, the solve's
     assert {"ingest", "associate", "prune", "linearize", "eliminate", "covariances", "output"} <= phases.keys()

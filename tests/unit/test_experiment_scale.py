@@ -40,16 +40,20 @@ def test_analysis_names_the_growth_and_the_saturation_of_each_mode():
     assert a["distributed"]["host_cpu_exponent"] == pytest.approx(1.0)
     assert a["centralized"]["host_cpu_exponent"] == pytest.approx(2.0)
     assert a["distributed"]["saturation_vehicles"] is None and a["centralized"]["saturation_vehicles"] == 32
+    # 10 Hz: 2 N <= 100 ms everywhere (to 50); 0.5 N^2 <= 100 ms to N = 8 (16 -> 128 ms)
+    assert a["distributed"]["realtime_vehicles"] == 50 and a["centralized"]["realtime_vehicles"] == 8
 
 
 def test_outputs_are_a_table_a_report_with_the_claim_and_two_plots(tmp_path):
-    paths = write_scale_outputs(_rows(), tmp_path, {"scenario": "s", "seed": 1, "duration_s": 10, "warmup_s": 3})
+    meta = {"scenario": "s", "seed": 1, "duration_s": 10, "warmup_s": 3, "host_compiled": True}
+    paths = write_scale_outputs(_rows(), tmp_path, meta)
     with paths["csv"].open() as f:
         table = list(csv.DictReader(f))
     assert len(table) == 12 and list(table[0]) == list(SCALE_COLUMNS)
     md = paths["md"].read_text()
     assert "N^1.00 distributed and N^2.00 centralized" in md
     assert "distributed not within N <= 50, centralized from N = 32" in md
+    assert "distributed up to N = 50, centralized up to N = 8; the host's inner loops compiled (numba)" in md
     doc = json.loads(paths["json"].read_text())
     assert doc["analysis"]["centralized"]["saturation_vehicles"] == 32 and len(doc["rows"]) == 12
     for key in ("png_cost", "png_channel"):

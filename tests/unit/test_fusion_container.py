@@ -484,3 +484,15 @@ def test_a_vehicle_far_off_with_a_wide_covariance_is_not_pinned_onto_another_veh
     assert np.linalg.norm(fused["cv1"] - [20.8, 0.8]) < 0.1  # not pulled onto cv2 (it was at (20.01, 0.01))
     assert np.linalg.norm(fused["cv2"] - [20.0, 0.0]) < np.linalg.norm([0.4, 0.3])  # towards where it is seen
     assert box.stats()["association"]["matched_vehicle"] == 30 and box.stats()["cross_detections"] == 30
+
+
+def test_sole_source_is_the_one_sender_since_a_time_or_none():
+    """The ghost check's sole reporter of a track (Container._sole_source) against the set it replaces."""
+    from mapcontainer.fusion.container import _sole_source
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        frames = {(f"cv{rng.integers(3)}", k): float(rng.uniform(0, 2)) for k in range(rng.integers(0, 8))}
+        since = float(rng.uniform(0, 2))
+        senders = {s for (s, _), t in frames.items() if t >= since}
+        assert _sole_source(frames, since) == (senders.pop() if len(senders) == 1 else "")

@@ -79,6 +79,102 @@ def test_latest_covariances_of_the_root_alone_visit_nothing_below():
     np.testing.assert_allclose(covariances[S(3)], np.linalg.inv(A.T @ A)[18:, 18:], rtol=1e-9, atol=1e-12)
 
 
+def _tree_system(seed: int = 3):
+    """60 keys in 6 loosely coupled chains tied to 3 shared hub keys (the vehicles' persistent errors of
+    the host's graph), eliminated in COLAMD's order: a Bayes tree with a root, inner cliques and leaves,
+    several wanted keys in one clique; its latest keys (every chain's last) and its dense covariance."""
+    rng = np.random.default_rng(seed)
+    n, hubs = 60, [57, 58, 59]
+    links = [(i, i + 1) for i in range(57) if (i + 1) % 10]  # chains 0-9, 10-19, ...
+    links += [(i, hubs[rng.integers(3)]) for i in range(0, 57, 4)]
+    graph, A = _linear_system(n, links, seed=seed)
+    bt = graph.eliminateMultifrontal(gtsam.Ordering.ColamdGaussianFactorGraph(graph))
+    return bt, [S(i) for i in (9, 19, 29, 39, 49, 56, 58, 8, 18)], np.linalg.inv(A.T @ A)
+
+
+def test_latest_covariances_of_a_branching_tree_match_a_dense_inverse():
+    bt, wanted, cov = _tree_system()
+    covariances, below, root_dims = latest_covariances(bt, wanted)
+    assert below >= 5 and root_dims >= 6
+    for k in wanted:
+        i = gtsam.Symbol(k).index()
+        np.testing.assert_allclose(covariances[k], cov[6 * i : 6 * i + 6, 6 * i : 6 * i + 6], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("compiled", [pytest.param(True, marks=pytest.mark.slow), False])  # slow: numba compiles
+def test_clique_recursion_says_which_conditional_is_singular(compiled):
+    """GTSAM's elimination refuses a singular system; the recursion still checks each R's diagonal and
+    names the first clique with a zero there (the solve then reports huge covariances)."""
+    from mapcontainer.fusion.compiled import clique_recursion
+
+    R_root, R_leaf = np.eye(6), np.eye(6)
+    R_leaf[2, 2] = 0.0
+    i64 = lambda *v: np.array(v, dtype=np.int64)  # noqa: E731
+    blocks, failed = clique_recursion(
+        i64(6, 6), i64(0, 6), i64(-1, 0), np.array([True, False]),
+        np.concatenate([R_root.ravel(), R_leaf.ravel()]), i64(0, 36, 72),
+        np.zeros(36), i64(0, 0, 36), np.arange(6, dtype=np.int64), i64(0, 0, 6),
+        i64(0, 0), i64(0, 1), i64(0, 1, 2), 2, compiled=compiled,
+    )  # fmt: skip
+    assert failed == 1
+    np.testing.assert_array_equal(blocks[0], np.eye(6))  # the root's, before it
+
+
+_INTERPRETED = """
+import sys
+sys.modules["numba"] = None  # as if the fast extra were not installed
+import numpy as np
+from tests.unit.test_fusion_solver import _tree_system
+from mapcontainer.fusion import compiled
+from mapcontainer.fusion import solver
+from mapcontainer.fusion.solver import latest_covariances
+assert not compiled.COMPILED
+solver.COMPILE_FROM_CLIQUES = 0  # would compile, if it could
+bt, wanted, _ = _tree_system()
+covariances, below, root_dims = latest_covariances(bt, wanted)
+np.save(sys.argv[1], np.array([covariances[k] for k in wanted]))
+print(below, root_dims)
+"""
+
+
+@pytest.mark.slow  # numba compiles the kernel (seconds) unless a previous run left it in its cache
+def test_compiled_and_interpreted_recursions_agree(monkeypatch):
+    """The clique recursion compiled by numba and the same code interpreted give the same covariances,
+    to rounding (the solver picks one by the tree's size: here both, forced)."""
+    pytest.importorskip("numba")
+    from mapcontainer.fusion import solver
+
+    bt, wanted, _ = _tree_system()
+    got = {}
+    for compiled, threshold in ((True, 0), (False, 10**9)):
+        monkeypatch.setattr(solver, "COMPILE_FROM_CLIQUES", threshold)
+        got[compiled] = latest_covariances(bt, wanted)
+    assert got[True][1:] == got[False][1:]
+    for k in wanted:
+        np.testing.assert_allclose(got[True][0][k], got[False][0][k], rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.slow  # a second Python process importing gtsam
+def test_without_numba_the_same_covariances(tmp_path, monkeypatch):
+    """Without the fast extra (a process that cannot import numba) the module runs, interpreted, and gives
+    what this process gives, compiled if it can."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from mapcontainer.fusion import solver
+
+    monkeypatch.setattr(solver, "COMPILE_FROM_CLIQUES", 0)
+    out = tmp_path / "interpreted.npy"
+    root = Path(__file__).resolve().parents[2]
+    run = subprocess.run([sys.executable, "-c", _INTERPRETED, str(out)], cwd=root, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    bt, wanted, _ = _tree_system()
+    covariances, below, root_dims = latest_covariances(bt, wanted)
+    assert run.stdout.split() == [str(below), str(root_dims)]
+    np.testing.assert_allclose(np.array([covariances[k] for k in wanted]), np.load(out), rtol=1e-12, atol=1e-15)
+
+
 def _nonlinear_problem():
     """Three Pose3 with priors and odometry, and two Vector6 tied to each other and to nothing else but
     unary priors: a small, well-posed nonlinear graph, its values perturbed from the optimum."""
