@@ -90,7 +90,7 @@ def test_a_searching_vehicle_is_seeded_only_with_a_known_heading():
 
 
 def test_a_prior_says_what_the_downlink_did():
-    from tests.unit.test_codec import vehicle_prior
+    from .test_codec import vehicle_prior
 
     msg = vehicle_prior(True).model_copy(update={"downlink": "fused"})
     assert decode(encode(msg), VehiclePrior).downlink == "fused"
