@@ -3,7 +3,12 @@
 Every detection of a vehicle-like object (class vehicle or unknown) by another connected vehicle, at
 a map-frame position ``m`` (from the observer's pose), within ``misbehaviour_radius_m`` of vehicle V's
 reported position ``p_V`` at that instant, is a sighting of V with offset ``d = m - p_V``; per
-observer and instant only the nearest sighting counts. An honest V is seen where it says it is:
+observer and instant only the nearest sighting counts, and it is none when V itself reports an object
+there at that instant (within the ``misbehaviour_probability`` quantile of the two detections' covariances):
+what O saw is then a vehicle beside V, not V, which O does not see (it is hidden, or out of view). On
+development seed 1001 (paper-urban, every error source) an honest cv3, 0.1 m off, was flagged by cv2 alone,
+which at 45 m saw the car 3.5 m beside cv3 and not cv3: its view was that car. A vehicle that is not where
+it says it is reports the objects about it shifted by its own error, so none of them where others see it. An honest V is seen where it says it is:
 its offsets scatter about zero by the observers' and V's pose errors and the detector's noise (a few
 decimetres). A vehicle whose pose is biased by ``b`` is seen at ``-b`` from where it says it is, by every
 observer, instant after instant.
@@ -75,6 +80,8 @@ from .params import FusionParams
 
 __all__ = ["MisbehaviourMonitor", "Sighting"]
 
+_SAME_INSTANT_S = 0.05  # detections this near in time are of one instant (frames are 0.1 s apart)
+
 
 @dataclass(frozen=True)
 class Sighting:
@@ -84,6 +91,8 @@ class Sighting:
     observer: str
     offset: np.ndarray
     cov: np.ndarray  # (2, 2) of the offset: the detection's map covariance (with its observer's pose) and the vehicle's
+    where: np.ndarray  # the detection's map (x, y)
+    det_cov: np.ndarray  # (2, 2): the detection's map covariance
 
 
 class MisbehaviourMonitor:
@@ -93,6 +102,7 @@ class MisbehaviourMonitor:
         self.params = params
         self._gate = float(chi2_quantile(params.misbehaviour_probability, 2))
         self._sightings: dict[str, deque[Sighting]] = {}
+        self._reports: dict[str, deque[tuple[float, np.ndarray, np.ndarray]]] = {}  # vehicle -> (t, where, cov)
         self._agreed: dict[frozenset[str], float] = {}  # pair of vehicles -> last time a view between them agreed
         self.flagged: dict[str, str] = {}  # vehicle -> why (every kind below)
         self._seen_off: dict[str, str] = {}  # vehicle -> why: the others see it elsewhere
@@ -124,6 +134,8 @@ class MisbehaviourMonitor:
         vehicle_like = (cls == 0) | (cls == 2)  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
         p = np.asarray(p_map, dtype=float).reshape(-1, 3)[vehicle_like, :2]
         S = np.asarray(cov_map, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2]
+        if len(p):
+            self._reports.setdefault(observer, deque()).append((float(t), p, S))
         vids, pos, cov = reported
         others = np.asarray(vids) != observer
         if not len(p) or not others.any():
@@ -135,7 +147,8 @@ class MisbehaviourMonitor:
         rows = np.arange(len(vids))
         for i in np.flatnonzero(dist[rows, k] <= r):
             C = S[k[i]] + cov[i, :2, :2]
-            self._sightings.setdefault(str(vids[i]), deque()).append(Sighting(float(t), observer, d[i, k[i]], C))
+            sighting = Sighting(float(t), observer, d[i, k[i]], C, p[k[i]], S[k[i]])
+            self._sightings.setdefault(str(vids[i]), deque()).append(sighting)
 
     def message(self, sender: str, t_meas: float, t_recv: float, refused: str | None) -> None:
         """One message of ``sender`` received at ``t_recv``, taken (``refused`` None) or refused with a reason."""
@@ -270,8 +283,25 @@ class MisbehaviourMonitor:
             return False
         return d2 <= self._gate
 
+    def _reports_there(self, vid: str, s: Sighting) -> bool:
+        """Whether ``vid`` itself reported an object where ``s`` saw something, at the same instant."""
+        for t, p, S in self._reports.get(vid, ()):
+            if abs(t - s.t) > _SAME_INSTANT_S:
+                continue
+            d = p - s.where
+            C = S + s.det_cov
+            d2 = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[..., None])[..., 0])
+            if (d2 <= self._gate).any():
+                return True
+        return False
+
     def _update_seen_off(self, t: float) -> None:
         pp = self.params
+        for vid, q in list(self._reports.items()):
+            while q and q[0][0] < t - pp.misbehaviour_window_s:
+                q.popleft()
+            if not q:
+                del self._reports[vid]
         views: dict[tuple[str, str], np.ndarray] = {}  # (observer, observed) -> median offset
         covs: dict[
             tuple[str, str], np.ndarray
@@ -284,7 +314,8 @@ class MisbehaviourMonitor:
                 continue
             by_observer: dict[str, list[Sighting]] = {}
             for s in q:
-                by_observer.setdefault(s.observer, []).append(s)
+                if not self._reports_there(vid, s):
+                    by_observer.setdefault(s.observer, []).append(s)
             for o, ss in by_observer.items():
                 if len(ss) >= pp.misbehaviour_min_sightings:
                     views[(o, vid)] = np.median([s.offset for s in ss], axis=0)

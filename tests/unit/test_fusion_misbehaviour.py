@@ -71,6 +71,26 @@ def test_two_vehicles_alone_dispute_but_nobody_is_flagged() -> None:
     assert mon.flagged == {} and mon.disputed == {frozenset(("cv0", "cv1"))}
 
 
+def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting_of_it() -> None:
+    """The traced false flag (development seed 1001, paper-urban, every error source): cv2, 45 m off,
+    saw the car 3.5 m beside an honest cv3 and not cv3; alone, but corroborated by cv0 and cv1, it flagged
+    cv3 "seen 4.1 m from its reported position". cv3 reports that car itself, where cv2 sees it: what cv2
+    saw is not cv3. A biased cv3 reports the car shifted by its bias, and is flagged."""
+    car = np.array([33.5, -1.0])
+    truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-20.0, 0.0), "cv3": (30.0, 0.0)}
+    for bias, flagged in (((0.0, 0.0), {}), ((0.0, 3.0), {"cv3"})):
+        mon = MisbehaviourMonitor(FusionParams())
+        where = {v: tuple(np.array(truth[v]) + (bias if v == "cv3" else 0.0)) for v in truth}
+        for k in range(40):
+            t = 0.1 * k
+            see(mon, "cv0", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
+            see(mon, "cv1", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
+            see(mon, "cv2", t, where, {"cv0": truth["cv0"], "cv1": truth["cv1"], "cv2": truth["cv2"], "car": car})
+            see(mon, "cv3", t, where, {"cv3": truth["cv3"], "car": tuple(car + bias)})  # cv3's carry its bias
+            mon.update(t)
+        assert set(mon.flagged) == set(flagged), (bias, mon.flagged)
+
+
 def test_a_flag_clears_when_the_vehicle_is_seen_where_it_says_again() -> None:
     mon = run({"cv1": (0.0, 3.0)}, ["cv0", "cv2"], seconds=3.0)
     assert "cv1" in mon.flagged
