@@ -91,6 +91,26 @@ def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting
         assert set(mon.flagged) == set(flagged), (bias, mon.flagged)
 
 
+def test_a_vehicle_is_not_vouched_for_by_what_it_agreed_on_before_its_pose_went_wrong() -> None:
+    """cv3 saw cv1 where it said it was until 1 s, then lost sight of it; from 1 s on cv1 is 3 m off and only
+    cv0 (corroborated by cv2) sees it. cv1's agreement with cv3 from before is no defence: flagged within 2 s,
+    not when that agreement expires (misbehaviour_trust_s later)."""
+    truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-10.0, 0.0), "cv3": (20.0, 0.0)}
+    mon = MisbehaviourMonitor(FusionParams())
+    first = None
+    for k in range(40):
+        t = 0.1 * k
+        where = {**truth, "cv1": (10.0, 3.0 if t >= 1.0 else 0.0)}
+        see(mon, "cv0", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
+        see(mon, "cv2", t, where, {v: truth[v] for v in ("cv0", "cv2")})
+        if t < 1.0:
+            see(mon, "cv3", t, where, {v: truth[v] for v in ("cv1", "cv3")})
+        if "cv1" in mon.update(t) and first is None:
+            first = t
+    assert first is not None and first <= 3.0, first
+    assert list(mon.flagged) == ["cv1"]
+
+
 def test_a_flag_clears_when_the_vehicle_is_seen_where_it_says_again() -> None:
     mon = run({"cv1": (0.0, 3.0)}, ["cv0", "cv2"], seconds=3.0)
     assert "cv1" in mon.flagged
