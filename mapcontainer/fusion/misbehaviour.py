@@ -29,10 +29,12 @@ the other (one lying vehicle must not pull its honest neighbours). V is *flagged
   agree with each other (each within ``misbehaviour_spread_m`` of their median): they independently see
   V somewhere else; or
 * when a single observer O disagrees with it, and O is *corroborated* while V is not: O's views agreed
-  with some third vehicle in the last ``misbehaviour_trust_s`` seconds (O saw it, or was seen by it,
-  where it said it was), V's do not now. V's defence is its current views only: a vehicle that agreed
-  with a third one before its pose went wrong is not vouched for by that (on evaluation seeds a 3 m bias
-  from 5 s on was flagged 5.8-6.5 s late, when cv1's agreements from before its fault expired).
+  with some third vehicle now (O sees it, or is seen by it, where it says it is), V's do not. Only
+  current views vouch, for the accuser as for the accused: a vehicle that agreed with a third one before
+  its pose went wrong is not vouched for by that. With the agreements of the last
+  10 s vouching, a 3 m bias from 5 s on was flagged 5.8-6.5 s late on
+  evaluation seeds (when cv1's agreements from before its fault expired), and on development seed 1000
+  a cv1 1 m off, vouched for by its agreements from before, flagged the honest cv0 it saw 1.1 m off.
 
 The flag stays until every current view of V agrees again.
 
@@ -105,7 +107,6 @@ class MisbehaviourMonitor:
         self._gate = float(chi2_quantile(params.misbehaviour_probability, 2))
         self._sightings: dict[str, deque[Sighting]] = {}
         self._reports: dict[str, deque[tuple[float, np.ndarray, np.ndarray]]] = {}  # vehicle -> (t, where, cov)
-        self._agreed: dict[frozenset[str], float] = {}  # pair of vehicles -> last time a view between them agreed
         self.flagged: dict[str, str] = {}  # vehicle -> why (every kind below)
         self._seen_off: dict[str, str] = {}  # vehicle -> why: the others see it elsewhere
         self._ghosts: dict[str, tuple[float, str]] = {}  # vehicle -> (time of the last denial, why)
@@ -323,18 +324,11 @@ class MisbehaviourMonitor:
                     views[(o, vid)] = np.median([s.offset for s in ss], axis=0)
                     covs[(o, vid)] = np.mean([s.cov for s in ss], axis=0)
         agrees = {k: self._agrees(m, covs[k]) for k, m in views.items()}
-        for (o, v), ok in agrees.items():
-            if ok:
-                self._agreed[frozenset((o, v))] = t
-        self._agreed = {k: tk for k, tk in self._agreed.items() if t - tk <= pp.misbehaviour_trust_s}
         self.disputed = {frozenset(k) for k, ok in agrees.items() if not ok}
-        for pair in self.disputed:  # what two vehicles agreed on before they disputed no longer vouches for either
-            self._agreed.pop(pair, None)
-
         agreed_now = {frozenset(k) for k, ok in agrees.items() if ok}
 
-        def corroborated(x: str, other: str, pairs) -> bool:
-            return any(x in pair and other not in pair for pair in pairs)
+        def corroborated(x: str, other: str) -> bool:
+            return any(x in pair and other not in pair for pair in agreed_now)
 
         for v in sorted({v for _, v in views}):
             mine = {o: m for (o, vv), m in views.items() if vv == v}
@@ -347,7 +341,7 @@ class MisbehaviourMonitor:
             centre = np.median(np.array(list(accusers.values())), axis=0)
             consistent = all(float(np.hypot(*(m - centre))) < pp.misbehaviour_spread_m for m in accusers.values())
             by_many = len(accusers) >= pp.misbehaviour_min_observers and consistent
-            by_trusted = [o for o in accusers if corroborated(o, v, self._agreed) and not corroborated(v, o, agreed_now)]
+            by_trusted = [o for o in accusers if corroborated(o, v) and not corroborated(v, o)]
             if by_many or by_trusted:
                 who = sorted(accusers) if by_many else by_trusted
                 self._seen_off[v] = (

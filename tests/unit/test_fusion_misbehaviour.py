@@ -94,7 +94,7 @@ def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting
 def test_a_vehicle_is_not_vouched_for_by_what_it_agreed_on_before_its_pose_went_wrong() -> None:
     """cv3 saw cv1 where it said it was until 1 s, then lost sight of it; from 1 s on cv1 is 3 m off and only
     cv0 (corroborated by cv2) sees it. cv1's agreement with cv3 from before is no defence: flagged within 2 s,
-    not when that agreement expires (misbehaviour_trust_s later)."""
+    not when that agreement would have expired."""
     truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-10.0, 0.0), "cv3": (20.0, 0.0)}
     mon = MisbehaviourMonitor(FusionParams())
     first = None
@@ -109,6 +109,24 @@ def test_a_vehicle_is_not_vouched_for_by_what_it_agreed_on_before_its_pose_went_
             first = t
     assert first is not None and first <= 3.0, first
     assert list(mon.flagged) == ["cv1"]
+
+
+def test_a_biased_vehicle_vouched_for_by_what_it_agreed_on_before_does_not_flag_the_one_it_sees_off() -> None:
+    """Development seed 1000 (pose_bias_1m): cv1, 1 m off from 5 s on, had agreed with another vehicle
+    seconds before; alone it saw the honest cv0 1.1 m off and flagged it, vouched for by that old agreement.
+    Here cv1 and cv2 agree until 1 s, cv1 is 1 m off from 3.5 s (the agreement out of the window)."""
+    truth = {"cv0": (10.0, 0.0), "cv1": (0.0, 0.0), "cv2": (-10.0, 0.0)}
+    mon = MisbehaviourMonitor(FusionParams())
+    for k in range(60):
+        t = 0.1 * k
+        b = np.array([0.0, 1.0]) if t >= 3.5 else np.zeros(2)
+        where = {**truth, "cv1": tuple(np.array(truth["cv1"]) + b)}
+        if t < 1.0:
+            see(mon, "cv1", t, where, {v: truth[v] for v in ("cv1", "cv2")})
+            see(mon, "cv2", t, where, {v: truth[v] for v in ("cv1", "cv2")})
+        see(mon, "cv1", t, where, {"cv1": truth["cv1"], "cv0": tuple(np.array(truth["cv0"]) + b)})
+        mon.update(t)
+    assert "cv0" not in mon.flagged, mon.flagged
 
 
 def test_a_flag_clears_when_the_vehicle_is_seen_where_it_says_again() -> None:
