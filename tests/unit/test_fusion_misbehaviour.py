@@ -71,6 +71,64 @@ def test_two_vehicles_alone_dispute_but_nobody_is_flagged() -> None:
     assert mon.flagged == {} and mon.disputed == {frozenset(("cv0", "cv1"))}
 
 
+def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting_of_it() -> None:
+    """The traced false flag (development seed 1001, paper-urban, every error source): cv2, 45 m off,
+    saw the car 3.5 m beside an honest cv3 and not cv3; alone, but corroborated by cv0 and cv1, it flagged
+    cv3 "seen 4.1 m from its reported position". cv3 reports that car itself, where cv2 sees it: what cv2
+    saw is not cv3. A biased cv3 reports the car shifted by its bias, and is flagged."""
+    car = np.array([33.5, -1.0])
+    truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-20.0, 0.0), "cv3": (30.0, 0.0)}
+    for bias, flagged in (((0.0, 0.0), {}), ((0.0, 3.0), {"cv3"})):
+        mon = MisbehaviourMonitor(FusionParams())
+        where = {v: tuple(np.array(truth[v]) + (bias if v == "cv3" else 0.0)) for v in truth}
+        for k in range(40):
+            t = 0.1 * k
+            see(mon, "cv0", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
+            see(mon, "cv1", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
+            see(mon, "cv2", t, where, {"cv0": truth["cv0"], "cv1": truth["cv1"], "cv2": truth["cv2"], "car": car})
+            see(mon, "cv3", t, where, {"cv3": truth["cv3"], "car": tuple(car + bias)})  # cv3's carry its bias
+            mon.update(t)
+        assert set(mon.flagged) == set(flagged), (bias, mon.flagged)
+
+
+def test_a_vehicle_is_not_vouched_for_by_what_it_agreed_on_before_its_pose_went_wrong() -> None:
+    """cv3 saw cv1 where it said it was until 1 s, then lost sight of it; from 1 s on cv1 is 3 m off and only
+    cv0 (corroborated by cv2) sees it. cv1's agreement with cv3 from before is no defence: flagged within 2 s,
+    not when that agreement would have expired."""
+    truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-10.0, 0.0), "cv3": (20.0, 0.0)}
+    mon = MisbehaviourMonitor(FusionParams())
+    first = None
+    for k in range(40):
+        t = 0.1 * k
+        where = {**truth, "cv1": (10.0, 3.0 if t >= 1.0 else 0.0)}
+        see(mon, "cv0", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
+        see(mon, "cv2", t, where, {v: truth[v] for v in ("cv0", "cv2")})
+        if t < 1.0:
+            see(mon, "cv3", t, where, {v: truth[v] for v in ("cv1", "cv3")})
+        if "cv1" in mon.update(t) and first is None:
+            first = t
+    assert first is not None and first <= 3.0, first
+    assert list(mon.flagged) == ["cv1"]
+
+
+def test_a_biased_vehicle_vouched_for_by_what_it_agreed_on_before_does_not_flag_the_one_it_sees_off() -> None:
+    """Development seed 1000 (pose_bias_1m): cv1, 1 m off from 5 s on, had agreed with another vehicle
+    seconds before; alone it saw the honest cv0 1.1 m off and flagged it, vouched for by that old agreement.
+    Here cv1 and cv2 agree until 1 s, cv1 is 1 m off from 3.5 s (the agreement out of the window)."""
+    truth = {"cv0": (10.0, 0.0), "cv1": (0.0, 0.0), "cv2": (-10.0, 0.0)}
+    mon = MisbehaviourMonitor(FusionParams())
+    for k in range(60):
+        t = 0.1 * k
+        b = np.array([0.0, 1.0]) if t >= 3.5 else np.zeros(2)
+        where = {**truth, "cv1": tuple(np.array(truth["cv1"]) + b)}
+        if t < 1.0:
+            see(mon, "cv1", t, where, {v: truth[v] for v in ("cv1", "cv2")})
+            see(mon, "cv2", t, where, {v: truth[v] for v in ("cv1", "cv2")})
+        see(mon, "cv1", t, where, {"cv1": truth["cv1"], "cv0": tuple(np.array(truth["cv0"]) + b)})
+        mon.update(t)
+    assert "cv0" not in mon.flagged, mon.flagged
+
+
 def test_a_flag_clears_when_the_vehicle_is_seen_where_it_says_again() -> None:
     mon = run({"cv1": (0.0, 3.0)}, ["cv0", "cv2"], seconds=3.0)
     assert "cv1" in mon.flagged

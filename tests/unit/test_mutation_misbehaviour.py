@@ -128,7 +128,7 @@ def test_one_accuser_is_not_enough_without_corroboration() -> None:
     assert one.update(0.3) == {"cv9": "seen 3.0 m from its reported position (+3.0, +0.0) by cv1 in the last 2 s"}
 
 
-def test_a_corroborated_single_observer_flags_and_the_corroboration_expires() -> None:
+def test_a_single_observer_corroborated_now_flags_one_that_is_not() -> None:
     mon = MisbehaviourMonitor(FusionParams())
 
     def frame(t: float, cv9_off: float) -> None:
@@ -146,22 +146,11 @@ def test_a_corroborated_single_observer_flags_and_the_corroboration_expires() ->
     for k in range(4):
         frame(0.1 * k, 0.0)
     mon.update(0.3)
-    assert mon.flagged == {} and frozenset(("cv1", "cv2")) in mon._agreed
+    assert mon.flagged == {}
     for k in range(4, 30):
         frame(0.1 * k, 3.0)
     flags = mon.update(2.9)
     assert flags == {"cv9": "seen 3.0 m from its reported position (+3.0, +0.0) by cv1 in the last 2 s"}
-    # cv9's own agreement with cv1 (before the dispute) was dropped: it does not vouch for cv9
-    assert frozenset(("cv1", "cv9")) not in mon._agreed
-
-
-def test_trust_lasts_misbehaviour_trust_s() -> None:
-    mon = MisbehaviourMonitor(FusionParams())
-    mon._agreed = {frozenset(("a", "b")): 0.0}
-    mon.update(10.0)
-    assert frozenset(("a", "b")) in mon._agreed  # exactly trust_s ago: kept
-    mon.update(10.01)
-    assert mon._agreed == {}
 
 
 def test_message_repeats() -> None:
