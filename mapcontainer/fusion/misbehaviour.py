@@ -8,10 +8,10 @@ there at that instant (within the ``misbehaviour_probability`` quantile of the t
 what O saw is then a vehicle beside V, not V, which O does not see (it is hidden, or out of view). On
 development seed 1001 (paper-urban, every error source) an honest cv3, 0.1 m off, was flagged by cv2 alone,
 which at 45 m saw the car 3.5 m beside cv3 and not cv3: its view was that car. A vehicle that is not where
-it says it is reports the objects about it shifted by its own error, so none of them where others see it. An honest V is seen where it says it is:
-its offsets scatter about zero by the observers' and V's pose errors and the detector's noise (a few
-decimetres). A vehicle whose pose is biased by ``b`` is seen at ``-b`` from where it says it is, by every
-observer, instant after instant.
+it says it is reports the objects about it shifted by its own error, so none of them where others see it.
+An honest V is seen where it says it is: its offsets scatter about zero by the observers' and V's pose
+errors and the detector's noise (a few decimetres). A vehicle whose pose is biased by ``b`` is seen at
+``-b`` from where it says it is, by every observer, instant after instant.
 
 Over the last ``misbehaviour_window_s`` seconds, each other vehicle O with at least
 ``misbehaviour_min_sightings`` sightings of V has a *view* of V: the median of its offsets, with the

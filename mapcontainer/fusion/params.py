@@ -146,7 +146,7 @@ class FusionParams(BaseModel):
         0.999, gt=0, lt=1, description="... allows: its Mahalanobis distance within this chi-square quantile (2 dof)"
     )
     misbehaviour_trust_s: float = Field(
-        10.0, gt=0, description="unused (only current views corroborate a vehicle); kept so settings written before load"
+        10.0, gt=0, description="unused (only current views corroborate a vehicle); kept so older settings load"
     )
     misbehaviour_spread_m: float = Field(
         1.0, gt=0, description="... consistently: the sightings' median distance from their median below this"
