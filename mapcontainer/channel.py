@@ -233,6 +233,19 @@ def _link_key(seed: int, src: str, dst: str) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed, spawn_key=words)
 
 
+def checked_offer(src: str, dst: str, payload: bytes, t: float) -> tuple[bytes, float]:
+    """A link's offer, checked: (the payload as bytes, the time sent as a finite float); TypeError or
+    ValueError for anything else (every channel model's ``send``)."""
+    if not isinstance(src, str) or not isinstance(dst, str):
+        raise TypeError(f"src and dst must be str, got {type(src).__name__}, {type(dst).__name__}")
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
+    t = float(t)
+    if not math.isfinite(t):
+        raise ValueError(f"time sent must be finite, got {t}")
+    return bytes(payload), t
+
+
 def pop_arrivals(
     heap: list[tuple[float, int, Delivery]], t: float, counters: Callable[[Delivery], dict[str, int]]
 ) -> list[Delivery]:
@@ -339,14 +352,7 @@ class Channel:
         Returns False if it is dropped now (cause "loss" or "queue_full"), True if it is in flight;
         it leaves through :meth:`deliver`.
         """
-        if not isinstance(src, str) or not isinstance(dst, str):
-            raise TypeError(f"src and dst must be str, got {type(src).__name__}, {type(dst).__name__}")
-        if not isinstance(payload, (bytes, bytearray, memoryview)):
-            raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
-        t = float(t)
-        if not math.isfinite(t):
-            raise ValueError(f"time sent must be finite, got {t}")
-        payload = bytes(payload)
+        payload, t = checked_offer(src, dst, payload, t)
         nbytes = len(payload)
         link = self._link(src, dst)
         c = link.counters

@@ -102,7 +102,7 @@ def build_host(setup: HostSetup, hdmap: HDMap | None = None) -> HostLoop:
 
         if hdmap is None:
             if setup.map_file is None:
-                raise ValueError("the centralized host localizes the vehicles against an HD map: give it one (map_file)")
+                raise ValueError("the centralized host localizes the vehicles against an HD map: give one (map_file)")
             hdmap = load_host_map(setup.map_file)
         core = JointHost(hdmap, setup.params, setup.fleet, setup.host_id, _known(setup))
     return HostLoop(core, FrameGate(_known(setup), setup.max_wait_s, reference=setup.reference))

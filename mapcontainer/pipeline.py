@@ -379,7 +379,7 @@ def run_pipeline(
     result.channel_stats = channel.stats()
     result.host_stats = {name: host.core.stats() for name, host in hosts.items()}
     result.downlink_counts = {v: dict(a.downlink.counts) for v, a in agents.items()} if downlink else {}
-    result.gate_stats = {name: {"complete": h.gate.complete, "timed_out": h.gate.timed_out} for name, h in hosts.items()}
+    result.gate_stats = {n: {"complete": h.gate.complete, "timed_out": h.gate.timed_out} for n, h in hosts.items()}
     return result
 
 

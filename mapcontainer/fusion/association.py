@@ -57,6 +57,7 @@ __all__ = [
     "cv_predict",
     "mahalanobis_matrix",
     "observations_to_map",
+    "rotated_to_map",
     "protection_gate",
 ]
 
@@ -70,9 +71,15 @@ def observations_to_map(pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, n
     covariances ``cov_body`` (N, 3, 3). First-order propagation of both uncertainties (module docstring).
     """
     pose = np.asarray(pose, dtype=float)
+    return rotated_to_map(pose, geo.rpy_to_matrix_jac(*pose[3:]), pose_cov, p_body, cov_body)
+
+
+def rotated_to_map(pose, jac, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`observations_to_map` with the pose's rotation and its derivatives ``jac`` given
+    (:func:`mapcontainer.geometry.rpy_to_matrix_jac`), for a caller that has them already."""
     p_body = np.asarray(p_body, dtype=float).reshape(-1, 3)
     cov_body = np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
-    R, dR_r, dR_p, dR_y = geo.rpy_to_matrix_jac(*pose[3:])
+    R, dR_r, dR_p, dR_y = jac
     m = p_body @ R.T + pose[:3]
     J = np.empty((len(p_body), 3, 6))
     J[:, :, :3] = np.eye(3)

@@ -34,7 +34,7 @@ from scipy.stats import norm
 from schemas import FusedState, Rejection, decode
 
 from .. import geometry as geo
-from .association import Detection, Tracker, VehicleCandidate, observations_to_map
+from .association import Detection, Tracker, VehicleCandidate, observations_to_map, rotated_to_map
 from .buffer import ReorderBuffer
 from .params import FusionParams
 from .poses import sym_from_upper, upper_from_sym
@@ -292,10 +292,10 @@ def observer_bias(p_map, observers: list[tuple]) -> np.ndarray:
     C = np.zeros((3, 3))
     for pose, S_v, w, *rest in observers:
         pose = np.asarray(pose, dtype=float)
-        R = geo.rpy_to_matrix(*pose[3:6])
-        z = R.T @ (p - pose[:3])
+        jac = geo.rpy_to_matrix_jac(*pose[3:6])  # R once, for z and for the propagation
+        z = jac[0].T @ (p - pose[:3])
         D = rest[0] if rest and rest[0] is not None else np.zeros((3, 3))
-        C += w * w * observations_to_map(pose, S_v, z[None], np.asarray(D, dtype=float)[None])[1][0]
+        C += w * w * rotated_to_map(pose, jac, S_v, z[None], np.asarray(D, dtype=float)[None])[1][0]
     return C
 
 

@@ -27,7 +27,6 @@ on the base latency alone and counted as ``unlocated`` (the relay before the fir
 from __future__ import annotations
 
 import heapq
-import math
 from collections import deque
 from collections.abc import Mapping
 from typing import Any
@@ -35,7 +34,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..channel import Delivery, NetworkProfile, link_totals, pop_arrivals
+from ..channel import Delivery, NetworkProfile, checked_offer, link_totals, pop_arrivals
 from .dcc import DccParams, ReactiveDcc
 from .hashing import directed_keys, link_keys, node_key, uniforms
 from .mac import Csma, MacParams, Sps, airtime_s
@@ -318,14 +317,7 @@ class RadioChannel:
 
     def send(self, src: str, dst: str, payload: bytes, t: float) -> bool:
         """Offer ``payload`` from ``src`` to ``dst`` at ``t`` (s); False if it is lost, True if in flight."""
-        if not isinstance(src, str) or not isinstance(dst, str):
-            raise TypeError(f"src and dst must be str, got {type(src).__name__}, {type(dst).__name__}")
-        if not isinstance(payload, (bytes, bytearray, memoryview)):
-            raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
-        t = float(t)
-        if not math.isfinite(t):
-            raise ValueError(f"time sent must be finite, got {t}")
-        payload = bytes(payload)
+        payload, t = checked_offer(src, dst, payload, t)
         nbytes = len(payload)
         c = self._link(src, dst)
         c["offered_msgs"] += 1

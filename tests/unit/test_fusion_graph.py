@@ -344,7 +344,7 @@ def test_sparse_solve_equals_the_exact_oracle_on_a_city_scene():
     """The default elimination order (COLAMD over the window) and the oracle's (every latest state last,
     one dense root) solve the same systems: the same tracks, estimates and covariances, and so the same
     figures, on a scene where vehicles share some objects and not others."""
-    _sparse_equals_exact()
+    _assert_sparse_equals_exact()
 
 
 @pytest.mark.slow  # numba compiles the kernel unless its cache has it
@@ -355,10 +355,10 @@ def test_the_compiled_recursion_equals_the_exact_oracle_on_a_city_scene(monkeypa
     from mapcontainer.fusion import solver
 
     monkeypatch.setattr(solver, "COMPILE_FROM_CLIQUES", 0)
-    _sparse_equals_exact()
+    _assert_sparse_equals_exact()
 
 
-def _sparse_equals_exact() -> None:
+def _assert_sparse_equals_exact() -> None:
     from mapcontainer.fusion.bench import bench_fusion
     from mapcontainer.fusion.solver import DENSE_ROOT_KEYS
 

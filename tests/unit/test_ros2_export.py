@@ -21,6 +21,7 @@ from schemas.arrays import cov_to_upper  # noqa: E402
 
 EPOCH_NS = 1_700_000_000 * 10**9  # the world's clock, in each message's envelope
 SCALE = 0.5
+CLOCK = {"epoch_wall_ns": EPOCH_NS, "time_scale": SCALE}  # in every message's envelope, as the fleet sends
 
 
 def _truth(t: float) -> GroundTruth:
@@ -30,8 +31,7 @@ def _truth(t: float) -> GroundTruth:
         seq=int(round(t * 10)),
         t_meas=t,
         t_sent=t,
-        epoch_wall_ns=EPOCH_NS,
-        time_scale=SCALE,
+        **CLOCK,
         vehicle_ids=["cv0", "cv1"],
         vehicle_pose=np.array([[t * 5, 0, 0, 0, 0, 0], [t * 5, 20, 0, 0, 0, 0.5]], np.float32),
         vehicle_v_map=np.array([[5, 0, 0], [5, 0, 0]], np.float32),
@@ -53,8 +53,7 @@ def _fused(t: float, hid: str = "host") -> FusedState:
         seq=int(round(t * 10)),
         t_meas=t,
         t_sent=t,
-        epoch_wall_ns=EPOCH_NS,
-        time_scale=SCALE,
+        **CLOCK,
         vehicle_ids=["cv0", "cv1"],
         vehicle_pose=np.array([[t * 5 + 0.1, 0, 0, 0, 0, 0.05], [t * 5, 20.2, 0, 0, 0, 0.5]], np.float32),
         vehicle_pose_cov=np.stack([cov_to_upper(pose_cov)] * 2).astype(np.float32),
