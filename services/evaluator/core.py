@@ -45,6 +45,7 @@ __all__ = ["SCORE_KEYS", "Evaluator", "match_objects", "steady_name"]
 
 MAX_SOURCES = 256  # distinct V2X sources counted; more are a flood of names (counted in sources_refused)
 MAX_E2E_LATENCY_MS = 60_000.0  # a longer (or negative) end-to-end latency is a forged or broken clock
+LATENCIES_KEPT = 100_000  # newest end-to-end latencies for the whole-run percentiles (10 Hz: 2.8 h)
 TRACE_RECENT = 1_200  # newest points of a picture trace kept at full rate (10 Hz: two minutes)
 TRACE_OLDER = 4_000  # older points, thinned to stay spread over the whole run (Trace)
 MAX_TRACES = 1_024  # traces of one kind kept; the oldest one goes when a new obstacle comes
@@ -79,47 +80,86 @@ def steady_name(key: str) -> str:
 
 
 class Trace:
-    """Points of a picture in bounded memory over a run of any length: the newest ``recent`` at full rate,
-    the older ones thinned (when ``older`` of them are kept, every other one goes and from then on only
-    every other one is kept, and so on), so that they stay spread over the whole run. Iterates oldest first."""
+    """Rows of ``width`` numbers for a picture, in memory fixed when the trace is made, over a run of any
+    length: the newest ``recent`` at full rate, the older ones thinned (when ``older`` of them are kept,
+    every other one goes and from then on only every other one is kept, and so on), so that they stay
+    spread over the whole run. The arrays are allocated (and touched) at once: the evaluator's memory is
+    flat from its first traces, not growing for the better part of an hour until they fill."""
 
-    def __init__(self, recent: int = TRACE_RECENT, older: int = TRACE_OLDER) -> None:
-        self._recent: deque = deque()
-        self._older: list = []
-        self._max_recent, self._max_older = recent, older
+    def __init__(self, width: int = 3, recent: int = TRACE_RECENT, older: int = TRACE_OLDER) -> None:
+        self._recent = np.full((recent, width), np.nan)  # a ring: the oldest at _head once full
+        self._older = np.full((older, width), np.nan)
+        self._n_recent = self._head = self._n_older = 0
         self._stride, self._aged = 1, 0
 
-    def append(self, item) -> None:
-        self._recent.append(item)
-        if len(self._recent) > self._max_recent:
-            old = self._recent.popleft()
-            if self._aged % self._stride == 0:
-                self._older.append(old)
-                if len(self._older) > self._max_older:
-                    self._older = self._older[::2]
-                    self._stride *= 2
-            self._aged += 1
+    def append(self, row) -> None:
+        cap = len(self._recent)
+        if self._n_recent < cap:
+            self._recent[self._n_recent] = row
+            self._n_recent += 1
+            return
+        if self._aged % self._stride == 0:  # the oldest recent row ages into the thinned part
+            if self._n_older == len(self._older):
+                kept = self._older[::2].copy()
+                self._older[: len(kept)] = kept
+                self._n_older, self._stride = len(kept), self._stride * 2
+            self._older[self._n_older] = self._recent[self._head]
+            self._n_older += 1
+        self._aged += 1
+        self._recent[self._head] = row
+        self._head = (self._head + 1) % cap
 
-    def __iter__(self):
-        yield from self._older
-        yield from self._recent
+    def array(self) -> np.ndarray:
+        """Every kept row, oldest first: (len(self), width)."""
+        recent = np.roll(self._recent[: self._n_recent], -self._head, axis=0)
+        return np.vstack([self._older[: self._n_older], recent])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        return self.array() if dtype is None else self.array().astype(dtype)
+
+    def last(self) -> np.ndarray | None:
+        """The newest row, or None."""
+        if not self._n_recent:
+            return None
+        return self._recent[(self._head + self._n_recent - 1) % len(self._recent)]
 
     def __len__(self) -> int:
-        return len(self._older) + len(self._recent)
-
-    def __getitem__(self, i: int):
-        if i == -1 and self._recent:
-            return self._recent[-1]
-        return list(self)[i]
+        return self._n_older + self._n_recent
 
 
-def _trace(traces: dict, key) -> Trace:
+class Ring:
+    """The newest ``size`` numbers (e.g. end-to-end latencies for the whole-run percentiles), allocated at once."""
+
+    def __init__(self, size: int) -> None:
+        self._a = np.full(size, np.nan)
+        self._n = 0
+
+    def append(self, x: float) -> None:
+        self._a[self._n % len(self._a)] = x
+        self._n += 1
+
+    def values(self) -> np.ndarray:
+        return self._a[: min(self._n, len(self._a))]
+
+
+def _trace(traces: dict, key, width: int = 3) -> Trace:
     """The trace of ``key`` (made on first use; past MAX_TRACES keys the oldest trace goes)."""
     if key not in traces:
         if len(traces) >= MAX_TRACES:
             del traces[next(iter(traces))]
-        traces[key] = Trace()
+        traces[key] = Trace(width)
     return traces[key]
+
+
+def _append_per_vehicle(traces: dict, rows: dict, t: float) -> None:
+    """Each vehicle's row to its trace; a vehicle absent from ``rows`` gets a NaN row (the drawn line
+    breaks there) unless its trace already ends in one."""
+    for vid, row in rows.items():
+        _trace(traces, vid, 1 + len(row)).append((t, *row))
+    for vid, tr in traces.items():
+        last = tr.last()
+        if vid not in rows and last is not None and not np.isnan(last[1]):
+            tr.append(np.r_[t, np.full(len(last) - 1, np.nan)])
 
 
 @dataclass
@@ -169,7 +209,7 @@ class Evaluator:
         self.delivered_total = 0
         self.tx_bytes_total: dict[str, int] = {}
         self.tx_msgs_total: dict[str, int] = {}
-        self._lat_all: list[float] = []
+        self._lat_all = Ring(LATENCIES_KEPT)
         self._seq = 0
         # picture material, in scenario time (bounded): truth every plot_every_s, every fused state
         self.truth_vehicles: dict[str, Trace] = {}  # vid -> (t, x, y)
@@ -177,8 +217,10 @@ class Evaluator:
         self.tracks_fused: dict[str, Trace] = {}  # vid -> (t, x, y), NaN at gaps
         # t, id, cls, x, y
         self.fused_objects: deque[tuple[float, int, int, float, float]] = deque(maxlen=OBJECTS_RECENT)
-        # per fused state: (t_meas, {vid: horizontal error m}, object RMSE m or None, coverage or None)
-        self.errors = Trace()
+        # per fused state: each vehicle's horizontal error (t_meas, m; NaN at gaps) and the objects'
+        # (t_meas, RMSE m, coverage; NaN where there is none)
+        self.vehicle_errors: dict[str, Trace] = {}
+        self.object_errors = Trace(3)
         self.last_fused: FusedState | None = None
         self.last_truth: GroundTruth | None = None
         self._last_plot_t = -np.inf
@@ -199,7 +241,7 @@ class Evaluator:
                 _trace(self.truth_vehicles, vid).append((t, float(pose[0]), float(pose[1])))
             for oid, p in zip(truth.obstacle_id, truth.obstacle_p_map, strict=True):
                 _trace(self.truth_obstacles, int(oid)).append((t, float(p[0]), float(p[1])))
-            gone = [oid for oid, tr in self.truth_obstacles.items() if tr[-1][0] < t - OBSTACLE_GONE_S]
+            gone = [oid for oid, tr in self.truth_obstacles.items() if tr.last()[0] < t - OBSTACLE_GONE_S]
             for oid in gone:  # obstacles that left the scene: their trails go, the picture keeps the present
                 del self.truth_obstacles[oid]
 
@@ -249,7 +291,6 @@ class Evaluator:
         self._samples.append(_Sample(now_wall, v_sq, o_sq, lat))
         if lat is not None:
             self._lat_all.append(lat)
-            del self._lat_all[:-100_000]
         self.evaluated += 1
         self.t_meas = fused.t_meas
         self.last = {"objects_fused": len(p_f), "objects_matched": score.n_matched, "obstacles_truth": score.n_truth}
@@ -258,12 +299,11 @@ class Evaluator:
         t = fused.t_meas
         for vid in fused.flagged:
             self.flagged_first.setdefault(vid, t)
-        self.errors.append((t, v_err, float(np.sqrt(np.mean(o_sq))) if o_sq else None, score.coverage))
-        for i, vid in enumerate(fused.vehicle_ids):
-            _trace(self.tracks_fused, vid).append((t, float(fused.vehicle_pose[i][0]), float(fused.vehicle_pose[i][1])))
-        for vid, pts in self.tracks_fused.items():  # absent from this state: the drawn line breaks here
-            if vid not in fused.vehicle_ids and not np.isnan(pts[-1][1]):
-                pts.append((t, np.nan, np.nan))
+        _append_per_vehicle(self.vehicle_errors, {vid: (e,) for vid, e in v_err.items()}, t)
+        o_rmse = float(np.sqrt(np.mean(o_sq))) if o_sq else np.nan
+        self.object_errors.append((t, o_rmse, np.nan if score.coverage is None else score.coverage))
+        poses = {vid: (float(p[0]), float(p[1])) for vid, p in zip(fused.vehicle_ids, fused.vehicle_pose, strict=True)}
+        _append_per_vehicle(self.tracks_fused, poses, t)
         self.fused_objects.extend(
             (t, int(i), int(c), float(p[0]), float(p[1]))
             for i, c, p in zip(fused.object_id, fused.object_cls, p_f, strict=True)
@@ -353,7 +393,7 @@ class Evaluator:
         ``coverage`` as ``object_coverage``), once over the whole run and once in steady state
         (named by :func:`steady_name`).
         """
-        lat = self._lat_all
+        lat = self._lat_all.values()
         out = {
             "evaluated": self.evaluated,
             "no_truth": self.no_truth,
@@ -371,8 +411,8 @@ class Evaluator:
             out[steady_name(name)] = steady[key]
         out.update(
             {
-                "e2e_latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
-                "e2e_latency_ms_p99": float(np.percentile(lat, 99)) if lat else None,
+                "e2e_latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
+                "e2e_latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
                 "tx_bytes_total": dict(sorted(self.tx_bytes_total.items())),
                 "tx_msgs_total": dict(sorted(self.tx_msgs_total.items())),
                 "tx_bytes_per_msg": {k: self.tx_bytes_total[k] / n for k, n in sorted(self.tx_msgs_total.items()) if n},

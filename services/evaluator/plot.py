@@ -195,17 +195,13 @@ def render_birdseye(path: Path, ev: Evaluator, hdmap: HDMap | None, title: str, 
 def render_errors(path: Path, ev: Evaluator, title: str) -> None:
     """Each vehicle's horizontal error and the objects' RMSE per fused state over scenario time."""
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(11, 7), sharex=True)
-    rows = list(ev.errors)
-    t = np.array([r[0] for r in rows], float)
-    vids = sorted({vid for r in rows for vid in r[1]})
     steady = ev.summary()
-    for i, vid in enumerate(vids):
-        e = np.array([r[1].get(vid, np.nan) for r in rows], float)
+    for i, vid in enumerate(sorted(ev.vehicle_errors)):
+        te = ev.vehicle_errors[vid].array()
         s = steady["vehicle_rmse_steady_by_id_m"].get(vid)
         label = f"{vid} (steady RMSE {s:.3f} m)" if s is not None else vid
-        top.plot(t, e, "-", lw=1.0, color=_VEHICLE_COLORS[i % len(_VEHICLE_COLORS)], label=label)
-    obj = np.array([np.nan if r[2] is None else r[2] for r in rows], float)
-    cover = np.array([np.nan if r[3] is None else r[3] for r in rows], float)
+        top.plot(te[:, 0], te[:, 1], "-", lw=1.0, color=_VEHICLE_COLORS[i % len(_VEHICLE_COLORS)], label=label)
+    t, obj, cover = ev.object_errors.array().T
     s = steady["object_rmse_steady_m"]
     bottom.plot(t, obj, "-", lw=1.0, color="navy", label="objects RMSE" + (f" (steady {s:.3f} m)" if s else ""))
     twin = bottom.twinx()

@@ -27,11 +27,12 @@ def _drive(burnin_s: float = 1.0) -> Evaluator:
 
 def test_the_evaluator_keeps_the_error_of_every_fused_state_in_scenario_time() -> None:
     ev = _drive()
-    assert len(ev.errors) == 30
-    t, v_err, obj_rmse, coverage = ev.errors[0]
-    assert t == 0.0 and v_err == {"cv0": pytest.approx(2.0, abs=1e-5)} and obj_rmse == pytest.approx(0.3, abs=1e-5)
+    v_err, o_err = ev.vehicle_errors["cv0"].array(), ev.object_errors.array()
+    assert list(ev.vehicle_errors) == ["cv0"] and v_err.shape == (30, 2) and o_err.shape == (30, 3)
+    t, obj_rmse, coverage = o_err[0]
+    assert t == 0.0 and v_err[0, 1] == pytest.approx(2.0, abs=1e-5) and obj_rmse == pytest.approx(0.3, abs=1e-5)
     assert coverage == 1.0
-    assert ev.errors[-1][1]["cv0"] == pytest.approx(0.1, abs=1e-5)
+    assert v_err[-1, 1] == pytest.approx(0.1, abs=1e-5)
     truth = np.array(ev.truth_vehicles["cv0"])
     assert truth.shape == (30, 3) and truth[-1, 0] == pytest.approx(2.9) and truth[-1, 1] == pytest.approx(29.0)
     assert list(ev.truth_obstacles) == [1]  # obstacles by their id, apart from the vehicles

@@ -424,12 +424,20 @@ def test_the_evaluators_traces_stay_bounded_over_any_run_length() -> None:
     ones, still spread over the whole run; an obstacle gone for OBSTACLE_GONE_S loses its trace."""
     from services.evaluator.core import OBSTACLE_GONE_S, Trace
 
-    tr = Trace(recent=100, older=400)
+    import tracemalloc
+
+    tracemalloc.start()
+    tr = Trace(width=1, recent=100, older=400)
+    made = tracemalloc.get_traced_memory()[0]
     for k in range(100_000):
         tr.append((k,))
-    pts = [p[0] for p in tr]
+    grown = tracemalloc.get_traced_memory()[0] - made
+    tracemalloc.stop()
+    pts = list(tr.array()[:, 0])
     assert len(tr) <= 500 and pts == sorted(pts) and pts[-100:] == list(range(99_900, 100_000))
-    assert pts[0] < 1_000 and tr[-1] == (99_999,)  # the run's start is still drawn
+    assert pts[0] < 1_000 and tr.last()[0] == 99_999  # the run's start is still drawn
+    assert grown < 1_000  # its memory is the one it was made with (the soak's evaluator grew 15 MB in 45 min)
+    ev = Evaluator("f", plot_every_s=0.1)
     ev = Evaluator("f", plot_every_s=0.1)
     ev.on_truth(_truth(0.0, [0.0, 0.0], [[5.0, 0.0]]))
     assert list(ev.truth_obstacles) == [1]
