@@ -309,11 +309,13 @@ def observer_biases(p_map, seen: list[list[tuple]], observers: dict) -> np.ndarr
     pairs: dict = {}  # observer -> ([object], [rank in the object's sum], [w], [D])
     for k, obs in enumerate(seen):
         for rank, (o, w, D) in enumerate(obs):
-            col = pairs.setdefault(o, ([], [], [], []))
+            col = pairs.get(o)
+            if col is None:
+                col = pairs[o] = ([], [], [], [])
             col[0].append(k)
             col[1].append(rank)
             col[2].append(w)
-            col[3].append(np.zeros((3, 3)) if D is None else np.asarray(D, dtype=float))
+            col[3].append(_NO_BIAS if D is None else D)
     if not pairs:
         return C
     objs, ranks, terms = [], [], []
@@ -321,16 +323,19 @@ def observer_biases(p_map, seen: list[list[tuple]], observers: dict) -> np.ndarr
         pose = np.asarray(observers[o][0], dtype=float)
         jac = geo.rpy_to_matrix_jac(*pose[3:6])  # R once, for z and for the propagation
         z = (p[ks] - pose[:3]) @ jac[0]  # z_v = R_v^T (p - t_v), row by row
-        w = np.asarray(ws, dtype=float)
-        S = rotated_to_map(pose, jac, observers[o][1], z, np.stack(Ds), rowwise=True)[1]
-        objs.append(np.asarray(ks))
-        ranks.append(np.asarray(rs))
+        w = np.array(ws, dtype=float)
+        S = rotated_to_map(pose, jac, observers[o][1], z, np.array(Ds, dtype=float), rowwise=True)[1]
+        objs += ks
+        ranks += rs
         terms.append((w * w)[:, None, None] * S)
-    obj, rank, term = np.concatenate(objs), np.concatenate(ranks), np.concatenate(terms)
+    obj, rank, term = np.array(objs), np.array(ranks), np.concatenate(terms)
     for r in range(int(rank.max()) + 1):  # each object's terms summed in its observers' order
         at = rank == r
         C[obj[at]] += term[at]
     return C
+
+
+_NO_BIAS = np.zeros((3, 3))
 
 
 def vehicle_at(pose, cov, v_map, dt: float, params: FusionParams) -> tuple[np.ndarray, np.ndarray]:
