@@ -129,3 +129,27 @@ def test_the_cached_report_test_decides_what_the_test_of_every_report_at_every_u
             assert np.array_equal(m, ref.views[key][0]) and np.array_equal(C, ref.views[key][1]), key
         flagged_any |= bool(new.flagged)
     assert flagged_any  # the biased cv2 was flagged: the scene exercises the decisions
+
+
+def test_the_benchs_cpu_phases_leave_out_waits_and_change_no_figure() -> None:
+    """``cpu_clock``: a Laps made inside charges CPU time (a sleep costs none), the clock is wall again after;
+    ``bench_fusion(cpu_phases=True)`` says so and gives the same accuracy figures as the wall-clock run."""
+    import time
+
+    from mapcontainer.fusion.bench import bench_fusion
+    from mapcontainer.fusion.laps import Laps, cpu_clock
+
+    with cpu_clock():
+        laps = Laps()
+        time.sleep(0.2)
+        laps.mark("slept")
+    assert laps.ms["slept"] < 100.0
+    wall = Laps()
+    time.sleep(0.05)
+    wall.mark("slept")
+    assert wall.ms["slept"] >= 50.0 and Laps.clock is time.perf_counter
+    cpu, plain = bench_fusion(3, 6, 3, ticks=8, cpu_phases=True), bench_fusion(3, 6, 3, ticks=8)
+    assert (cpu["phases_clock"], plain["phases_clock"]) == ("cpu", "wall")
+    assert cpu["phases_ms_p50"].keys() == plain["phases_ms_p50"].keys()
+    for key in ("object_rmse_m", "object_anees", "vehicle_rmse_m", "object_matches"):
+        assert cpu[key] == plain[key]
