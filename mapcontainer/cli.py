@@ -143,6 +143,7 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
         ticks=args.ticks,
         batch_samples=args.batch_samples,
         density=args.density,
+        cpu_phases=args.cpu_phases,
     )
     print(jsonout.dumps(result["runs"][0] if not args.sizes else result))
     return 0
@@ -505,6 +506,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=5,
         help="windows also solved by plain GTSAM LM + Marginals after the run, as a yardstick of the "
         "machine's speed (batch_ms_p50, cycle_over_batch); 0 skips it",
+    )
+    bf.add_argument(
+        "--cpu-phases",
+        action="store_true",
+        help="phases_ms_p50 in this process's CPU time instead of wall time (a loaded machine's waits left out)",
     )
     bf.set_defaults(func=_cmd_bench_fusion)
     bw = bench.add_parser(

@@ -74,18 +74,21 @@ def observations_to_map(pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, n
     return rotated_to_map(pose, geo.rpy_to_matrix_jac(*pose[3:]), pose_cov, p_body, cov_body)
 
 
-def rotated_to_map(pose, jac, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray]:
+def rotated_to_map(pose, jac, pose_cov, p_body, cov_body, rowwise: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """:func:`observations_to_map` with the pose's rotation and its derivatives ``jac`` given
-    (:func:`mapcontainer.geometry.rpy_to_matrix_jac`), for a caller that has them already."""
+    (:func:`mapcontainer.geometry.rpy_to_matrix_jac`), for a caller that has them already. ``rowwise``: each
+    row's Jacobian as one (1, 3) product, the numbers of N calls with one row each to the last bit (BLAS
+    rounds an (N, 3) product's rows differently)."""
     p_body = np.asarray(p_body, dtype=float).reshape(-1, 3)
     cov_body = np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
     R, dR_r, dR_p, dR_y = jac
     m = p_body @ R.T + pose[:3]
     J = np.empty((len(p_body), 3, 6))
     J[:, :, :3] = np.eye(3)
-    J[:, :, 3] = p_body @ dR_r.T
-    J[:, :, 4] = p_body @ dR_p.T
-    J[:, :, 5] = p_body @ dR_y.T
+    rows = p_body[:, None, :] if rowwise else p_body
+    J[:, :, 3] = (rows @ dR_r.T).reshape(-1, 3)
+    J[:, :, 4] = (rows @ dR_p.T).reshape(-1, 3)
+    J[:, :, 5] = (rows @ dR_y.T).reshape(-1, 3)
     S = R @ cov_body @ R.T + J @ np.asarray(pose_cov, dtype=float) @ J.transpose(0, 2, 1)
     return m, 0.5 * (S + S.transpose(0, 2, 1))
 

@@ -26,7 +26,7 @@ from .hostcore import (
     cross_observation,
     detections_in_map,
     fused_state,
-    observer_bias,
+    observer_biases,
     observer_weights,
     persistent_share,
     vehicle_at,
@@ -352,7 +352,8 @@ class Container:
                 cov = cov + bias_cov(self._bias_sigma[vid], float(pose[5]))
             poses.append(pose)
             pose_covs.append(cov)
-        ids, cls, dts, xs, Cs = [], [], [], [], []
+        ids, cls, dts, xs, Cs, seen = [], [], [], [], [], []
+        f = persistent_share(pp)
         for tid, tr in sorted(self.tracker.confirmed().items()):
             if tid not in g.tracks or len(ids) >= MAX_OBJECTS:
                 continue
@@ -361,14 +362,13 @@ class Container:
             cls.append(tr.cls)
             dts.append(t - ts)
             xs.append(np.concatenate([p, v]))
-            C = np.array(tr.P if C is None else C)
+            Cs.append(tr.P if C is None else C)
             w = observer_weights(tr.frames, t - pp.window_s)
-            f = persistent_share(pp)
-            seen = [(*seen_from[o], w[o], f * tr.det_cov[o] if o in tr.det_cov else None) for o in w if o in seen_from]
-            C[:3, :3] += observer_bias(p, seen)
-            Cs.append(C)
+            seen.append([(o, w[o], f * tr.det_cov[o] if o in tr.det_cov else None) for o in w if o in seen_from])
         ps, covs, vs = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))
         if ids:
+            Cs = np.array(Cs, dtype=float)
+            Cs[:, :3, :3] += observer_biases(np.array(xs)[:, :3], seen, seen_from)
             q = np.array([accel_psd(self.params, c) for c in cls])
             x, P = cv_predict(np.array(xs), np.array(Cs), np.array(dts), q)
             ps, covs, vs = x[:, :3], P[:, :3, :3], np.array(xs)[:, 3:]

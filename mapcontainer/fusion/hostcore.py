@@ -14,7 +14,8 @@ alike lives here, once:
 * :func:`vehicle_candidate`: a connected vehicle's reported position at a detection's time, for gating;
 * :func:`cross_observation`: a detection of a connected vehicle corrected to the observed vehicle's
   frame time;
-* :func:`observer_bias`: what the observers' repeated errors add to an object's covariance (a consider term);
+* :func:`observer_bias` / :func:`observer_biases`: what the observers' repeated errors add to an object's
+  covariance (a consider term), of one object / of many at once;
 * :func:`vehicle_at` and :func:`fused_state`: the output, moved to the fuse time and made wire-valid;
 * :func:`common_stats`: the figures both report under the same names.
 
@@ -50,6 +51,7 @@ __all__ = [
     "fused_state",
     "make_pd",
     "observer_bias",
+    "observer_biases",
     "observer_weights",
     "persistent_share",
     "vehicle_at",
@@ -287,16 +289,53 @@ def observer_bias(p_map, observers: list[tuple]) -> np.ndarray:
     v's detections, so the estimator, which takes them as independent, leaves them out of the object's
     covariance; errors of different observers are independent, so the weighted mean's covariance is the sum
     of the w_v^2 terms. A consider term: the host does not estimate these errors, it states what they do to
-    the estimate."""
-    p = np.asarray(p_map, dtype=float)
-    C = np.zeros((3, 3))
-    for pose, S_v, w, *rest in observers:
-        pose = np.asarray(pose, dtype=float)
+    the estimate. One object; :func:`observer_biases` does many at once (the same numbers)."""
+    table = {i: (ob[0], ob[1]) for i, ob in enumerate(observers)}
+    seen = [(i, ob[2], ob[3] if len(ob) > 3 else None) for i, ob in enumerate(observers)]
+    return observer_biases(np.asarray(p_map, dtype=float)[None], [seen], table)[0]
+
+
+def observer_biases(p_map, seen: list[list[tuple]], observers: dict) -> np.ndarray:
+    """:func:`observer_bias` of K objects at ``p_map`` (K, 3) at once: (K, 3, 3).
+
+    ``seen[k]``: object k's observers as (key into ``observers``, w_v, D_v (3, 3) or None), in the order
+    their terms are summed; ``observers``: key -> (pose_v (6,), S_v (6, 6)). Each observer's rotation and
+    its derivatives are computed once, and its terms for every object it saw in one array operation
+    (:func:`~.association.rotated_to_map`), instead of once per object and observer."""
+    p = np.asarray(p_map, dtype=float).reshape(-1, 3)
+    if len(seen) != len(p):
+        raise ValueError(f"{len(p)} objects but {len(seen)} lists of observers")
+    C = np.zeros((len(p), 3, 3))
+    pairs: dict = {}  # observer -> ([object], [rank in the object's sum], [w], [D])
+    for k, obs in enumerate(seen):
+        for rank, (o, w, D) in enumerate(obs):
+            col = pairs.get(o)
+            if col is None:
+                col = pairs[o] = ([], [], [], [])
+            col[0].append(k)
+            col[1].append(rank)
+            col[2].append(w)
+            col[3].append(_NO_BIAS if D is None else D)
+    if not pairs:
+        return C
+    objs, ranks, terms = [], [], []
+    for o, (ks, rs, ws, Ds) in pairs.items():
+        pose = np.asarray(observers[o][0], dtype=float)
         jac = geo.rpy_to_matrix_jac(*pose[3:6])  # R once, for z and for the propagation
-        z = jac[0].T @ (p - pose[:3])
-        D = rest[0] if rest and rest[0] is not None else np.zeros((3, 3))
-        C += w * w * rotated_to_map(pose, jac, S_v, z[None], np.asarray(D, dtype=float)[None])[1][0]
+        z = (p[ks] - pose[:3]) @ jac[0]  # z_v = R_v^T (p - t_v), row by row
+        w = np.array(ws, dtype=float)
+        S = rotated_to_map(pose, jac, observers[o][1], z, np.array(Ds, dtype=float), rowwise=True)[1]
+        objs += ks
+        ranks += rs
+        terms.append((w * w)[:, None, None] * S)
+    obj, rank, term = np.array(objs), np.array(ranks), np.concatenate(terms)
+    for r in range(int(rank.max()) + 1):  # each object's terms summed in its observers' order
+        at = rank == r
+        C[obj[at]] += term[at]
     return C
+
+
+_NO_BIAS = np.zeros((3, 3))
 
 
 def vehicle_at(pose, cov, v_map, dt: float, params: FusionParams) -> tuple[np.ndarray, np.ndarray]:

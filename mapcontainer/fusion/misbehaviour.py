@@ -75,7 +75,7 @@ Pure: time is the detections' ``t_meas``.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -87,9 +87,13 @@ __all__ = ["MisbehaviourMonitor", "Sighting"]
 _SAME_INSTANT_S = 0.05  # detections this near in time are of one instant (frames are 0.1 s apart)
 
 
-@dataclass(frozen=True)
+@dataclass(eq=False)
 class Sighting:
-    """Observer ``observer`` saw something ``offset`` (map x, y) from where the vehicle said it was at ``t``."""
+    """Observer ``observer`` saw something ``offset`` (map x, y) from where the vehicle said it was at ``t``.
+
+    ``checked`` and ``matched``: the newest of the observed vehicle's reports tested against the sighting and
+    the newest one that reported an object there (report numbers, -1: none), so that each report is tested
+    against each sighting once (:meth:`MisbehaviourMonitor._reported_there`)."""
 
     t: float
     observer: str
@@ -97,6 +101,8 @@ class Sighting:
     cov: np.ndarray  # (2, 2) of the offset: the detection's map covariance (with its observer's pose) and the vehicle's
     where: np.ndarray  # the detection's map (x, y)
     det_cov: np.ndarray  # (2, 2): the detection's map covariance
+    checked: int = field(default=-1, repr=False)
+    matched: int = field(default=-1, repr=False)
 
 
 class MisbehaviourMonitor:
@@ -106,7 +112,9 @@ class MisbehaviourMonitor:
         self.params = params
         self._gate = float(chi2_quantile(params.misbehaviour_probability, 2))
         self._sightings: dict[str, deque[Sighting]] = {}
-        self._reports: dict[str, deque[tuple[float, np.ndarray, np.ndarray]]] = {}  # vehicle -> (t, where, cov)
+        # vehicle -> its reports of vehicle-like objects: (t, where (N, 2), cov (N, 2, 2), report number)
+        self._reports: dict[str, deque[tuple[float, np.ndarray, np.ndarray, int]]] = {}
+        self._report_no = 0  # numbers the reports of every vehicle in the order they came
         self.flagged: dict[str, str] = {}  # vehicle -> why (every kind below)
         self._seen_off: dict[str, str] = {}  # vehicle -> why: the others see it elsewhere
         self._ghosts: dict[str, tuple[float, str]] = {}  # vehicle -> (time of the last denial, why)
@@ -116,6 +124,8 @@ class MisbehaviourMonitor:
         self._arrivals: dict[str, deque[tuple[float, bool]]] = {}  # vehicle -> (t_recv, repeats an instant)
         self._newest: dict[str, float] = {}  # vehicle -> newest t_meas of its messages so far
         self.disputed: set[frozenset[str]] = set()  # pairs whose views disagree now
+        # (observer, observed) -> the observer's view of it at the last update: (median offset, covariance)
+        self.views: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
         self.flagged_total = 0  # flags raised (a vehicle flagged, cleared and flagged again counts twice)
 
     def observe(
@@ -138,7 +148,8 @@ class MisbehaviourMonitor:
         p = np.asarray(p_map, dtype=float).reshape(-1, 3)[vehicle_like, :2]
         S = np.asarray(cov_map, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2]
         if len(p):
-            self._reports.setdefault(observer, deque()).append((float(t), p, S))
+            self._reports.setdefault(observer, deque()).append((float(t), p, S, self._report_no))
+            self._report_no += 1
         vids, pos, cov = reported
         others = np.asarray(vids) != observer
         if not len(p) or not others.any():
@@ -286,17 +297,45 @@ class MisbehaviourMonitor:
             return False
         return d2 <= self._gate
 
-    def _reports_there(self, vid: str, s: Sighting) -> bool:
-        """Whether ``vid`` itself reported an object where ``s`` saw something, at the same instant."""
-        for t, p, S in self._reports.get(vid, ()):
-            if abs(t - s.t) > _SAME_INSTANT_S:
+    def _reported_there(self, sightings: dict[str, deque[Sighting]]) -> None:
+        """Test every report not yet tested against each sighting: did the observed vehicle itself report an
+        object where the sighting saw something, at the same instant (within the ``misbehaviour_probability``
+        quantile of the two detections' covariances)? Updates each sighting's ``checked`` and ``matched``.
+
+        Exact with the test of every present report against every sighting at every update: reports
+        leave their deque from its front only, in the order they came (numbers increasing), so a sighting's
+        newest matching report is still there exactly when its number is at least the front's, and then
+        one is. The pairs of an update are tested in one array operation."""
+        where, det_cov, pts, covs, pair_of, pairs = [], [], [], [], [], []
+        for vid, q in sightings.items():
+            reports = self._reports.get(vid)
+            if not reports:
                 continue
-            d = p - s.where
-            C = S + s.det_cov
-            d2 = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[..., None])[..., 0])
-            if (d2 <= self._gate).any():
-                return True
-        return False
+            newest = reports[-1][3]
+            for s in q:
+                if s.checked >= newest:
+                    continue
+                for t, p, S, no in reversed(reports):
+                    if no <= s.checked:
+                        break
+                    if abs(t - s.t) <= _SAME_INSTANT_S:
+                        pair_of.append(np.full(len(p), len(pairs)))
+                        pairs.append((s, no))
+                        where.append(np.broadcast_to(s.where, p.shape))
+                        det_cov.append(np.broadcast_to(s.det_cov, S.shape))
+                        pts.append(p)
+                        covs.append(S)
+                s.checked = newest
+        if not pairs:
+            return
+        d = np.concatenate(pts) - np.concatenate(where)
+        C = np.concatenate(covs) + np.concatenate(det_cov)
+        d2 = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[..., None])[..., 0])
+        hit = np.zeros(len(pairs), dtype=bool)
+        hit[np.concatenate(pair_of)[d2 <= self._gate]] = True
+        for (s, no), h in zip(pairs, hit, strict=True):
+            if h:
+                s.matched = max(s.matched, no)
 
     def _update_seen_off(self, t: float) -> None:
         pp = self.params
@@ -314,15 +353,19 @@ class MisbehaviourMonitor:
                 q.popleft()
             if not q:
                 del self._sightings[vid]
-                continue
+        self._reported_there(self._sightings)
+        for vid, q in self._sightings.items():
+            reports = self._reports.get(vid)
+            front = reports[0][3] if reports else self._report_no  # the oldest of its reports still here
             by_observer: dict[str, list[Sighting]] = {}
             for s in q:
-                if not self._reports_there(vid, s):
+                if s.matched < front:  # not a vehicle it reported itself: a sighting of it
                     by_observer.setdefault(s.observer, []).append(s)
             for o, ss in by_observer.items():
                 if len(ss) >= pp.misbehaviour_min_sightings:
                     views[(o, vid)] = np.median([s.offset for s in ss], axis=0)
                     covs[(o, vid)] = np.mean([s.cov for s in ss], axis=0)
+        self.views = {k: (m, covs[k]) for k, m in views.items()}
         agrees = {k: self._agrees(m, covs[k]) for k, m in views.items()}
         self.disputed = {frozenset(k) for k, ok in agrees.items() if not ok}
         agreed_now = {frozenset(k) for k, ok in agrees.items() if ok}
