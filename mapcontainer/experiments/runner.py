@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import resource
 import socket
 import time
 import traceback
@@ -69,11 +70,21 @@ def _plain(o: Any) -> Any:
     raise TypeError(f"a task result holds {type(o).__name__}, which is not JSON-able")
 
 
+def _worker_cpu_s() -> float:
+    """This process's CPU seconds so far, all its threads (user and system)."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
 def _call(job: tuple[Callable[[Any], Any], Any]) -> dict:
     """``fn(task)`` on a worker (``job``: (fn, task)): {"ok": True, "result": JSON text} or
-    {"ok": False, "error": traceback}, with its wall and CPU time and the worker that ran it."""
+    {"ok": False, "error": traceback}, with its timing: wall seconds, CPU seconds of the worker process
+    while it ran (``cpu_s``, all threads: what the task cost the machine), of the thread that ran it
+    (``thread_cpu_s``, the task's own computation), the process's CPU seconds before it started
+    (``worker_cpu_s``: for a worker's first task, what starting the worker cost) and the worker that ran it."""
     fn, task = job
-    t0, c0 = time.perf_counter(), time.process_time()
+    w0 = _worker_cpu_s()
+    t0, c0, th0 = time.perf_counter(), time.process_time(), time.thread_time()
     try:
         out: dict[str, Any] = {"ok": True, "result": json.dumps(fn(task), default=_plain)}
     except Exception:  # the task's own failure: reported with its seed, the others go on
@@ -81,6 +92,8 @@ def _call(job: tuple[Callable[[Any], Any], Any]) -> dict:
     out["timing"] = {
         "wall_s": round(time.perf_counter() - t0, 3),
         "cpu_s": round(time.process_time() - c0, 3),
+        "thread_cpu_s": round(time.thread_time() - th0, 3),
+        "worker_cpu_s": round(w0, 3),
         "worker": f"{socket.gethostname()}:{os.getpid()}",
     }
     return out
