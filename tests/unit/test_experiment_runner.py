@@ -232,14 +232,18 @@ def test_worker_accounting_splits_start_tasks_other_threads_and_between_tasks():
     }
 
 
-def _environ(name: str) -> str | None:
-    return os.environ.get(name)
+def _setting(name: str) -> object:
+    """On a worker: an environment variable ("env:NAME") or a Dask setting."""
+    import dask
+
+    return os.environ.get(name[4:]) if name.startswith("env:") else dask.config.get(name)
 
 
 @pytest.mark.slow
 def test_the_runners_local_cluster_starts_workers_without_dasks_malloc_trim_threshold(monkeypatch):
     """Dask's nanny would set MALLOC_TRIM_THRESHOLD_=65536, which costs a paper task about 20 % more CPU."""
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)  # (an earlier cluster in this process sets it here)
-    names = ["MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS"]
-    got = run_all(_environ, names, "env", str, Executor("dask", workers=1), progress=False).results
-    assert got == [None, "1"]
+    names = ["env:MALLOC_TRIM_THRESHOLD_", "env:OMP_NUM_THREADS", "distributed.worker.profile.enabled"]
+    names += ["distributed.admin.tick.interval", "distributed.worker.memory.monitor-interval"]
+    got = run_all(_setting, names, "env", str, Executor("dask", workers=1), progress=False).results
+    assert got == [None, "1", False, "1s", "1s"]
