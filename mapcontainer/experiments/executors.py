@@ -230,29 +230,37 @@ def open_pool(executor: Executor) -> Iterator[Pool]:
 @contextmanager
 def local_cluster(workers: int) -> Iterator[Any]:
     """A :class:`distributed.LocalCluster` of ``workers`` processes of one thread on loopback, no dashboard, with
-    :data:`LOCAL_CLUSTER_CONFIG`; closed on leaving."""
+    :data:`LOCAL_CLUSTER_CONFIG` (its nannies and scheduler read it as they start, and give the workers a copy: this
+    process's configuration is restored at once); closed on leaving."""
     import dask
     from distributed import LocalCluster
 
-    with (
-        dask.config.set(LOCAL_CLUSTER_CONFIG),
-        LocalCluster(
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):
+        cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
             processes=True,
             host="127.0.0.1",
             dashboard_address=None,
             silence_logs=logging.ERROR,
-        ) as cluster,
-    ):
+        )
+    with cluster:
         yield cluster
 
 
 def _warn_threads(client) -> None:
-    """Our tasks hold the GIL: a worker with several threads runs them one at a time, slower than it reports."""
+    """Our tasks hold the GIL: a worker with several threads runs them one at a time, slower than it reports. And a
+    worker started with Dask's MALLOC_TRIM_THRESHOLD_ spends about 20 % more CPU on a paper task."""
     many = {w["name"]: w["nthreads"] for w in client.scheduler_info()["workers"].values() if w["nthreads"] > 1}
     if many:
         _log.warning("Dask workers with more than one thread (%s): start them with --nthreads 1", many)
+    trimmed = sorted(k for k, v in client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_").items() if v is not None)
+    if trimmed:
+        _log.warning(
+            "Dask workers with MALLOC_TRIM_THRESHOLD_ set (%s): a paper task takes about 20 %% more CPU there; "
+            "see docs/cluster.md for the setting that starts them without it",
+            ", ".join(trimmed),
+        )
 
 
 class Session:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import math
 import os
 from pathlib import Path
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from mapcontainer.experiments import accounting
-from mapcontainer.experiments.executors import Executor, Session
+from mapcontainer.experiments.executors import Executor, Session, open_pool
 from mapcontainer.experiments.progress import Progress
 from mapcontainer.experiments.runner import TasksFailed, run_all, task_key, timing_doc
 from mapcontainer.experiments.store import SettingsChanged, TaskStore
@@ -247,3 +248,20 @@ def test_the_runners_local_cluster_starts_workers_without_dasks_malloc_trim_thre
     names += ["distributed.admin.tick.interval", "distributed.worker.memory.monitor-interval"]
     got = run_all(_setting, names, "env", str, Executor("dask", workers=1), progress=False).results
     assert got == [None, "1", False, "1s", "1s"]
+
+
+@pytest.mark.slow
+def test_a_cluster_whose_workers_have_dasks_malloc_trim_threshold_is_warned_about(dask_cluster, caplog, monkeypatch):
+    distributed = pytest.importorskip("distributed")
+    with caplog.at_level(logging.WARNING), open_pool(Executor("dask", scheduler=dask_cluster.scheduler_address)):
+        pass
+    assert "MALLOC_TRIM" not in caplog.text  # the runner's own LocalCluster
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "")  # (undone at the end: Dask's nanny sets it in this process)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    with (
+        distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as dask_s,
+        caplog.at_level(logging.WARNING),
+        open_pool(Executor("dask", scheduler=dask_s.scheduler_address)),
+    ):
+        pass
+    assert "MALLOC_TRIM_THRESHOLD_ set (tcp://127.0.0.1:" in caplog.text
