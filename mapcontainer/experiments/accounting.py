@@ -3,11 +3,13 @@
 :func:`worker_accounting` reads a run's ``timing.json`` (:func:`.runner.timing_doc`): per worker process, the CPU it
 had spent before its first task (starting the process and importing the task's code), its tasks' CPU (the whole
 process while a task ran, and the task's own thread alone: the difference is the worker's other threads, e.g. Dask's
-event loop), and its CPU between tasks (sending a result back, receiving the next task).
+event loop), its CPU between tasks (sending a result back, receiving the next task) and the page faults of the
+threads that ran its tasks.
 
 ``python -m mapcontainer.experiments.accounting --out DIR -- PAPER OPTIONS`` runs ``mapc experiment paper`` with
-those options once per executor (a local pool and a Dask LocalCluster of ``--workers`` processes, one after the
-other, ``--repeat`` rounds) and prints that accounting as JSON, with each command's wall time and the CPU of its whole
+those options once per executor (a local pool and the runner's Dask LocalCluster of ``--workers`` processes, one
+after the other, ``--repeat`` rounds; ``--executors local dask dask-defaults`` adds a LocalCluster with Dask's own
+defaults but the profiler, to see what the runner's settings save) and prints that accounting as JSON, with each command's wall time and the CPU of its whole
 process tree (client, scheduler, nannies, workers: from the kernel when it ends), the load average around it, and
 whether the executors wrote the same ``results.json``.
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -53,18 +56,44 @@ def worker_accounting(timing: dict) -> dict[str, Any]:
             "other_threads_cpu_s": _r(sum(t["cpu_s"] - t["thread_cpu_s"] for t in ts)),
             "between_tasks_cpu_s": _r(max(between, 0.0)),
             "first_task_cpu_s": _r(ts[0]["cpu_s"]),
+            "task_page_faults": sum(t.get("page_faults") or 0 for t in ts),
         }
     total = {
         k: _r(sum(w[k] for w in workers.values()))
         for k in ("start_cpu_s", "task_cpu_s", "task_thread_cpu_s", "other_threads_cpu_s", "between_tasks_cpu_s")
     }
     tasks = sum(w["tasks"] for w in workers.values())
+    total["task_page_faults"] = sum(w["task_page_faults"] for w in workers.values())
     total["tasks"] = tasks
     total["task_cpu_s_mean"] = _r(total["task_cpu_s"] / tasks) if tasks else None
     return {"executor": timing["executor"], "wall_s": timing["wall_s"], "workers": workers, "total": total}
 
 
-EXECUTOR_ARGS = {"local": ["--executor", "local"], "dask": ["--executor", "dask"]}
+EXECUTOR_ARGS = {"local": ["--executor", "local"], "dask": ["--executor", "dask"], "dask-defaults": []}
+
+
+def _with_dask_defaults(argv: list[str], out: Path, workers: int) -> dict[str, Any]:
+    """:func:`command_accounting` on a LocalCluster with Dask's defaults (the profiler off, as measured apart): the
+    cluster runs in this process, so its CPU (from the kernel, once its workers are reaped) is added to the
+    command's. This process's environment is restored after it (Dask's nanny sets MALLOC_TRIM_THRESHOLD_ here)."""
+    import dask
+    from distributed import LocalCluster
+
+    env = dict(os.environ)
+    self0, kids0 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    with (
+        dask.config.set({"distributed.worker.profile.enabled": False}),
+        LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+        ) as cluster,
+    ):
+        doc = command_accounting([*argv, "--executor", "dask", "--scheduler", cluster.scheduler_address], out)
+    os.environ.clear()
+    os.environ.update(env)
+    self1, kids1 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = sum(b.ru_utime + b.ru_stime - a.ru_utime - a.ru_stime for a, b in ((self0, self1), (kids0, kids1)))
+    doc["command"]["cpu_s"] = _r(max(cpu, doc["command"]["cpu_s"]))  # (the command is one of the children)
+    return doc
 
 
 def command_accounting(argv: list[str], out: Path) -> dict[str, Any]:
@@ -106,7 +135,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", required=True, type=Path, help="a directory for each run's output (OUT/local-1, ...)")
     ap.add_argument("--workers", type=int, default=2, help="worker processes of either executor (default 2)")
-    ap.add_argument("--executors", nargs="+", choices=sorted(EXECUTOR_ARGS), default=["local", "dask"])
+    ap.add_argument(
+        "--executors",
+        nargs="+",
+        choices=sorted(EXECUTOR_ARGS),
+        default=["local", "dask"],
+        help="local: the local pool; dask: the runner's LocalCluster; dask-defaults: a LocalCluster with Dask's "
+        "defaults (profiler off), started here (default: local dask)",
+    )
     ap.add_argument("--repeat", type=int, default=1, help="rounds of the executors, alternating (default 1)")
     ap.add_argument("paper", nargs=argparse.REMAINDER, help="-- then the options of mapc experiment paper")
     a = ap.parse_args(argv)
@@ -118,7 +154,11 @@ def main(argv: list[str] | None = None) -> int:
         for name in a.executors:
             out = a.out / f"{name}-{i}"
             argv_ = [*paper, *EXECUTOR_ARGS[name], "--workers", str(a.workers), "--fresh", "--quiet"]
-            runs.append({"name": name, "round": i, **command_accounting(argv_, out)})
+            if name == "dask-defaults":
+                doc = _with_dask_defaults(argv_, out, a.workers)
+            else:
+                doc = command_accounting(argv_, out)
+            runs.append({"name": name, "round": i, **doc})
             print(f"{name} round {i}: {runs[-1]['command']}", file=sys.stderr)
     results = {(a.out / f"{r['name']}-{r['round']}" / "results.json").read_bytes() for r in runs}
     doc: dict[str, Any] = {"paper_options": paper, "workers": a.workers, "runs": runs}

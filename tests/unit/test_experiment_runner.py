@@ -192,6 +192,7 @@ def test_each_task_keeps_its_own_threads_cpu_and_its_workers_cpu_before_it():
     b = run_all(draw, TASKS[:3], "t", _describe, Executor(workers=1), progress=False)
     for t in b.timing:
         assert 0 <= t["thread_cpu_s"] <= t["cpu_s"] + 0.002 and t["worker_cpu_s"] > 0  # (each rounded to 1 ms)
+        assert t["page_faults"] >= 0
     before = [t["worker_cpu_s"] for t in b.timing]
     assert before == sorted(before)  # one process ran them one after another: its CPU only grows
 
@@ -220,6 +221,7 @@ def test_worker_accounting_splits_start_tasks_other_threads_and_between_tasks():
         "other_threads_cpu_s": 1.0,
         "between_tasks_cpu_s": 0.5,  # 7.5 - 2.0 - 5.0
         "first_task_cpu_s": 5.0,
+        "task_page_faults": 0,  # (not in these records)
     }
     assert acc["workers"]["h:2"]["between_tasks_cpu_s"] == 0.5 and acc["workers"]["h:2"]["start_cpu_s"] == 1.5
     assert acc["total"] == {
@@ -228,6 +230,7 @@ def test_worker_accounting_splits_start_tasks_other_threads_and_between_tasks():
         "task_thread_cpu_s": 10.5,
         "other_threads_cpu_s": 1.5,
         "between_tasks_cpu_s": 1.0,
+        "task_page_faults": 0,
         "tasks": 4,
         "task_cpu_s_mean": 3.0,
     }
