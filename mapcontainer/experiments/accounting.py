@@ -9,9 +9,9 @@ threads that ran its tasks.
 ``python -m mapcontainer.experiments.accounting --out DIR -- PAPER OPTIONS`` runs ``mapc experiment paper`` with
 those options once per executor (a local pool and the runner's Dask LocalCluster of ``--workers`` processes, one
 after the other, ``--repeat`` rounds; ``--executors local dask dask-defaults`` adds a LocalCluster with Dask's own
-defaults but the profiler, to see what the runner's settings save) and prints that accounting as JSON, with each command's wall time and the CPU of its whole
-process tree (client, scheduler, nannies, workers: from the kernel when it ends), the load average around it, and
-whether the executors wrote the same ``results.json``.
+defaults but the profiler, to see what the runner's settings save) and prints that accounting as JSON, with each
+command's wall time and the CPU of its whole process tree (client, scheduler, nannies, workers: from the kernel
+when it ends), the load average around it, and whether the executors wrote the same ``results.json``.
 """
 
 from __future__ import annotations
