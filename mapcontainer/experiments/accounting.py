@@ -69,7 +69,7 @@ def worker_accounting(timing: dict) -> dict[str, Any]:
     return {"executor": timing["executor"], "wall_s": timing["wall_s"], "workers": workers, "total": total}
 
 
-EXECUTOR_ARGS = {"local": ["--executor", "local"], "dask": ["--executor", "dask"], "dask-defaults": []}
+EXECUTOR_ARGS = {"local": ["--executor", "local"], "dask": ["--executor", "dask"], "dask-defaults": [], "here": []}
 
 
 def _with_dask_defaults(argv: list[str], out: Path, workers: int) -> dict[str, Any]:
@@ -141,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
         choices=sorted(EXECUTOR_ARGS),
         default=["local", "dask"],
         help="local: the local pool; dask: the runner's LocalCluster; dask-defaults: a LocalCluster with Dask's "
-        "defaults (profiler off), started here (default: local dask)",
+        "defaults (profiler off), started here; here: the command's own process, one task after another "
+        "(default: local dask)",
     )
     ap.add_argument("--repeat", type=int, default=1, help="rounds of the executors, alternating (default 1)")
     ap.add_argument("paper", nargs=argparse.REMAINDER, help="-- then the options of mapc experiment paper")
@@ -153,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     for i in range(1, a.repeat + 1):
         for name in a.executors:
             out = a.out / f"{name}-{i}"
-            argv_ = [*paper, *EXECUTOR_ARGS[name], "--workers", str(a.workers), "--fresh", "--quiet"]
+            workers = 1 if name == "here" else a.workers
+            argv_ = [*paper, *EXECUTOR_ARGS[name], "--workers", str(workers), "--fresh", "--quiet"]
             if name == "dask-defaults":
                 doc = _with_dask_defaults(argv_, out, a.workers)
             else:
