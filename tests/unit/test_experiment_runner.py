@@ -268,3 +268,9 @@ def test_a_cluster_whose_workers_have_dasks_malloc_trim_threshold_is_warned_abou
     ):
         pass
     assert "MALLOC_TRIM_THRESHOLD_ set (tcp://127.0.0.1:" in caplog.text
+
+
+def test_the_accounting_command_keeps_the_executor_options_to_itself(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        accounting.main(["--out", str(tmp_path), "--", "--runs", "1", "--executor", "dask"])
+    assert "--executor" in capsys.readouterr().err and not any(tmp_path.iterdir())  # nothing ran
