@@ -34,9 +34,9 @@ def _builtin_presets_only(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def dask_cluster():
-    """A Dask LocalCluster of 2 worker processes on loopback, one thread each, no dashboard (the cluster extra)."""
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as cluster:
+    """The runner's Dask LocalCluster of 2 worker processes (the cluster extra): executors.local_cluster."""
+    pytest.importorskip("distributed")
+    from mapcontainer.experiments.executors import local_cluster
+
+    with local_cluster(2) as cluster:
         yield cluster

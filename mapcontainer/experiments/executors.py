@@ -28,7 +28,7 @@ from typing import Any
 
 from ..fusion.blas import limit_blas_threads
 
-__all__ = ["EXECUTORS", "Executor", "Pool", "Session", "open_pool"]
+__all__ = ["EXECUTORS", "LOCAL_CLUSTER_CONFIG", "Executor", "Pool", "Session", "local_cluster", "open_pool"]
 
 EXECUTORS = ("local", "dask")
 _log = logging.getLogger(__name__)
@@ -58,6 +58,23 @@ class Executor:
             return f"the Dask scheduler at {self.scheduler}"
         return f"a Dask LocalCluster of {self.workers} processes"
 
+
+# Dask's configuration of the LocalCluster the runner starts (docs/cluster.md, "Overhead and speed-up"; a cluster of
+# one's own takes the same settings from its YAML or environment):
+LOCAL_CLUSTER_CONFIG = {
+    # its statistical profiler samples the running task every 10 ms: 5-7 % of a paper task's CPU
+    "distributed.worker.profile.enabled": False,
+    # Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536, and glibc, once that is set, also stops
+    # raising its mmap threshold above 128 kB: every larger numpy array of a task is then mapped and unmapped afresh,
+    # 8-9 times the page faults, about 20 % more CPU per paper task in system time. None: the variable is not set.
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    # the worker's event loop wakes for its own bookkeeping (every 20 ms, 100 ms, 500 ms by default) and takes the
+    # interpreter from the task each time: 8-11 ms of CPU per second of a task's wall time, 3-4 ms at these
+    # intervals (no dashboard reads them; a worker over its memory limit is still paused or stopped within 1 s)
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
 
 _BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 _one_thread = False
@@ -196,7 +213,7 @@ def open_pool(executor: Executor) -> Iterator[Pool]:
             ex.shutdown(wait=True, cancel_futures=True)
     else:
         try:
-            from distributed import Client, LocalCluster
+            from distributed import Client
         except ImportError:
             raise ValueError(
                 "executor 'dask' needs Dask's distributed scheduler: pip install 'mapcontainer[cluster]'"
@@ -206,28 +223,44 @@ def open_pool(executor: Executor) -> Iterator[Pool]:
                 _warn_threads(client)
                 yield _Dask(client)
         else:
-            import dask
-
-            with (
-                dask.config.set({"distributed.worker.profile.enabled": False}),  # its sampling: 5 % of a task's CPU
-                LocalCluster(
-                    n_workers=executor.workers,
-                    threads_per_worker=1,
-                    processes=True,
-                    host="127.0.0.1",
-                    dashboard_address=None,
-                    silence_logs=logging.ERROR,
-                ) as cluster,
-                Client(cluster) as client,
-            ):
+            with local_cluster(executor.workers) as cluster, Client(cluster) as client:
                 yield _Dask(client)
 
 
+@contextmanager
+def local_cluster(workers: int) -> Iterator[Any]:
+    """A :class:`distributed.LocalCluster` of ``workers`` processes of one thread on loopback, no dashboard, with
+    :data:`LOCAL_CLUSTER_CONFIG` (its nannies and scheduler read it as they start, and give the workers a copy: this
+    process's configuration is restored at once); closed on leaving."""
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):
+        cluster = LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        )
+    with cluster:
+        yield cluster
+
+
 def _warn_threads(client) -> None:
-    """Our tasks hold the GIL: a worker with several threads runs them one at a time, slower than it reports."""
+    """Our tasks hold the GIL: a worker with several threads runs them one at a time, slower than it reports. And a
+    worker started with Dask's MALLOC_TRIM_THRESHOLD_ spends about 20 % more CPU on a paper task."""
     many = {w["name"]: w["nthreads"] for w in client.scheduler_info()["workers"].values() if w["nthreads"] > 1}
     if many:
         _log.warning("Dask workers with more than one thread (%s): start them with --nthreads 1", many)
+    trimmed = sorted(k for k, v in client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_").items() if v is not None)
+    if trimmed:
+        _log.warning(
+            "Dask workers with MALLOC_TRIM_THRESHOLD_ set (%s): a paper task takes about 20 %% more CPU there; "
+            "see docs/cluster.md for the setting that starts them without it",
+            ", ".join(trimmed),
+        )
 
 
 class Session:
@@ -273,12 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tasks", type=int, default=400)
     ap.add_argument("--workers", type=int, default=2)
     a = ap.parse_args(argv)
-    from distributed import LocalCluster
-
     tasks = [(i,) for i in range(a.tasks)]
-    with LocalCluster(
-        n_workers=a.workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as cluster:
+    with local_cluster(a.workers) as cluster:
         executors = {
             "this process": Executor(workers=1),
             f"local pool of {a.workers} (its start included)": Executor(workers=a.workers),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import math
 import os
 from pathlib import Path
@@ -12,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapcontainer.experiments.executors import Executor, Session
+from mapcontainer.experiments import accounting
+from mapcontainer.experiments.executors import Executor, Session, open_pool
 from mapcontainer.experiments.progress import Progress
 from mapcontainer.experiments.runner import TasksFailed, run_all, task_key, timing_doc
 from mapcontainer.experiments.store import SettingsChanged, TaskStore
@@ -184,3 +186,91 @@ def test_a_session_opens_its_pool_once_and_only_when_a_task_runs(tmp_path):
     with Session(Executor("dask", workers=2)) as stored:  # everything stored: no cluster starts
         again = run_all(draw, TASKS, "c", _describe, stored, store, progress=False)
         assert stored._pool is None and again.resumed == 6
+
+
+def test_each_task_keeps_its_own_threads_cpu_and_its_workers_cpu_before_it():
+    b = run_all(draw, TASKS[:3], "t", _describe, Executor(workers=1), progress=False)
+    for t in b.timing:
+        assert 0 <= t["thread_cpu_s"] <= t["cpu_s"] + 0.002 and t["worker_cpu_s"] > 0  # (each rounded to 1 ms)
+        assert t["page_faults"] >= 0
+    before = [t["worker_cpu_s"] for t in b.timing]
+    assert before == sorted(before)  # one process ran them one after another: its CPU only grows
+
+
+def test_worker_accounting_splits_start_tasks_other_threads_and_between_tasks():
+    def task(worker, before, cpu, thread):
+        return {"task": "sim seed 1", "wall_s": 9.0, "cpu_s": cpu, "thread_cpu_s": thread, "worker_cpu_s": before,
+                "worker": worker}  # fmt: skip
+
+    timing = {
+        "executor": "a local pool of 2 processes",
+        "wall_s": 20.0,
+        "phases": {
+            "runs": {
+                "tasks_timing": [task("h:2", 1.5, 4.0, 3.5), task("h:1", 7.5, 2.0, 2.0), task("h:1", 2.0, 5.0, 4.0)]
+            },
+            "bytes": {"tasks_timing": [task("h:2", 6.0, 1.0, 1.0), {"task": "stored earlier", "cpu_s": 3.0}]},
+        },
+    }
+    acc = accounting.worker_accounting(timing)
+    assert acc["workers"]["h:1"] == {
+        "start_cpu_s": 2.0,  # before its first task (the one it ran first, whatever the phase order)
+        "tasks": 2,
+        "task_cpu_s": 7.0,
+        "task_thread_cpu_s": 6.0,
+        "other_threads_cpu_s": 1.0,
+        "between_tasks_cpu_s": 0.5,  # 7.5 - 2.0 - 5.0
+        "first_task_cpu_s": 5.0,
+        "task_page_faults": 0,  # (not in these records)
+    }
+    assert acc["workers"]["h:2"]["between_tasks_cpu_s"] == 0.5 and acc["workers"]["h:2"]["start_cpu_s"] == 1.5
+    assert acc["total"] == {
+        "start_cpu_s": 3.5,
+        "task_cpu_s": 12.0,
+        "task_thread_cpu_s": 10.5,
+        "other_threads_cpu_s": 1.5,
+        "between_tasks_cpu_s": 1.0,
+        "task_page_faults": 0,
+        "tasks": 4,
+        "task_cpu_s_mean": 3.0,
+    }
+
+
+def _setting(name: str) -> object:
+    """On a worker: an environment variable ("env:NAME") or a Dask setting."""
+    import dask
+
+    return os.environ.get(name[4:]) if name.startswith("env:") else dask.config.get(name)
+
+
+@pytest.mark.slow
+def test_the_runners_local_cluster_starts_workers_without_dasks_malloc_trim_threshold(monkeypatch):
+    """Dask's nanny would set MALLOC_TRIM_THRESHOLD_=65536, which costs a paper task about 20 % more CPU."""
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)  # (an earlier cluster in this process sets it here)
+    names = ["env:MALLOC_TRIM_THRESHOLD_", "env:OMP_NUM_THREADS", "distributed.worker.profile.enabled"]
+    names += ["distributed.admin.tick.interval", "distributed.worker.memory.monitor-interval"]
+    got = run_all(_setting, names, "env", str, Executor("dask", workers=1), progress=False).results
+    assert got == [None, "1", False, "1s", "1s"]
+
+
+@pytest.mark.slow
+def test_a_cluster_whose_workers_have_dasks_malloc_trim_threshold_is_warned_about(dask_cluster, caplog, monkeypatch):
+    distributed = pytest.importorskip("distributed")
+    with caplog.at_level(logging.WARNING), open_pool(Executor("dask", scheduler=dask_cluster.scheduler_address)):
+        pass
+    assert "MALLOC_TRIM" not in caplog.text  # the runner's own LocalCluster
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "")  # (undone at the end: Dask's nanny sets it in this process)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    with (
+        distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as dask_s,
+        caplog.at_level(logging.WARNING),
+        open_pool(Executor("dask", scheduler=dask_s.scheduler_address)),
+    ):
+        pass
+    assert "MALLOC_TRIM_THRESHOLD_ set (tcp://127.0.0.1:" in caplog.text
+
+
+def test_the_accounting_command_keeps_the_executor_options_to_itself(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        accounting.main(["--out", str(tmp_path), "--", "--runs", "1", "--executor", "dask"])
+    assert "--executor" in capsys.readouterr().err and not any(tmp_path.iterdir())  # nothing ran
