@@ -248,7 +248,8 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
             rv_runs=args.rv_runs,
             sensitivity_runs=args.sensitivity_runs,
             start=args.start,
-            downlink=args.downlink,
+            downlink=args.downlink == "on",
+            downlink_compare=args.downlink == "both",
         )
     except ValueError as exc:
         print(f"mapc: {exc}", file=sys.stderr)
@@ -579,10 +580,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ep.add_argument(
         "--downlink",
-        action=argparse.BooleanOptionalAction,
-        default=False,
+        nargs="?",
+        choices=("off", "on", "both"),
+        const="on",
+        default="off",
         help="the host sends every vehicle what the others know about its pose (vehicle estimates are then the "
-        "vehicles' own with it fused); default off",
+        "vehicles' own with it fused): off (default), on (--downlink alone), or both: every run with it off and on "
+        "(the same seeds), the report's sections without it and a section comparing the two",
     )
     ep.add_argument(
         "--scenario",
