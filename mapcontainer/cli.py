@@ -271,6 +271,9 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
     if args.radio:
         from .experiments.network_radio import run_radio_sweeps
 
+        if args.downlink:
+            raise ConfigError("--downlink: the latency x loss x bandwidth grid only, not with --radio")
+
         try:
             seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else (args.seed,)
             extras = tuple(int(n) for n in args.extra_vehicles.split(",")) if args.extra_vehicles else None
@@ -316,6 +319,7 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
             scenario=args.scenario,
             progress=not args.quiet,
             fresh=args.fresh,
+            downlink=args.downlink,
         ),
     )
     if isinstance(rows, int):
@@ -627,6 +631,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--warmup", type=seconds, default=1.0, help="with --radio: seconds of each run left unscored (default 1)"
     )
     en.add_argument("--no-cpm", action="store_true", help="with --radio: skip the density points with the CPM rules")
+    en.add_argument(
+        "--downlink",
+        action="store_true",
+        help="every distributed point twice, without and with the host's downlink over the same link: the report's "
+        "section on the downlink's gain (on-board RMSE without minus with) per latency, loss and capacity",
+    )
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
 
