@@ -106,3 +106,85 @@ def test_the_view_draws_the_map_and_vehicles_that_move(tmp_path, spawn, wait_for
 
     moved = np.linalg.norm(centroid(second) - centroid(first))
     assert moved > 2.0, f"the true vehicles did not move on the page ({moved:.1f} px): {shots[-2]}, {shots[-1]}"
+
+
+def _downlink_recording(path: Path) -> None:
+    """Two parked vehicles 60 m apart, each receiving the host's downlink (the others' view of its position, 3 m
+    good): cv0's priors say its gate refused it, cv1's that it fused it. No map: nothing else red or cyan."""
+    from unit.test_fusion_container import prior
+
+    from mapcontainer.recording import RecordingWriter
+    from schemas import GroundTruth, encode
+    from schemas.arrays import cov_to_upper
+    from schemas.models import PoseDownlink
+
+    w = RecordingWriter(path, metadata={"fleet": "f"})
+    t0 = time.time_ns()
+    poses = np.array([[-30.0, 0, 0, 0, 0, 0], [30.0, 0, 0, 0, 0, 0]])
+    info6 = np.zeros((6, 6))
+    info6[:2, :2] = np.eye(2) / 9.0
+    for k in range(20):
+        t, ns = 0.1 * k, t0 + k * 100_000_000
+        env = dict(fleet="f", seq=k, t_meas=t, t_sent=t)
+        v = np.zeros((2, 3), np.float32)
+        truth = GroundTruth(**env, sender="world", vehicle_ids=["cv0", "cv1"], vehicle_pose=poses, vehicle_v_map=v)
+        w.add("mc/f/sim/truth", encode(truth), None, ns)
+        for i, (vid, status) in enumerate((("cv0", "refused"), ("cv1", "fused"))):
+            dl = PoseDownlink(**env, sender="host", target=vid, pose=poses[i] + [0, 8, 0, 0, 0, 0],
+                              pose_info=cov_to_upper(info6).astype(np.float32))  # fmt: skip
+            w.add(f"mc/f/v2x/rx/{vid}/host/downlink", encode(dl), None, ns + 10_000_000)
+            p = prior(sender=vid, seq=k, t=t, pose=poses[i]).model_copy(update={"downlink": status})
+            w.add(f"mc/f/v2x/tx/{vid}/prior", encode(p), None, ns + 20_000_000)
+    w.close()
+
+
+def _downlink_mask(img: np.ndarray, kind: str) -> np.ndarray:
+    r, g, b = (img[..., i].astype(int) for i in range(3))
+    if kind == "used":  # COLORS["downlink_used"], cyan: blue above green, little red
+        return (r < 90) & (b > 150) & (b - g > 25) & (g > 90)
+    if kind == "refused":  # COLORS["downlink_refused"], red
+        return (r > 150) & (g < 70) & (b < 70)
+    raise ValueError(kind)
+
+
+def test_the_view_draws_each_vehicles_downlink_used_or_refused(tmp_path, spawn, wait_for) -> None:
+    from PIL import Image
+    from playwright.sync_api import sync_playwright
+
+    rec = tmp_path / "downlink.mcap"
+    _downlink_recording(rec)
+    web, grpc = _free_port(), _free_port()
+    proc = spawn("services.cli", "view", "--file", str(rec), "--web-port", str(web), "--grpc-port", str(grpc),
+                 "--exit-after", "120")  # fmt: skip
+    line = wait_for(lambda: next((x for x in proc.log_path.read_text().splitlines() if "open http" in x), None), 60,
+                    "the view's address")  # fmt: skip
+    url = line.split("open ", 1)[1].split()[0]
+    shots = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(
+            executable_path=CHROMIUM, args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+        )
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        page.goto(url)
+
+        def scene() -> tuple[np.ndarray] | None:
+            path = tmp_path / f"shot-{len(shots)}.png"
+            page.screenshot(path=str(path))
+            img = np.asarray(Image.open(path).convert("RGB"))[60:760, : int(1280 * 0.72)]  # the 3-D view
+            shots.append(path)
+            ok = all(_downlink_mask(img, k).sum() > 30 for k in ("used", "refused")) and _mask(img, "truth").sum() > 10
+            return (img,) if ok else None
+
+        (img,) = wait_for(scene, 60, "both vehicles' downlinks on the page", every=1.0)
+        browser.close()
+    drawn = next(x for x in proc.log_path.read_text().splitlines() if x.startswith("drawn: "))
+    assert '"downlink": 42' in drawn, drawn  # 40 arrivals and the first prior of each vehicle recolouring it
+
+    # the refused ellipse is cv0's (at x = -30 m: left of cv1's on the page, as the true boxes are)
+    def cx(mask: np.ndarray) -> float:
+        return float(np.argwhere(mask)[:, 1].mean())
+
+    truth = np.argwhere(_mask(img, "truth"))[:, 1]
+    left, right = truth[truth < np.median(truth)].mean(), truth[truth >= np.median(truth)].mean()
+    assert cx(_downlink_mask(img, "refused")) < cx(_downlink_mask(img, "used")), shots[-1]
+    assert abs(cx(_downlink_mask(img, "refused")) - left) < abs(cx(_downlink_mask(img, "refused")) - right), shots[-1]
