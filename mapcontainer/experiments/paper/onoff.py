@@ -199,15 +199,15 @@ def section(res: dict) -> list[str]:
         "(m) | on-board ANEES 2 dof [band] | on-board ANEES 6-DoF | fused ANEES 6-DoF | objects ANEES 3-D |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for key, by in c["simulation"].items():
-        for name, f in by.items():
-            band = f["onboard_anees_2dof_band"]
-            L.append(
-                f"| {key} | {name} | {_f(f['vehicles_onboard_rmse_m'])} | {_f(f['ego_onboard_rmse_m'])} | "
-                f"{_f(f['vehicles_fused_rmse_m'])} | {_f(f['objects_rmse_m'])} | {_f(f['targets_rmse_m'])} | "
-                f"{_f(f['onboard_anees_2dof'], 2)} [{_f(band[0], 2)}, {_f(band[1], 2)}] | "
-                f"{_f(f['onboard_anees_6dof'], 2)} | {_f(f['fused_anees_6dof'], 2)} | {_f(f['objects_anees_3d'], 2)} |"
-            )
+    rows = [(key, name, f) for key, by in c["simulation"].items() for name, f in by.items()]
+    for key, name, f in rows:
+        band = f["onboard_anees_2dof_band"]
+        L.append(
+            f"| {key} | {name} | {_f(f['vehicles_onboard_rmse_m'])} | {_f(f['ego_onboard_rmse_m'])} | "
+            f"{_f(f['vehicles_fused_rmse_m'])} | {_f(f['objects_rmse_m'])} | {_f(f['targets_rmse_m'])} | "
+            f"{_f(f['onboard_anees_2dof'], 2)} [{_f(band[0], 2)}, {_f(band[1], 2)}] | "
+            f"{_f(f['onboard_anees_6dof'], 2)} | {_f(f['fused_anees_6dof'], 2)} | {_f(f['objects_anees_3d'], 2)} |"
+        )
     L += [
         "",
         "Cold start (time to localize, every vehicle start), bytes per second on the air over the whole fleet "
@@ -220,17 +220,16 @@ def section(res: dict) -> list[str]:
         "| centralized / (up + down) bytes | fused worse than on board | downlink frames |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for key, by in c["simulation"].items():
-        for name, f in by.items():
-            t = f["time_to_localize_s"]
-            frames = ", ".join(f"{k} {n}" for k, n in f["downlink_frames"].items()) or "none"
-            L.append(
-                f"| {key} | {name} | {_seconds(t['median'])} / {_seconds(t['p95'])} | {t['never']} of "
-                f"{t['vehicles']} | {_f(f['up_bytes_per_s'], 0)} | {_f(f['down_bytes_per_s'], 0)} | "
-                f"{_f(f['efficiency_vehicles'], 2)} / {_f(f['efficiency_objects'], 2)} | "
-                f"{_f(f['centralized_over_distributed_bytes'], 1)}× | "
-                f"{', '.join(f['fused_worse_than_onboard']) or 'none'} | {frames} |"
-            )
+    for key, name, f in rows:
+        t = f["time_to_localize_s"]
+        frames = ", ".join(f"{k} {n}" for k, n in f["downlink_frames"].items()) or "none"
+        L.append(
+            f"| {key} | {name} | {_seconds(t['median'])} / {_seconds(t['p95'])} | {t['never']} of "
+            f"{t['vehicles']} | {_f(f['up_bytes_per_s'], 0)} | {_f(f['down_bytes_per_s'], 0)} | "
+            f"{_f(f['efficiency_vehicles'], 2)} / {_f(f['efficiency_objects'], 2)} | "
+            f"{_f(f['centralized_over_distributed_bytes'], 1)}× | "
+            f"{', '.join(f['fused_worse_than_onboard']) or 'none'} | {frames} |"
+        )
     if c["test_site"]:
         L += [
             "",
