@@ -44,3 +44,18 @@ def test_the_network_sweep_runs_each_distributed_point_without_and_with_the_down
     assert (tmp_path / "network_downlink.png").read_bytes()[:4] == b"\x89PNG"
     meta = json.loads((tmp_path / "results.json").read_text())["meta"]
     assert "downlink" in meta
+
+
+def test_a_signed_downlink_reaches_every_vehicle_it_is_sent_to() -> None:
+    """Regression: the host signed every downlink with one Signer, which sends its certificate once a second with
+    whichever message it signs first, so the vehicles whose verifier never got one refused all their downlinks as
+    unknown_certificate (development seed 3 and evaluation seed 90000, paper-urban: cv2 and cv3 never received
+    one; the network sweep, which signs, saw no gain but the ego's)."""
+    from mapcontainer.pipeline import run_pipeline
+
+    kw = dict(seed=3, duration_s=2.5, downlink=True)
+    signed, plain = run_pipeline("paper-urban", signing=True, **kw), run_pipeline("paper-urban", **kw)
+    assert dict(signed.security_rejected) == {}
+    received = {v: c.get("received", 0) for v, c in signed.downlink_counts.items()}
+    assert received == {v: c.get("received", 0) for v, c in plain.downlink_counts.items()}
+    assert all(received[v] > 0 for v in signed.rx_msgs), received
