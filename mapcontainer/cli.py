@@ -249,7 +249,8 @@ def _cmd_experiment_paper(args: argparse.Namespace) -> int:
             rv_runs=args.rv_runs,
             sensitivity_runs=args.sensitivity_runs,
             start=args.start,
-            downlink=args.downlink,
+            downlink=args.downlink == "on",
+            downlink_compare=args.downlink == "both",
         )
     except ValueError as exc:
         print(f"mapc: {exc}", file=sys.stderr)
@@ -270,6 +271,9 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
 
     if args.radio:
         from .experiments.network_radio import run_radio_sweeps
+
+        if args.downlink:
+            raise ConfigError("--downlink: the latency x loss x bandwidth grid only, not with --radio")
 
         try:
             seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else (args.seed,)
@@ -316,6 +320,7 @@ def _cmd_experiment_network(args: argparse.Namespace) -> int:
             scenario=args.scenario,
             progress=not args.quiet,
             fresh=args.fresh,
+            downlink=args.downlink,
         ),
     )
     if isinstance(rows, int):
@@ -585,10 +590,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ep.add_argument(
         "--downlink",
-        action=argparse.BooleanOptionalAction,
-        default=False,
+        nargs="?",
+        choices=("off", "on", "both"),
+        const="on",
+        default="off",
         help="the host sends every vehicle what the others know about its pose (vehicle estimates are then the "
-        "vehicles' own with it fused); default off",
+        "vehicles' own with it fused): off (default), on (--downlink alone), or both: every run with it off and on "
+        "(the same seeds), the report's sections without it and a section comparing the two",
     )
     ep.add_argument(
         "--scenario",
@@ -629,6 +637,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--warmup", type=seconds, default=1.0, help="with --radio: seconds of each run left unscored (default 1)"
     )
     en.add_argument("--no-cpm", action="store_true", help="with --radio: skip the density points with the CPM rules")
+    en.add_argument(
+        "--downlink",
+        action="store_true",
+        help="every distributed point twice, without and with the host's downlink over the same link: the report's "
+        "section on the downlink's gain (on-board RMSE without minus with) per latency, loss and capacity",
+    )
     en.add_argument("--quiet", action="store_true", help="no progress bar")
     en.set_defaults(func=_cmd_experiment_network)
 

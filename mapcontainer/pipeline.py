@@ -253,7 +253,9 @@ def run_pipeline(
         t_sent = f.t if f.released is None else f.released
         for msg in hosts[down_view].downlink(t_sent):
             message = encode(msg)
-            payload = signers[HOST_ID].sign(message, SIGNING_EPOCH_S + t_sent) if signing else message
+            payload = (
+                signers[f"{HOST_ID}->{msg.target}"].sign(message, SIGNING_EPOCH_S + t_sent) if signing else message
+            )
             if msg.target == ego:
                 take_downlink(ego, payload, t_sent)
             else:
@@ -396,12 +398,15 @@ SIGNING_EPOCH_S = 1.8e9  # Unix time of scenario time 0 in the pipeline's signat
 
 def _security(vehicles: list[str], views: list[str], host: str | None = None) -> tuple[dict, dict]:
     """A CA made for the run, a Signer per vehicle and a Verifier per host view; with ``host`` (the downlink)
-    a Signer for the host too and a Verifier per vehicle (keyed "vehicle:<id>")."""
+    the host's Signer per vehicle (keyed "<host>-><id>": a Signer sends its certificate once a second, with the
+    first message it signs, and every vehicle's verifier must get it) and a Verifier per vehicle ("vehicle:<id>")."""
     from .security import Signer, Verifier, issue, make_ca
 
     now = SIGNING_EPOCH_S - 3600.0
     ca = make_ca("pipeline-ca", now=now, validity_s=30 * 86400.0)
-    senders = [*vehicles, host] if host is not None else vehicles
-    signers = {v: Signer(issue(ca, v, 30 * 86400.0, now)) for v in senders}
+    signers = {v: Signer(issue(ca, v, 30 * 86400.0, now)) for v in vehicles}
+    if host is not None:
+        host_credentials = issue(ca, host, 30 * 86400.0, now)
+        signers.update({f"{host}->{v}": Signer(host_credentials) for v in vehicles})
     readers = [*views, *(f"vehicle:{v}" for v in vehicles)] if host is not None else views
     return signers, {name: Verifier(ca.certificate, window_s=5.0) for name in readers}

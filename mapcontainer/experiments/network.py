@@ -4,7 +4,8 @@ Every point is one in-process :func:`mapcontainer.pipeline.run_pipeline` run of 
 started (every vehicle initialises its localizer from GNSS at t = 0), with a
 :meth:`NetworkProfile.custom` link (latency, Bernoulli loss, per-link capacity) in distributed or
 centralized mode; all points share one seed (common random numbers: the same world noise, and the
-channel's per-link streams make the messages lost at 10 % a subset of those lost at 30 %).
+channel's per-link streams make the messages lost at 10 % a subset of those lost at 30 %). With ``downlink``, every
+distributed point also runs with the host's downlink over the same link (:mod:`.network_downlink`).
 
 Row keys (``NETWORK_COLUMNS``; the live-fleet sweep writes rows with the same keys):
 
@@ -182,10 +183,11 @@ def run_network_point(
     start: str = "cold",
     cpm_rules: bool = False,
     extra: Callable[[PipelineResult], dict[str, Any]] | None = None,
+    downlink: bool = False,
 ) -> dict[str, Any]:
     """One sweep point: run the pipeline and return its row (keys: ``NETWORK_COLUMNS``, then ``extra(res)``'s).
 
-    ``scenario``: a preset name or a ScenarioConfig; ``start``, ``cpm_rules``: :func:`run_pipeline`'s."""
+    ``scenario``: a preset name or a ScenarioConfig; ``start``, ``cpm_rules``, ``downlink``: :func:`run_pipeline`'s."""
     if duration <= warmup_s:
         raise ValueError(f"duration ({duration} s) must exceed warmup_s ({warmup_s} s)")
     t0 = time.perf_counter()
@@ -199,6 +201,7 @@ def run_network_point(
         signing=signing,
         start=start,
         cpm_rules=cpm_rules,
+        downlink=downlink,
     )
     scored = [r for r in res.records if r.t >= warmup_s - 1e-9]
     obj_sq, veh_sq = [], []
@@ -255,15 +258,20 @@ def run_network_point(
 
 
 def _point_task(task: tuple) -> dict:
-    latency_ms, loss, bw, mode, seed, duration, scenario, warmup_s = task
+    """One point; a ninth element (the downlink off or on) adds the downlink's figures (:mod:`.network_downlink`)."""
+    from .network_downlink import point_args
+
+    latency_ms, loss, bw, mode, seed, duration, scenario, warmup_s, *downlink = task
+    more = point_args(downlink[0], warmup_s) if downlink else {}
     return run_network_point(
-        sweep_profile(latency_ms, loss, bw), mode, seed, duration, scenario=scenario, warmup_s=warmup_s
+        sweep_profile(latency_ms, loss, bw), mode, seed, duration, scenario=scenario, warmup_s=warmup_s, **more
     )
 
 
 def _describe_point(task: tuple) -> str:
-    latency_ms, loss, bw, mode, seed, *_ = task
-    return f"{mode} {sweep_profile(latency_ms, loss, bw).name} seed {seed}"
+    latency_ms, loss, bw, mode, seed, *rest = task
+    with_downlink = (" downlink " + ("on" if rest[-1] else "off")) if len(rest) == 4 else ""
+    return f"{mode}{with_downlink} {sweep_profile(latency_ms, loss, bw).name} seed {seed}"
 
 
 def run_network_sweep(
@@ -279,9 +287,11 @@ def run_network_sweep(
     losses: Sequence[float] | None = None,
     bandwidths_bps: Sequence[float] | None = None,
     fresh: bool = False,
+    downlink: bool = False,
 ) -> list[dict]:
     """Run the grid (``quick``: the smoke test, 2 x 2 x 2 points of 2.5 s) in both modes on ``executor`` and write
-    the outputs; finished points are kept in ``out_dir/tasks`` (a rerun resumes; ``fresh``: start over)."""
+    the outputs; finished points are kept in ``out_dir/tasks`` (a rerun resumes; ``fresh``: start over).
+    ``downlink``: every distributed point without and with the host's downlink (:mod:`.network_downlink`)."""
     grid = QUICK_GRID if quick else {"latencies_ms": LATENCIES_MS, "losses": LOSSES, "bandwidths_bps": BANDWIDTHS_BPS}
     lats = tuple(latencies_ms if latencies_ms is not None else grid["latencies_ms"])
     loss = tuple(losses if losses is not None else grid["losses"])
@@ -291,6 +301,10 @@ def run_network_sweep(
         (lat, ls, bw, mode, seed, dur, scenario, warmup_s)
         for mode, bw, lat, ls in itertools.product(MODES, bws, lats, loss)
     ]
+    if downlink:
+        from .network_downlink import twins
+
+        tasks = twins(tasks)  # each distributed point without and with the downlink
     t0 = time.perf_counter()
     executor = executor or Executor()
     store = TaskStore(
@@ -298,7 +312,7 @@ def run_network_sweep(
     )
     batch = run_all(_point_task, tasks, "experiment network", _describe_point, executor, store, progress)
     rows = batch.results
-    rows.sort(key=lambda r: (r["mode"], -r["bandwidth_bps"], r["latency_ms"], r["loss"]))
+    rows.sort(key=lambda r: (r["mode"], -r["bandwidth_bps"], r["latency_ms"], r["loss"], r.get("downlink", "")))
     meta = {
         "seed": seed,
         "duration_s": dur,
@@ -309,6 +323,7 @@ def run_network_sweep(
         "start": "cold",
         "queue_s": QUEUE_S,
         "min_queue_bytes": MIN_QUEUE_BYTES,
+        **({"downlink": "distributed points without and with it"} if downlink else {}),
     }
     write_network_outputs(rows, out_dir, meta)
     write_timing(out_dir, executor, {"points": batch}, time.perf_counter() - t0)
@@ -444,10 +459,13 @@ def _links_text(rows: list[dict], m: dict) -> str:
 def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict | None = None) -> dict[str, Path]:
     """Write network.csv, network.md, results.json and PNG plots for sweep rows into ``out_dir``.
 
-    Rows may come from the in-process sweep or the live fleet; missing keys are left empty.
-    Returns the written paths by name.
-    """
+    Rows may come from the in-process sweep or the live fleet; missing keys are left empty. Rows with the downlink
+    on (``--downlink``): in the table of all points and the section on it, not the summary and the other plots.
+    Returns the written paths by name."""
+    from . import network_downlink as nd
+
     rows = list(rows)
+    base = [r for r in rows if r.get("downlink") != "on"]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     extra = sorted({k for r in rows for k in r} - set(NETWORK_COLUMNS))
@@ -473,6 +491,8 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         ("latency_s_p50", "latency p50 (s)"),
         ("age_s_mean", "age (s)"),
     ]
+    if any("downlink" in r for r in rows):
+        short.insert(1, ("downlink", "downlink"))
     m = meta or {}
     L = [
         "# Network degradation sweep",
@@ -489,7 +509,7 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
         *([SMOKE_TEST_NOTE, ""] if m.get("smoke_test") else []),
         "## Key comparison",
         "",
-        *_summary(rows),
+        *_summary(base),
         "",
         "## All points",
         "",
@@ -503,8 +523,11 @@ def write_network_outputs(rows: Iterable[dict], out_dir: str | Path, meta: dict 
             cells.append(_bw_label(_num(v)) if k == "bandwidth_bps" else _cell(v))
         L.append("| " + " | ".join(cells) + " |")
     L += ["", "![RMSE vs latency](network_latency.png)", "", "![bandwidth](network_bandwidth.png)", ""]
+    L += nd.section(rows, _cell, _bw_label)
     paths["md"].write_text("\n".join(L))
-    paths.update(_plots(rows, out, smoke_test=bool(m.get("smoke_test"))))
+    smoke = bool(m.get("smoke_test"))
+    paths.update(_plots(base, out, smoke_test=smoke))
+    paths.update(nd.plot(rows, out, lambda fig: _banner(fig, smoke)))
     return paths
 
 

@@ -11,6 +11,11 @@ Entities, in the map frame (ENU, metres), on the timeline ``scenario`` (``t_meas
   the fused picture should hold);
 * ``fused/vehicles`` (orange boxes with ids) and ``fused/vehicle_covariance`` (their position
   covariance as ellipsoids), ``fused/objects`` (ellipsoids with track ids);
+* ``downlink/<vid>``: the host's downlink as vehicle ``vid`` received it (``downlink_rx``: what the others know
+  about its position, a flat ellipse of the horizontal covariance at its centre), coloured by what the vehicle
+  did with it as its priors say (``VehiclePrior.downlink``, ``prior_tx``): cyan when it used it (fused, or
+  seeded its localizer), red when its gate refused it, grey until a prior says; labelled ``<vid> ← others:
+  <status>``. A direction the others know nothing about is drawn ``DOWNLINK_MAX_SIGMA_M`` long;
 * ``health`` (a table of every service's state and figures, on the ``wall`` timeline) and
   ``figures/*`` (the evaluator's RMSEs and latency as scalars).
 
@@ -26,13 +31,13 @@ import numpy as np
 
 from schemas.arrays import cov_from_upper
 from schemas.codec import Rejection, decode
-from schemas.models import EvalMetrics, FusedState, GroundTruth, HealthStatus
+from schemas.models import EvalMetrics, FusedState, GroundTruth, HealthStatus, PoseDownlink, VehiclePrior
 from schemas.topics import topic
 
 from ..geometry import rpy_to_matrix
 from .foxglove import SIGMAS, VEHICLE_SIZE, _quat
 
-__all__ = ["COLORS", "RerunView"]
+__all__ = ["COLORS", "DOWNLINK_MAX_SIGMA_M", "RerunView", "downlink_ellipse"]
 
 COLORS = {
     "lane": (0, 150, 150),
@@ -43,7 +48,14 @@ COLORS = {
     "obstacle": (150, 150, 150),
     "fused": (255, 128, 0),
     "object": (230, 40, 190),
+    "downlink_used": (0, 200, 255),
+    "downlink_refused": (230, 0, 0),
+    "downlink_unknown": (120, 120, 200),
 }
+# what a vehicle did with the downlink (VehiclePrior.downlink) -> its colour
+DOWNLINK_COLORS = {"fused": "downlink_used", "seeded": "downlink_used", "refused": "downlink_refused"}
+DOWNLINK_MAX_SIGMA_M = 10.0  # a direction without information is drawn this long (1 sigma)
+DOWNLINK_THICKNESS_M = 0.05  # the ellipse's half height: a flat disc on the road
 
 
 def _xyzw(R: np.ndarray) -> list[float]:
@@ -58,6 +70,20 @@ def _axes(C: np.ndarray) -> tuple[np.ndarray, list[float]]:
     if np.linalg.det(U) < 0:
         U[:, 2] = -U[:, 2]
     return SIGMAS * np.sqrt(np.maximum(w, 1e-8)), _xyzw(U)
+
+
+def downlink_ellipse(m: PoseDownlink) -> tuple[np.ndarray, np.ndarray, list[float]]:
+    """Centre, half sizes and rotation (x, y, z, w) of a downlink's horizontal ellipse: the eigen-decomposition
+    Y = U diag(w) U^T of the information of x, y gives the axes U and the 1-sigmas 1 / sqrt(w) (at most
+    DOWNLINK_MAX_SIGMA_M: a direction without information), drawn at SIGMAS; DOWNLINK_THICKNESS_M high."""
+    Y = cov_from_upper(np.asarray(m.pose_info, float))[:2, :2]
+    w, U = np.linalg.eigh(0.5 * (Y + Y.T))
+    sigma = np.minimum(1.0 / np.sqrt(np.maximum(w, 1e-12)), DOWNLINK_MAX_SIGMA_M)
+    R = np.eye(3)
+    R[:2, :2] = U if np.linalg.det(U) > 0 else U[:, ::-1]
+    sigma = sigma if np.linalg.det(U) > 0 else sigma[::-1]
+    half = np.array([SIGMAS * sigma[0], SIGMAS * sigma[1], DOWNLINK_THICKNESS_M])
+    return np.asarray(m.pose[:3], float), half, _xyzw(R)
 
 
 class RerunView:
@@ -77,7 +103,10 @@ class RerunView:
             topic("health"),
             topic("metrics"),
         )
-        self.drawn = {"truth": 0, "fused": 0, "health": 0, "metrics": 0}
+        self._downlink, self._prior = topic("downlink_rx"), topic("prior_tx")
+        self.downlinks: dict[str, PoseDownlink] = {}  # vid -> the newest downlink it received
+        self.downlink_status: dict[str, str] = {}  # vid -> what it did with the downlink, as its newest prior says
+        self.drawn = {"truth": 0, "fused": 0, "health": 0, "metrics": 0, "downlink": 0}
 
     def layout(self) -> None:
         """The page: the 3-D scene large on the left, the services' health and the figures on the right."""
@@ -86,7 +115,9 @@ class RerunView:
         self.rec.send_blueprint(
             rrb.Blueprint(
                 rrb.Horizontal(
-                    rrb.Spatial3DView(name="map frame", origin="/", contents=["map/**", "truth/**", "fused/**"]),
+                    rrb.Spatial3DView(
+                        name="map frame", origin="/", contents=["map/**", "truth/**", "fused/**", "downlink/**"]
+                    ),
                     rrb.Vertical(
                         rrb.TextDocumentView(name="health", origin="health"),
                         rrb.TimeSeriesView(name="figures", origin="figures"),
@@ -160,6 +191,37 @@ class RerunView:
         )
         self.drawn["fused"] += 1
 
+    def downlink(self, m: PoseDownlink) -> None:
+        """A downlink its target received: drawn with what the target last said it did with one."""
+        self.downlinks[m.target] = m
+        self._draw_downlink(m.target, float(m.t_meas))
+
+    def prior(self, m: VehiclePrior) -> None:
+        """A vehicle's prior: what it did with the downlink this frame recolours its downlink."""
+        if m.downlink is None or self.downlink_status.get(m.sender) == m.downlink:
+            return
+        self.downlink_status[m.sender] = m.downlink
+        if m.sender in self.downlinks:
+            self._draw_downlink(m.sender, float(m.t_meas))
+
+    def _draw_downlink(self, vid: str, t: float) -> None:
+        centre, half, q = downlink_ellipse(self.downlinks[vid])
+        status = self.downlink_status.get(vid)
+        color = COLORS[DOWNLINK_COLORS.get(status or "", "downlink_unknown")]
+        self.rec.set_time("scenario", duration=t)
+        self.rec.log(
+            f"downlink/{vid}",
+            self.rr.Ellipsoids3D(
+                centers=[centre],
+                half_sizes=[half],
+                quaternions=[self.rr.Quaternion(xyzw=q)],
+                colors=[color],
+                labels=[f"{vid} ← others: {status or 'not said yet'}"],
+                fill_mode="solid",
+            ),
+        )
+        self.drawn["downlink"] += 1
+
     def health_table(self, m: HealthStatus, wall_ns: int) -> None:
         figs = {k: v for k, v in (m.figures or {}).items() if isinstance(v, int | float)}
         self.health[f"{m.role}/{m.sender}"] = (m.state, m.last_error or "", figs)
@@ -182,7 +244,8 @@ class RerunView:
     def handle(self, key: str, payload: bytes, wall_ns: int) -> bool:
         """Draw one message of ``key``; False if it is not one drawn, does not verify (counted in
         ``refused``; with a verifier: truth signed by the world, a fused state by its host or standby,
-        metrics by the evaluator) or does not decode."""
+        metrics by the evaluator, a downlink by its host, a prior by its vehicle) or does not decode (a
+        downlink about another vehicle than the one whose key it came on: refused, ``wrong_target``)."""
         from ..security import fused_signers, inner_payload
 
         if self._truth.parse(key) is not None:
@@ -197,6 +260,15 @@ class RerunView:
         if self._metrics.parse(key) is not None:
             m = self._believed(payload, wall_ns, EvalMetrics, "evaluator")
             return bool(m) and (self.metrics(m, wall_ns) is None)
+        if (where := self._downlink.parse(key)) is not None:  # signed by the host, for the vehicle of the key
+            m = self._believed(payload, wall_ns, PoseDownlink, where["src"])
+            if m and m.target != where["dst"]:
+                self.refused["wrong_target"] = self.refused.get("wrong_target", 0) + 1
+                return False
+            return bool(m) and (self.downlink(m) is None)
+        if (where := self._prior.parse(key)) is not None:  # signed by its vehicle
+            m = self._believed(payload, wall_ns, VehiclePrior, where["src"])
+            return bool(m) and (self.prior(m) is None)
         return False
 
     def _believed(self, payload: bytes, wall_ns: int, model, senders):

@@ -19,12 +19,15 @@ of the whole run is drawn so that no window hides anything. Seeds come from the 
 * **sensitivity**: the headline figures with each error source off in turn, with all off, and all on,
   on the first ``sensitivity_runs`` seeds (the same seeds for every setting).
 * **bytes**: distributed vs centralized payloads from real encoded messages.
+* **downlink on and off** (``downlink_compare``, ``mapc experiment paper --downlink both``): every run twice, the
+  same seed without and with the host's downlink; every figure for both, the headline ones side by side
+  (:mod:`.onoff`).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +48,7 @@ from .figures import (
     startup_summary,
     time_series,
 )
+from .onoff import on_off, split_by_downlink
 from .runs import VARIANTS, describe, run_task, tasks
 from .settings import BLINDSPOT_SCENARIOS, DENSITIES, EGO, PAPER, SIM_SCENARIOS, PaperSettings
 
@@ -100,7 +104,21 @@ def _headline(sim: dict, overlap: dict, blindspot: dict) -> dict[str, float]:
 
 def aggregate(results: list[dict], s: PaperSettings, bytes_figures: dict | None = None) -> dict:
     """Every figure of the experiment from its runs (see the module docstring), in the runs' task order: a
-    function of the settings alone (what the runs cost is in timing.json, :func:`..runner.timing_doc`)."""
+    function of the settings alone (what the runs cost is in timing.json, :func:`..runner.timing_doc`).
+
+    With ``downlink_compare`` the figures are those of the runs with the downlink as ``s.downlink`` says, and
+    ``downlink_other`` holds every figure of the runs the other way, ``downlink_on_off`` the comparison
+    (:mod:`.onoff`); both sets score against the one centralized reference per seed."""
+    if not s.downlink_compare:
+        return _aggregate(results, s, bytes_figures)
+    main, other = split_by_downlink(results, s.downlink)
+    res = _aggregate(main, s, bytes_figures)
+    res["downlink_other"] = _aggregate(other, replace(s, downlink=not s.downlink), bytes_figures)
+    res["downlink_on_off"] = on_off(res, res["downlink_other"], main + other, s)
+    return res
+
+
+def _aggregate(results: list[dict], s: PaperSettings, bytes_figures: dict | None = None) -> dict:
     by = group(results)
     b = s.burnin_s
     simulation = {}
@@ -185,8 +203,9 @@ def run_paper_experiment(
         bytes_figures, bytes_batch = byte_figures(s, session, store)
     res = aggregate(runs.results, s, bytes_figures)
     (out / "results.json").write_text(jsonout.dumps(res, indent=2) + "\n")
-    (out / "runs.csv").write_text(runs_csv(runs.results, s.burnin_s))
-    files = plots(res, runs.results, out)
+    main, other = split_by_downlink(runs.results, s.downlink) if s.downlink_compare else (runs.results, [])
+    (out / "runs.csv").write_text(runs_csv(main + other, s.burnin_s, downlink_column=s.downlink_compare))
+    files = plots(res, main, out)
     (out / "report.md").write_text(report(res))
     timing = write_timing(out, executor, {"runs": runs, "bytes": bytes_batch}, time.perf_counter() - t0)
     res["wall_s"] = round(time.perf_counter() - t0, 1)

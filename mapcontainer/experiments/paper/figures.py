@@ -234,15 +234,15 @@ def _pooled(rs: list[dict], names: list[str], burnin_s: float) -> float:
     return rmse(merged, "x", burnin_s)
 
 
-def _pooled_consistency(rs: list[dict], names: list[str], burnin_s: float) -> dict[str, Any]:
-    """6-DoF pose NEES of several vehicles as one series (cells kept apart per vehicle)."""
+def _pooled_consistency(rs: list[dict], names: list[str], burnin_s: float, dof: int = 6) -> dict[str, Any]:
+    """Pose NEES (``dof``: 6-DoF by default) of several vehicles as one series (cells kept apart per vehicle)."""
     merged = []
     for r in rs:
         rows = []
         for j, n in enumerate(names):
             rows += [[t, c * 100 + j, v] for t, c, v in r["nees"].get(n, [])]
         merged.append({"nees": {"x": rows}})
-    return consistency(merged, "x", 6, burnin_s)
+    return consistency(merged, "x", dof, burnin_s)
 
 
 def rv_figures(kind: str, rs: list[dict], burnin_s: float) -> dict[str, Any]:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .figures import run_rmse
+from .onoff import section as downlink_section
 from .settings import (
     BLINDSPOT_SCENARIOS,
     CONNECTED,
@@ -71,6 +72,12 @@ def _method(res: dict) -> list[str]:
             "removed); *vehicle alone* is then the vehicle's on-board estimate with it fused (docs/downlink.md)."
             if s.get("downlink")
             else "off: the vehicles localize alone (`--downlink`: the host's downlink fused on board)."
+        )
+        + (
+            " Every run ran a second time with the downlink the other way (the same seed): *The downlink on and "
+            "off* compares the two."
+            if s.get("downlink_compare")
+            else ""
         ),
         f"* **Duration and burn-in**: {s['duration_s']:g} s per run; every frame from t = {s['burnin_s']:g} s on is "
         "scored (steady state); the error against time covers the whole run, start-up included.",
@@ -390,9 +397,13 @@ def _bytes(res: dict) -> list[str]:
 
 
 def _scenario_flags(res: dict) -> str:
-    """`` --scenario NAME`` for each preset run in place of the paper's (none for the paper's own)."""
+    """`` --scenario NAME`` for each preset run in place of the paper's (none for the paper's own), and
+    `` --downlink on|both`` when the downlink was on or compared."""
     given = res["settings"].get("scenarios") or {}
-    return "".join(f" --scenario {name}" for key, name in given.items() if key == name)
+    flags = "".join(f" --scenario {name}" for key, name in given.items() if key == name)
+    if res["settings"].get("downlink"):
+        return flags + " --downlink on"  # compared too: only from Python (the method says so)
+    return flags + (" --downlink both" if res["settings"].get("downlink_compare") else "")
 
 
 def report(res: dict) -> str:
@@ -436,6 +447,7 @@ def report(res: dict) -> str:
         *_sensitivity(res),
         *_efficiency(sim),
         *_bytes(res),
+        *downlink_section(res),
         "## Targets",
         "",
         "| target | ours | threshold | result |",
@@ -454,17 +466,20 @@ _CSV_FIGURES = {
 }
 
 
-def runs_csv(results: list[dict], burnin_s: float) -> str:
-    """One line per run: its steady-state RMSE of each figure of its kind (empty where none applies)."""
+def runs_csv(results: list[dict], burnin_s: float, downlink_column: bool = False) -> str:
+    """One line per run: its steady-state RMSE of each figure of its kind (empty where none applies);
+    ``downlink_column``: with a column ``downlink`` (on/off) after the seed, for runs of both settings."""
     cols = sorted({c for v in _CSV_FIGURES.values() for c in v})
-    lines = [",".join(("kind", "key", "variant", "seed", *cols))]
-    for r in sorted(results, key=lambda r: (r["kind"], r["key"], r["variant"], r["seed"])):
+    head = ("kind", "key", "variant", "seed", *(("downlink",) if downlink_column else ()))
+    lines = [",".join((*head, *cols))]
+    for r in sorted(results, key=lambda r: (r["kind"], r["key"], r["variant"], r["seed"], bool(r.get("downlink")))):
         want = set(_CSV_FIGURES[r["kind"]])
         cells = []
         for c in cols:
             v = run_rmse(r, c, burnin_s) if c in want else float("nan")
             cells.append(f"{v:.4f}" if math.isfinite(v) else "")
-        lines.append(",".join([r["kind"], r["key"], r["variant"], str(r["seed"]), *cells]))
+        setting = ["on" if r.get("downlink") else "off"] if downlink_column else []
+        lines.append(",".join([r["kind"], r["key"], r["variant"], str(r["seed"]), *setting, *cells]))
     return "\n".join(lines) + "\n"
 
 

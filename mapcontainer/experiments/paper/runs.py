@@ -15,7 +15,7 @@ steady state (after the burn-in), draw the error against time, and compare runs:
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Any
 
 import numpy as np
@@ -97,7 +97,11 @@ class _Scorer:
                     continue
                 self.add(f"{vid}:{name}", rec.t, ev.horizontal_sq_error(p, p_true))
                 if cov is not None:
-                    self.add_nees(f"{vid}:{name}", rec.t, [k], nees(ev.pose_error(p, p_true), cov))
+                    e = ev.pose_error(p, p_true)
+                    self.add_nees(f"{vid}:{name}", rec.t, [k], nees(e, cov))
+                    if name == "onboard":  # the horizontal position alone (what the downlink informs)
+                        cov_xy = np.asarray(cov, dtype=float)[:2, :2]
+                        self.add_nees(f"{vid}:onboard_xy", rec.t, [k], nees(e[:2], cov_xy))
             self.fused_vehicle(k, rec.t, vid, fused)
             if vid in rec.loc_mode:  # NaN error: not initialised yet, no pose
                 p = rec.onboard.get(vid)
@@ -139,8 +143,21 @@ class _Scorer:
             "locks": self.locks,
             "tx_bytes": int(sum(res.tx_bytes.values())),
             "tx_msgs": int(sum(res.tx_msgs.values())),
+            # the downlink (host -> vehicles on the air) and what the vehicles did with it, frames by status
+            "rx_bytes": int(sum(res.rx_bytes.values())),
+            "rx_msgs": int(sum(res.rx_msgs.values())),
+            "downlink_frames": _downlink_frames(res),
             **extra,
         }
+
+
+def _downlink_frames(res: PipelineResult) -> dict[str, int]:
+    """Vehicle-frames by what the vehicle did with the downlink (fused, refused, seeded; none: nothing to fuse)."""
+    out: dict[str, int] = {}
+    for rec in res.records:
+        for status in rec.downlink.values():
+            out[status] = out.get(status, 0) + 1
+    return dict(sorted(out.items()))
 
 
 def _sim_run(scenario, seed: int, s: PaperSettings, centralized: bool = False) -> dict:
@@ -216,10 +233,18 @@ _RUNNERS = {"sim": _sim_run, "overlap": _overlap_run, "blindspot": _blindspot_ru
 def run_task(task: tuple[str, str, str, str, int, dict[str, Any]]) -> dict:
     """One independent run: (kind, key, scenario preset, error-source variant, seed, settings)."""
     kind, key, scenario, variant, seed, settings = task
-    extra = {"centralized": True} if kind == "sim" and variant == "all" else {}  # not for the sensitivity study
-    out = _RUNNERS[kind](scenario_variant(scenario, variant), seed, PaperSettings(**settings), **extra)
-    out.update(kind=kind, key=key, scenario=scenario, variant=variant, seed=seed)
+    s = PaperSettings(**settings)
+    extra = {"centralized": True} if kind == "sim" and variant == "all" and _reference_here(s) else {}
+    out = _RUNNERS[kind](scenario_variant(scenario, variant), seed, s, **extra)
+    out.update(kind=kind, key=key, scenario=scenario, variant=variant, seed=seed, downlink=s.downlink)
     return out
+
+
+def _reference_here(s: PaperSettings) -> bool:
+    """Whether a main simulation run with settings ``s`` runs the centralized reference too (not for the sensitivity
+    study): always, but when the downlink is compared, once per seed, with the run without it (the reference does
+    not depend on the downlink; the runs with it borrow it: :func:`.figures.borrow_reference`)."""
+    return not (s.downlink_compare and s.downlink)
 
 
 def describe(task: tuple) -> str:
@@ -231,7 +256,8 @@ def describe(task: tuple) -> str:
 def tasks(s: PaperSettings) -> list[tuple]:
     """Every run of the experiment, longest first so that the workers finish together: the main
     Monte Carlo runs (all error sources on), the test-site scenarios at both landmark densities,
-    and the sensitivity runs (each error setting)."""
+    and the sensitivity runs (each error setting); with ``downlink_compare``, each twice in a row: with the
+    downlink as ``downlink`` says and the other way (the same seed)."""
     from .settings import BLINDSPOT_SCENARIOS, DENSITIES, rv_scenario
 
     cfg = asdict(s)
@@ -244,6 +270,10 @@ def tasks(s: PaperSettings) -> list[tuple]:
                 for key in BLINDSPOT_SCENARIOS:
                     out.append(("blindspot", f"{key}/{density}", rv_scenario(key, density), variant, s.seed + i, cfg))
 
+    if s.downlink_compare:  # every run once more with the downlink the other way, each beside its twin
+        once = tasks(replace(s, downlink_compare=False))
+        cfg_other = asdict(replace(s, downlink=not s.downlink))
+        return [t for task in once for t in (task[:5] + (cfg,), task[:5] + (cfg_other,))]
     sims = list(s.sim_scenarios.items())[::-1]  # the paper's suburban first in each pair: the longer run
     for i in range(s.runs):
         for key, preset in sims:

@@ -80,6 +80,9 @@ class PaperSettings:
     radius_m: float = 50.0  # the ego's perception range for rms2 and the multi-object metric
     start: str = "cold"
     downlink: bool = False  # the host sends every vehicle what the others know about it (run_pipeline(downlink=))
+    # every run once more with the downlink the other way (the same seeds): the report's on/off comparison (its other
+    # sections stay those of ``downlink``; `--downlink both`: off)
+    downlink_compare: bool = False
     scenarios: tuple[str, ...] = ()  # presets of the simulation part instead of the paper's (SIM_SCENARIOS)
 
     def __post_init__(self):
