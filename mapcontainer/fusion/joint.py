@@ -183,14 +183,18 @@ class JointHost:
         self.P[s, s] = 0.5 * (C + C.T)
         self._t[key] = float(t)
 
-    def _drop(self, key) -> None:
-        if key not in self._off:
+    def _drop(self, *keys) -> None:
+        """Remove blocks (those not held are skipped): one copy of the state for all of them."""
+        keys = [k for k in keys if k in self._off]
+        if not keys:
             return
-        idx = np.arange(self._sl(key).start, self._sl(key).stop)
-        self.mu = np.delete(self.mu, idx)
-        self.P = np.delete(np.delete(self.P, idx, axis=0), idx, axis=1)
-        self._keys.remove(key)
-        del self._t[key]
+        keep = np.ones(len(self.mu), dtype=bool)
+        for k in keys:
+            keep[self._sl(k)] = False
+            self._keys.remove(k)
+            del self._t[k]
+        self.mu = self.mu[keep]
+        self.P = self.P[keep][:, keep]
         self._reindex()
 
     # ------------------------------------------------------------------ fusion
@@ -216,10 +220,8 @@ class JointHost:
             self._lap("cross", t1)
         t1 = time.process_time()
         self._sync_tracker()
-        for tid in self.tracker.expire(t):
-            self._drop(("o", tid))
-        for tid in self.tracker.merge_duplicates(t):
-            self._drop(("o", tid))
+        gone = self.tracker.expire(t) + self.tracker.merge_duplicates(t)
+        self._drop(*(("o", tid) for tid in gone))
         self._counts["fused_cycles"] += 1
         self._lap("upkeep", t1)
         t1 = time.process_time()
@@ -328,7 +330,9 @@ class JointHost:
         """Every track block to time t (constant velocity, white acceleration), with its cross-covariances.
 
         F = I + dt E (E moves a track's velocity onto its position) on all the tracks at once, per lag dt:
-        the rows P[p] += dt P[v], then the columns likewise (F P F^T), then Q on each track's block."""
+        the position rows of F P are R = P[p] + dt P[v]; those of F P F^T are R with R[:, p] += dt R[:, v],
+        and its position columns their transpose (P symmetric); then Q on each track's block. O(n) per track,
+        in contiguous rows."""
         keys = [k for k in self._keys if k[0] == "o" and self._t[k] != t]
         if not keys:
             return
@@ -342,8 +346,10 @@ class JointHost:
             ip = (o[:, None] + np.arange(3)).ravel()
             iv = ip + 3
             mu[ip] += dt * mu[iv]
-            P[ip, :] += dt * P[iv, :]
-            P[:, ip] += dt * P[:, iv]
+            R = P[ip] + dt * P[iv]
+            R[:, ip] += dt * R[:, iv]
+            P[ip] = R
+            P[:, ip] = R.T
         for o, Qk in zip(off, Q, strict=True):
             P[o : o + _O, o : o + _O] += Qk
         for k in keys:
@@ -467,19 +473,17 @@ class JointHost:
     def _unambiguous(self, dets: list[Detection]) -> bool:
         """Whether every detection of a frame has one confirmed track alone in its gate (the map-frame
         covariance of the detection with its observer's pose uncertainty, plus the track's)."""
-        tracks = [k for k in self._keys if k[0] == "o"]
-        if not tracks:
+        off = np.array([self._off[k] for k in self._keys if k[0] == "o"], dtype=int)
+        if not len(off):
             return True
-        mus = np.array([self.mu[self._sl(k)][:3] for k in tracks])
-        Ps = np.array([self.P[self._sl(k), self._sl(k)][:3, :3] for k in tracks])
-        gate = self.params.gate_chi2
-        for d in dets:
-            e = mus - d.p_map
-            S = Ps + d.cov_map
-            d2 = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
-            if int((d2 < gate).sum()) > 1:
-                self._counts["detections_ambiguous"] += 1
-                return False
+        idx = off[:, None] + np.arange(3)
+        mus, Ps = self.mu[idx], self.P[idx[:, :, None], idx[:, None, :]]  # (tracks, 3), (tracks, 3, 3)
+        e = mus[None] - np.array([d.p_map for d in dets])[:, None]  # (detections, tracks, 3)
+        S = Ps[None] + np.array([d.cov_map for d in dets])[:, None]
+        d2 = np.einsum("dni,dni->dn", e, np.linalg.solve(S, e[..., None])[..., 0])
+        if np.any((d2 < self.params.gate_chi2).sum(axis=1) > 1):
+            self._counts["detections_ambiguous"] += 1
+            return False
         return True
 
     def _ekf_update(self, obs_key, rows: list, free=None) -> None:
