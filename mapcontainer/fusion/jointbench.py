@@ -33,9 +33,10 @@ from .blas import limit_blas_threads
 from .joint import JointHost
 from .params import FusionParams
 
-__all__ = ["RawRecording", "bench_joint", "record_raw", "replay_joint", "yardstick_ms"]
+__all__ = ["JOINT_WARMUP_S", "RawRecording", "bench_joint", "record_raw", "replay_joint", "yardstick_ms"]
 
 SCENE = "sumo-town"
+JOINT_WARMUP_S = 3.0  # the localizers' start-up from GNSS (as mapc experiment scale's warmup)
 
 
 @dataclass
@@ -86,7 +87,7 @@ def _near_any(p: np.ndarray, centres: np.ndarray, radius_m: float) -> np.ndarray
 def replay_joint(
     rec: RawRecording,
     params: FusionParams | None = None,
-    warmup_s: float = 3.0,
+    warmup_s: float = JOINT_WARMUP_S,
     radius_m: float = 50.0,
     yardstick_samples: int = 5,
 ) -> dict:
@@ -160,7 +161,7 @@ def bench_joint(
     vehicles: int = 16,
     seed: int = 0,
     duration_s: float = 10.0,
-    warmup_s: float = 3.0,
+    warmup_s: float = JOINT_WARMUP_S,
     scenario: str = SCENE,
     blas_threads: int | None = 1,
     yardstick_samples: int = 5,
