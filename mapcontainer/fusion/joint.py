@@ -54,8 +54,13 @@ to cross-observations of it.
 
 Bad input: a detection's covariance is floored at 5 cm, detections far from their prediction are
 down-weighted (Huber, ``FusionParams.huber_k``, as the distributed graph), an update that fails
-numerically is undone and counted, a localizer that fails starts that vehicle again. The distributed
-host's misbehaviour monitor is not run here: a vehicle forging its raw observations is not contained.
+numerically is refused (the state stays as it was before it) and counted, a localizer that fails starts
+that vehicle again. The distributed host's misbehaviour monitor is not run here: a vehicle forging its raw
+observations is not contained.
+
+Cost (docs/host.md, "Centralized speed"): each update touches the columns its Jacobian is nonzero on; the
+covariance is dense, so a frame's update is one rank-2m change of it, O(n^2 m) for a state of size n and
+m detection rows.
 """
 
 from __future__ import annotations
@@ -416,9 +421,7 @@ class JointHost:
         t0 = time.process_time()
         self._ekf_update(key, rows, free=free)
         self._lap("update", t0)
-        t0 = time.process_time()
-        self._sync_tracker()
-        self._lap("predict", t0)
+        # the tracker is synced again before it is next asked (the next frame's association, the cycle's end)
         return cross
 
     def _birth(self, obs_key, tid: int, det: Detection) -> None:
@@ -554,10 +557,12 @@ class JointHost:
         ]
 
     def _sync_tracker(self) -> None:
+        """Hand the tracker every track block's state (it gates, confirms and merges from them)."""
+        mu, P, sync = self.mu, self.P, self.tracker.sync
         for key in self._keys:
             if key[0] == "o":
-                s = self._sl(key)
-                self.tracker.sync(key[1], self._t[key], self.mu[s], self.P[s, s])
+                o = self._off[key]
+                sync(key[1], self._t[key], mu[o : o + _O], P[o : o + _O, o : o + _O])
 
     # ------------------------------------------------------------------ output
     def _output(self, t: float) -> FusedState:
