@@ -26,6 +26,7 @@ import numpy as np
 from schemas import GroundTruth, encode
 
 from ..evaluation import Totals, score_frame
+from ..experiments.scale import _near_any  # the scaling experiment's object scope, scored alike
 from ..sim import World, load_scenario
 from ..sim.config import scale_scenario
 from ..vehicle import VehicleAgent
@@ -76,12 +77,6 @@ def yardstick_ms() -> float:
     for i in range(200_000):
         s += i * 0.5
     return (time.perf_counter() - t0) * 1e3
-
-
-def _near_any(p: np.ndarray, centres: np.ndarray, radius_m: float) -> np.ndarray:
-    if not len(p) or not len(centres):
-        return np.zeros(len(p), dtype=bool)
-    return np.min(np.linalg.norm(p[:, None, :] - centres[None], axis=2), axis=1) <= radius_m
 
 
 def replay_joint(
