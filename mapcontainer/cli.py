@@ -129,6 +129,8 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
 def _cmd_bench_fusion(args: argparse.Namespace) -> int:
     from .fusion.bench import bench_fusion_sizes, parse_sizes
 
+    if args.host == "joint":
+        return _bench_joint(args)
     if args.ticks <= args.window:
         raise ConfigError(f"--ticks must exceed --window ({args.window}): timings skip the first window")
     try:
@@ -146,6 +148,25 @@ def _cmd_bench_fusion(args: argparse.Namespace) -> int:
         cpu_phases=args.cpu_phases,
     )
     print(jsonout.dumps(result["runs"][0] if not args.sizes else result))
+    return 0
+
+
+def _bench_joint(args: argparse.Namespace) -> int:
+    """``mapc bench fusion --host joint``: the centralized host on recorded raw observations (jointbench)."""
+    from .fusion.bench import parse_sizes
+    from .fusion.jointbench import JOINT_WARMUP_S, bench_joint
+
+    duration = args.ticks / 10.0
+    if duration <= JOINT_WARMUP_S:
+        raise ConfigError(f"--host joint: --ticks must exceed {JOINT_WARMUP_S * 10:g} (the localizers' start-up)")
+    if args.compare_exact:
+        raise ConfigError("--compare-exact is the distributed smoother's oracle: not with --host joint")
+    try:
+        sizes = parse_sizes(args.sizes) if args.sizes else [(args.vehicles, args.objects)]
+    except ValueError as e:
+        raise ConfigError(f"--sizes: {e}") from None
+    runs = [bench_joint(v, seed=args.seed, duration_s=duration) for v, _ in sizes]
+    print(jsonout.dumps(runs[0] if not args.sizes else {"sizes": [r["vehicles"] for r in runs], "runs": runs}))
     return 0
 
 
@@ -516,6 +537,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--cpu-phases",
         action="store_true",
         help="phases_ms_p50 in this process's CPU time instead of wall time (a loaded machine's waits left out)",
+    )
+    bf.add_argument(
+        "--host",
+        choices=("container", "joint"),
+        default="container",
+        help="joint: the centralized host instead, on raw observations of the sumo-town scene with --vehicles "
+        "(or each size's vehicles) connected; the scene's city density sets the objects, --ticks / 10 s are run, "
+        "timed after 3 s",
     )
     bf.set_defaults(func=_cmd_bench_fusion)
     bw = bench.add_parser(

@@ -54,8 +54,13 @@ to cross-observations of it.
 
 Bad input: a detection's covariance is floored at 5 cm, detections far from their prediction are
 down-weighted (Huber, ``FusionParams.huber_k``, as the distributed graph), an update that fails
-numerically is undone and counted, a localizer that fails starts that vehicle again. The distributed
-host's misbehaviour monitor is not run here: a vehicle forging its raw observations is not contained.
+numerically is refused (the state stays as it was before it) and counted, a localizer that fails starts
+that vehicle again. The distributed host's misbehaviour monitor is not run here: a vehicle forging its raw
+observations is not contained.
+
+Cost (docs/host.md, "Centralized speed"): each update touches the columns its Jacobian is nonzero on; the
+covariance is dense, so a frame's update is one rank-2m change of it, O(n^2 m) for a state of size n and
+m detection rows.
 """
 
 from __future__ import annotations
@@ -89,6 +94,7 @@ from .hostcore import (
 )
 from .motion import accel_psd, cv_model, cv_predict
 from .params import FusionParams
+from .symupdate import sym_rank_update
 
 __all__ = ["JointHost"]
 
@@ -140,6 +146,7 @@ class JointHost:
         self._seq = 0
         self._cycle_frames = 0
         self._last_cycle_ms = float("nan")
+        self._phases: Counter[str] = Counter()  # this cycle's wall time (ms) by phase
 
     # ------------------------------------------------------------------ input
     def ingest(self, payload: bytes, t_recv: float) -> IngestResult:
@@ -181,26 +188,25 @@ class JointHost:
         self.P[s, s] = 0.5 * (C + C.T)
         self._t[key] = float(t)
 
-    def _drop(self, key) -> None:
-        if key not in self._off:
+    def _drop(self, *keys) -> None:
+        """Remove blocks (those not held are skipped): one copy of the state for all of them."""
+        keys = [k for k in keys if k in self._off]
+        if not keys:
             return
-        idx = np.arange(self._sl(key).start, self._sl(key).stop)
-        self.mu = np.delete(self.mu, idx)
-        self.P = np.delete(np.delete(self.P, idx, axis=0), idx, axis=1)
-        self._keys.remove(key)
-        del self._t[key]
+        keep = np.ones(len(self.mu), dtype=bool)
+        for k in keys:
+            keep[self._sl(k)] = False
+            self._keys.remove(k)
+            del self._t[k]
+        self.mu = self.mu[keep]
+        self.P = self.P[keep][:, keep]
         self._reindex()
-
-    def _others(self, key) -> np.ndarray:
-        s = self._sl(key)
-        mask = np.ones(len(self.mu), dtype=bool)
-        mask[s] = False
-        return np.flatnonzero(mask)
 
     # ------------------------------------------------------------------ fusion
     def fuse(self, t: float, tolerance_s: float = 0.0) -> FusedState:
         """Process every frame received with t_meas <= t + tolerance_s (in time order); the state at t."""
-        t0 = time.perf_counter()
+        t_start = time.perf_counter()
+        self._phases = Counter()
         t = float(t)
         fresh = self.intake.pop(t, tolerance_s)
         by_instant: dict[int, list[RawObservations]] = {}
@@ -213,31 +219,32 @@ class JointHost:
             cross: list[tuple[str, Detection]] = []
             for m in frames:
                 self.tracker.observe(m.t_meas)
-                cross += self._guarded(self._detections, m) or []
-            self._guarded(self._cross_updates, cross)
+                cross += self._detections(m)
+            t1 = time.process_time()
+            self._cross_updates(cross)
+            self._lap("cross", t1)
+        t1 = time.process_time()
         self._sync_tracker()
-        for tid in self.tracker.expire(t):
-            self._drop(("o", tid))
-        for tid in self.tracker.merge_duplicates(t):
-            self._drop(("o", tid))
+        gone = self.tracker.expire(t) + self.tracker.merge_duplicates(t)
+        self._drop(*(("o", tid) for tid in gone))
         self._counts["fused_cycles"] += 1
+        self._lap("upkeep", t1)
+        t1 = time.process_time()
         out = self._output(t)
-        self._last_cycle_ms = (time.perf_counter() - t0) * 1e3
+        self._lap("output", t1)
+        self._last_cycle_ms = (time.perf_counter() - t_start) * 1e3
         return out
 
-    def _guarded(self, update, *args):
-        """Run an update of the joint state; if it fails numerically (a singular innovation, a result
-        that is not finite) the state is put back as it was and the failure counted."""
-        mu, P = self.mu.copy(), self.P.copy()
-        try:
-            out = update(*args)
-            if np.all(np.isfinite(self.mu)) and np.all(np.isfinite(self.P)) and np.all(np.diag(self.P) > 0):
-                return out
-        except np.linalg.LinAlgError:
-            pass
-        self.mu, self.P = mu, P
+    def _lap(self, phase: str, c0: float) -> None:
+        """Add the CPU time since ``c0`` (time.process_time) to this cycle's ``phase``: CPU, not wall, so
+        that the shares hold on a loaded machine."""
+        self._phases[phase] += (time.process_time() - c0) * 1e3
+
+    def _failed(self) -> bool:
+        """Count an update refused for failing numerically (a singular innovation, a gain that is not
+        finite): the state stays as it was before it."""
         self._counts["numerical_failure"] += 1
-        return None
+        return False
 
     def _wrap_yaws(self) -> None:
         for key in self._keys:
@@ -268,6 +275,7 @@ class JointHost:
         if held:  # the localizer starts from everything the host knows of this vehicle
             s = self._sl(key)
             loc.y, loc.P = self.mu[s].copy(), self.P[s, s].copy()
+        t0 = time.process_time()
         try:
             res = loc.step(t, frame, raw.odometry, raw.gnss)
         except (ValueError, np.linalg.LinAlgError):  # numerically broken: that vehicle starts again
@@ -275,6 +283,9 @@ class JointHost:
             self._drop(key)
             self._counts["localizer_failure"] += 1
             return False
+        finally:
+            self._lap("localize", t0)
+        t0 = time.process_time()
         if res.bad_input:
             self.intake.reject("bad_input")
             return False
@@ -282,47 +293,72 @@ class JointHost:
         self._counts["frames"] += 1
         if not loc.initialized:
             self._drop(key)
-        elif (
-            held and loc.conditioned is not None and self._guarded(self._condition, key, *loc.conditioned, loc.y, loc.P)
-        ):
+        elif held and loc.conditioned is not None and self._condition(key, *loc.conditioned, loc.y, loc.P):
             self._t[key] = t
         else:
             self._set_block(key, loc.y, loc.P, t)
             self._counts["vehicle_reseeded"] += 1
+        self._lap("condition", t0)
         return True
 
-    def _condition(self, key, F, y_pred, P_pred, y_post, P_post) -> None:
-        """The joint posterior of a vehicle's prediction F and its localizer's update (module docstring)."""
-        s, o = self._sl(key), self._others(key)
+    def _condition(self, key, F, y_pred, P_pred, y_post, P_post) -> bool:
+        """The joint posterior of a vehicle's prediction F and its localizer's update (module docstring);
+        False (counted, the state unchanged) if it fails numerically.
+
+        With K = P_ov F^T P_pred^-1 over every row (zero on the vehicle's own): mu += K d,
+        P += K (P_post - P_pred) K^T, then the vehicle's rows and columns K P_post and P_post: one rank-10
+        update of the covariance, O(n^2) for a state of size n."""
+        s = self._sl(key)
         P = self.P
-        P_vo = F @ P[s][:, o]
+        G = P[:, s] @ F.T  # (n, 10): P_ov F^T on the other rows
+        G[s] = 0.0
+        try:
+            K = np.linalg.solve(P_pred, G.T).T  # P_pred symmetric
+        except np.linalg.LinAlgError:
+            return self._failed()
+        d = y_post - y_pred
+        d[5] = geo.wrap_angle(d[5])
+        P_ov = K @ P_post
+        finite = (np.all(np.isfinite(a)) for a in (K, P_ov, y_post, P_post))
+        if not all(finite):
+            return self._failed()
+        self.mu += K @ d
         self.mu[s] = y_post
-        if len(o):
-            K = np.linalg.solve(P_pred, P_vo).T  # P_ov P_pred^-1 (P_pred symmetric)
-            d = y_post - y_pred
-            d[5] = geo.wrap_angle(d[5])
-            self.mu[o] += K @ d
-            P[np.ix_(o, o)] += K @ (P_post - P_pred) @ K.T
-            P_ov = K @ P_post
-            P[np.ix_(o, np.arange(s.start, s.stop))] = P_ov
-            P[s, o] = P_ov.T
+        P += (K @ (P_post - P_pred)) @ K.T
+        P[:, s] = P_ov
+        P[s, :] = P_ov.T
         P[s, s] = 0.5 * (P_post + P_post.T)
         self._wrap_yaws()
         return True
 
     def _predict_tracks(self, t: float) -> None:
-        """Every track block to time t (constant velocity, white acceleration), with its cross-covariances."""
-        for key in self._keys:
-            if key[0] != "o" or self._t[key] == t:
-                continue
-            tr = self.tracker.by_id(key[1])
-            F, Q = cv_model(t - self._t[key], accel_psd(self.params, tr.cls if tr else 0))
-            s = self._sl(key)
-            self.mu[s] = F @ self.mu[s]
-            self.P[s, :] = F @ self.P[s, :]
-            self.P[:, s] = self.P[:, s] @ F.T
-            self.P[s, s] += Q
-            self._t[key] = t
+        """Every track block to time t (constant velocity, white acceleration), with its cross-covariances.
+
+        F = I + dt E (E moves a track's velocity onto its position) on all the tracks at once, per lag dt:
+        the position rows of F P are R = P[p] + dt P[v]; those of F P F^T are R with R[:, p] += dt R[:, v],
+        and its position columns their transpose (P symmetric); then Q on each track's block. O(n) per track,
+        in contiguous rows."""
+        keys = [k for k in self._keys if k[0] == "o" and self._t[k] != t]
+        if not keys:
+            return
+        dts = np.array([t - self._t[k] for k in keys])
+        off = np.array([self._off[k] for k in keys])
+        q = np.array([accel_psd(self.params, tr.cls if (tr := self.tracker.by_id(k[1])) else 0) for k in keys])
+        _, Q = cv_model(dts, q)
+        P, mu = self.P, self.mu
+        for dt in np.unique(dts):
+            o = off[dts == dt]
+            ip = (o[:, None] + np.arange(3)).ravel()
+            iv = ip + 3
+            mu[ip] += dt * mu[iv]
+            R = P[ip] + dt * P[iv]
+            R[:, ip] += dt * R[:, iv]
+            P[ip] = R
+            P[:, ip] = R.T
+        for o, Qk in zip(off, Q, strict=True):
+            P[o : o + _O, o : o + _O] += Qk
+        for k in keys:
+            self._t[k] = t
 
     def _vehicle_candidates(self, t: float, observer: str) -> list[VehicleCandidate]:
         out = []
@@ -356,10 +392,15 @@ class JointHost:
         mapped = detections_in_map(vid, t, raw.objects, pose, pose_cov, self.params, self._counts, _floored)
         if mapped is None:
             return []
+        t0 = time.process_time()
         self._predict_tracks(t)
         self._sync_tracker()
+        self._lap("predict", t0)
+        t0 = time.process_time()
         dets = mapped.dets
         assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid))
+        self._lap("associate", t0)
+        t0 = time.process_time()
         for tid in born:
             det = next((a.det for a in assignments if a.target == tid and a.det.sender == vid and a.det.t == t), None)
             if det is not None:  # confirmed by this frame's detection (always, as the tracker works)
@@ -372,9 +413,15 @@ class JointHost:
             elif a.target not in born and ("o", a.target) in self._off:
                 rows.append((("o", a.target), a.det.p_body, a.det.cov_body))
                 dets_used.append(a.det)
+        self._lap("birth", t0)
+        t0 = time.process_time()
         self._counts["detections"] += len(rows)
-        self._ekf_update(key, rows, free=key if dets_used and self._unambiguous(dets_used) else None)
-        self._sync_tracker()
+        free = key if dets_used and self._unambiguous(dets_used) else None
+        self._lap("ambiguity", t0)
+        t0 = time.process_time()
+        self._ekf_update(key, rows, free=free)
+        self._lap("update", t0)
+        # the tracker is synced again before it is next asked (the next frame's association, the cycle's end)
         return cross
 
     def _birth(self, obs_key, tid: int, det: Detection) -> None:
@@ -429,60 +476,75 @@ class JointHost:
     def _unambiguous(self, dets: list[Detection]) -> bool:
         """Whether every detection of a frame has one confirmed track alone in its gate (the map-frame
         covariance of the detection with its observer's pose uncertainty, plus the track's)."""
-        tracks = [k for k in self._keys if k[0] == "o"]
-        if not tracks:
+        off = np.array([self._off[k] for k in self._keys if k[0] == "o"], dtype=int)
+        if not len(off):
             return True
-        mus = np.array([self.mu[self._sl(k)][:3] for k in tracks])
-        Ps = np.array([self.P[self._sl(k), self._sl(k)][:3, :3] for k in tracks])
-        gate = self.params.gate_chi2
-        for d in dets:
-            e = mus - d.p_map
-            S = Ps + d.cov_map
-            d2 = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
-            if int((d2 < gate).sum()) > 1:
-                self._counts["detections_ambiguous"] += 1
-                return False
+        idx = off[:, None] + np.arange(3)
+        mus, Ps = self.mu[idx], self.P[idx[:, :, None], idx[:, None, :]]  # (tracks, 3), (tracks, 3, 3)
+        e = mus[None] - np.array([d.p_map for d in dets])[:, None]  # (detections, tracks, 3)
+        S = Ps[None] + np.array([d.cov_map for d in dets])[:, None]
+        d2 = np.einsum("dni,dni->dn", e, np.linalg.solve(S, e[..., None])[..., 0])
+        if np.any((d2 < self.params.gate_chi2).sum(axis=1) > 1):
+            self._counts["detections_ambiguous"] += 1
+            return False
         return True
 
     def _ekf_update(self, obs_key, rows: list, free=None) -> None:
         """One stacked EKF update of detections z_k = R_v^T (c_k - c_v) + n_k, n_k ~ N(0, cov_k), made by
-        vehicle ``obs_key`` of targets (track position or another vehicle's origin)."""
+        vehicle ``obs_key`` of targets (track position or another vehicle's origin). An update that fails
+        numerically is refused and counted (the state as it was).
+
+        H is nonzero on the observer's pose and the targets' positions only (the columns J): P H^T =
+        P[:, J] H_J^T, S = H_J (P H^T)[J] + R. With the gain K (its rows on consider states zero), Joseph's
+        form P - K (P H^T)^T - (P H^T) K^T + K S K^T, valid for any gain, is P - (K C^T + C K^T) with
+        C = P H^T - K S / 2: one symmetric rank-2m update (BLAS syr2k), O(n^2 m), and O(n m) besides."""
         if not rows:
             return
-        n, m = len(self.mu), 3 * len(rows)
+        m = 3 * len(rows)
         so = self._sl(obs_key)
         x_o = self.mu[so]
         R, dR_r, dR_p, dR_y = geo.rpy_to_matrix_jac(*x_o[3:6])
-        H = np.zeros((m, n))
+        tgt = np.array([self._off[tkey] for tkey, _, _ in rows])
+        cols = np.concatenate([np.arange(so.start, so.start + 6), (tgt[:, None] + np.arange(3)).ravel()])
+        H = np.zeros((m, len(cols)))
         r = np.zeros(m)
         Rn = np.zeros((m, m))
-        for k, (tkey, z, cov) in enumerate(rows):
-            st = self._sl(tkey)
-            d = self.mu[st][:3] - x_o[:3]
+        for k, (_, z, cov) in enumerate(rows):
+            d = self.mu[tgt[k] : tgt[k] + 3] - x_o[:3]
             i = slice(3 * k, 3 * k + 3)
             r[i] = z - R.T @ d
-            H[i, so.start : so.start + 3] = -R.T
-            H[i, so.start + 3] = dR_r.T @ d
-            H[i, so.start + 4] = dR_p.T @ d
-            H[i, so.start + 5] = dR_y.T @ d
-            H[i, st.start : st.start + 3] = R.T
+            H[i, :3] = -R.T
+            H[i, 3] = dR_r.T @ d
+            H[i, 4] = dR_p.T @ d
+            H[i, 5] = dR_y.T @ d
+            H[i, 6 + 3 * k : 9 + 3 * k] = R.T
             Rn[i, i] = cov
-        PHt = self.P @ H.T
-        S = H @ PHt + Rn
+        PHt = self.P[:, cols] @ H.T  # (n, m); repeated columns (a target twice) add up as in a full H
+        S = H @ PHt[cols] + Rn
         k = self.params.huber_k
-        if k is not None:  # Huber, as the distributed graph: a detection far off its prediction counts less
-            for j in range(len(rows)):
-                i = slice(3 * j, 3 * j + 3)
-                d = float(np.sqrt(r[i] @ np.linalg.solve(S[i, i], r[i])))
-                if d > k:
-                    S[i, i] += (d / k - 1.0) * Rn[i, i]
-        K = np.linalg.solve(S, PHt.T).T
+        try:
+            if k is not None:  # Huber, as the distributed graph: a detection far off its prediction counts less
+                for j in range(len(rows)):
+                    i = slice(3 * j, 3 * j + 3)
+                    d = float(np.sqrt(r[i] @ np.linalg.solve(S[i, i], r[i])))
+                    if d > k:
+                        S[i, i] += (d / k - 1.0) * Rn[i, i]
+            K = np.linalg.solve(S, PHt.T).T
+        except np.linalg.LinAlgError:
+            self._failed()
+            return
         for idx in self._considered(free):  # Schmidt: no gain on them, covariances kept exact for that gain
             K[idx] = 0.0
+        C = PHt - 0.5 * (K @ S)
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(C)) and np.all(np.isfinite(r))):
+            self._failed()
+            return
+        P = sym_rank_update(self.P, K, C)
+        if not np.all(np.diag(P) > 0):
+            self._failed()
+            return
+        self.P = P
         self.mu += K @ r
-        KHP = K @ PHt.T
-        P = self.P - KHP - KHP.T + K @ S @ K.T  # Joseph form (with S = H P H^T + R): valid for any gain
-        self.P = 0.5 * (P + P.T)
         self._wrap_yaws()
 
     def _considered(self, free=None) -> list[slice]:
@@ -495,10 +557,12 @@ class JointHost:
         ]
 
     def _sync_tracker(self) -> None:
+        """Hand the tracker every track block's state (it gates, confirms and merges from them)."""
+        mu, P, sync = self.mu, self.P, self.tracker.sync
         for key in self._keys:
             if key[0] == "o":
-                s = self._sl(key)
-                self.tracker.sync(key[1], self._t[key], self.mu[s], self.P[s, s])
+                o = self._off[key]
+                sync(key[1], self._t[key], mu[o : o + _O], P[o : o + _O, o : o + _O])
 
     # ------------------------------------------------------------------ output
     def _output(self, t: float) -> FusedState:
@@ -553,6 +617,7 @@ class JointHost:
         return {
             **common_stats(self.intake, self.tracker, self._counts, vehicles, self._last_cycle_ms),
             "state_dim": len(self.mu),
+            "last_phases_cpu_ms": dict(self._phases),
             "detections_unlocalized": self._counts["detections_unlocalized"],
             "detections_ambiguous": self._counts["detections_ambiguous"],
             "vehicle_reseeded": self._counts["vehicle_reseeded"],
