@@ -189,7 +189,8 @@ def main(s: HostSettings) -> int:
     log.info("settings: %s", s.model_dump_json())
     hid = s.standby_for or s.id  # a standby receives and publishes as the host it stands in for
     verifier = Verifier(load_certificate(s.keys, CA_NAME), window_s=VERIFY_WINDOW_S) if s.keys else None
-    signer = Signer(load_credentials(s.keys, s.id)) if s.keys else None  # the fused state is signed too
+    credentials = load_credentials(s.keys, s.id) if s.keys else None
+    signer = Signer(credentials) if credentials else None  # the fused state is signed too
     gate_lock = threading.Lock()  # the verifier is shared by the topics' gates
     # The worker starts before the Zenoh session exists (never fork after opening one; spawn anyway).
     if s.inline:
@@ -321,6 +322,9 @@ def main(s: HostSettings) -> int:
             svc.subscribe(topic(f"{kind}_tx").key(fleet=s.fleet, src=src), subscriber(f"{kind}_tx"))
 
         down_pubs: dict[str, Any] = {}
+        # a Signer per vehicle: a Signer sends its certificate with the first message it signs in a second,
+        # and each vehicle reads only its own downlink, so one shared Signer would leave some without it
+        down_signers: dict[str, Signer] = {}
 
         def send_downlink(vid: str, payload: bytes) -> None:
             """The downlink to ``vid``, through the channel emulator, signed like the fused state."""
@@ -330,8 +334,8 @@ def main(s: HostSettings) -> int:
             if pub is None:
                 pub = down_pubs[vid] = svc.publisher(topic("downlink_tx").key(fleet=s.fleet, src=hid, dst=vid))
             payload = with_fields(payload, PoseDownlink, **clock.fields())
-            if signer is not None:
-                payload = signer.sign(payload, time.time())
+            if credentials is not None:
+                payload = down_signers.setdefault(vid, Signer(credentials)).sign(payload, time.time())
             pub.put(payload, attachment=make_attachment(t_wall_ns=time.time_ns(), **clock.fields()))
             fig["downlink_sent"] += 1
             fig["downlink_bytes"] += len(payload)

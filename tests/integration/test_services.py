@@ -498,14 +498,24 @@ def test_a_session_close_that_never_returns_does_not_keep_the_service_alive(tmp_
     assert "did not finish within" in proc.stderr and "Thread 0x" in proc.stderr, proc.stderr[-3000:]
 
 
+@pytest.mark.parametrize("signed", [False, True], ids=["open", "signed"])
 def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
-    rendezvous, fleet_name, spawn, wait_for, watch_liveliness
+    signed, tmp_path, rendezvous, fleet_name, spawn, wait_for, watch_liveliness
 ):
     """host --downlink: two vehicles that see each other each get what the other knows about them, on their own
-    downlink_rx key, through the channel relay (link host -> vehicle)."""
+    downlink_rx key, through the channel relay (link host -> vehicle). Signed, each vehicle's own stream
+    carries the host's certificate: a vehicle reads only its own key, so one Signer shared by the fused state
+    and every downlink (its certificate once a second, with whichever message came first) left them refused."""
+    from mapcontainer.security import CA_NAME, Signer, Verified, Verifier, load_certificate, load_credentials
+    from mapcontainer.security import write_fleet_keys
+
     session, endpoint = rendezvous
     alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))
     common = ["--fleet", fleet_name, "--connect", endpoint]
+    keys = tmp_path / "keys"
+    if signed:
+        write_fleet_keys(keys, ["cv0", "cv1"], validity_s=3600.0)
+        common += ["--keys", str(keys)]
     spawn("services.channel", *common, "--network", "ideal", "--receiver", "host=")
     spawn("services.host", *common, "--known-senders", "cv0,cv1", "--downlink", "--inline")
     for role, sid in (("channel", "channel"), ("host", "host")):
@@ -523,6 +533,7 @@ def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
     attachment = make_attachment(epoch_wall_ns=epoch, time_scale=1.0)
     ys = {"cv0": 0.0, "cv1": -6.0}
     seq = 0
+    signers = {v: Signer(load_credentials(keys, v)) for v in got} if signed else {}
 
     def send() -> None:
         nonlocal seq
@@ -531,7 +542,8 @@ def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
             other = [[0.0, ys["cv1" if vid == "cv0" else "cv0"] - y, 0.0]]  # the other vehicle, beside it
             objs = ObjectObservations.from_metres(np.array(other), np.diag([0.2, 0.15, 0.05])[None] ** 2, [2])
             msg = moving_prior(fleet_name, vid, seq, t, y=y, objects=objs, epoch=epoch)
-            pubs[vid].put(encode(msg.model_copy(update={"pose_filtered": True})), attachment=attachment)
+            payload = encode(msg.model_copy(update={"pose_filtered": True}))
+            pubs[vid].put(signers[vid].sign(payload, time.time()) if signed else payload, attachment=attachment)
         seq += 1
 
     def both() -> bool:
@@ -543,6 +555,10 @@ def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
     for s in subs:
         s.undeclare()
     for vid, payloads in got.items():
+        if signed:  # what this vehicle alone received: believed from its own stream
+            verifier = Verifier(load_certificate(keys, CA_NAME), window_s=60.0)
+            checks = [verifier.verify(p, time.time(), "host") for p in payloads]
+            assert any(isinstance(c, Verified) for c in checks), f"{vid}: {len(payloads)} refused, e.g. {checks[-1]}"
         msg = decode(inner_payload(payloads[-1]), PoseDownlink)
         assert isinstance(msg, PoseDownlink) and msg.target == vid and msg.sender == "host", msg
         assert abs(float(msg.pose[1]) - ys[vid]) < 1.0  # where the other sees it
