@@ -33,7 +33,8 @@ seeded with) the vehicle fuses by covariance intersection: :mod:`.onboard`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -41,12 +42,15 @@ import numpy as np
 from schemas import PoseDownlink
 from schemas.arrays import cov_to_upper
 
+from .fusion.detections import linear_factors
+from .fusion.hostcore import persistent_share
 from .fusion.poses import tangent_jacobian, vector_from_pose3
 
 __all__ = [
     "MAX_DOWNLINK_SIGMA_M",
     "MIN_INFO",
     "OthersOnly",
+    "cross_localization",
     "downlink_messages",
     "horizontal",
     "others_only",
@@ -128,6 +132,37 @@ def horizontal(o: OthersOnly) -> OthersOnly:
     return OthersOnly(o.mean, info, int(keep.sum()))
 
 
+def cross_localization(graph) -> dict[int, tuple[gtsam.Pose3, np.ndarray]]:
+    """The posterior of the window without the objects (module docstring), at each vehicle's newest frame:
+    key -> (pose, its tangent covariance). The vehicles' priors, their motion and the cross-detections between
+    them, one Gauss-Newton step from the host's estimate (the host's own solution holds the objects too).
+
+    The n detections of one vehicle by one observer in the window share the persistent part of the detector's
+    error, a share f = :func:`~.fusion.hostcore.persistent_share` of each one's variance: their mean's variance
+    is s^2 (f + (1 - f) / n), which n independent detections of variance s^2 (1 + f (n - 1)) have too; each is
+    weighted so (the host's own graph counts them as independent)."""
+    factors, cross = graph.vehicles_only()
+    nfg = gtsam.NonlinearFactorGraph()
+    for f in factors:
+        nfg.add(f)
+    share = persistent_share(graph.params)
+    n = Counter((obs, tgt) for _, obs, tgt in cross)
+    dets = [replace(d, weight=d.weight / (1.0 + share * (n[(obs, tgt)] - 1))) for d, obs, tgt in cross]
+    for f in linear_factors(dets, graph.values) if dets else []:
+        nfg.add(f)
+    if nfg.size() == 0:
+        return {}
+    gfg = nfg.linearize(graph.values)
+    dx = gfg.optimize()
+    marginals = gtsam.Marginals(gfg, dx)
+    out = {}
+    for chain in graph.vehicles.values():
+        key = chain.latest().key
+        T = graph.values.atPose3(key).compose(gtsam.Pose3.Expmap(dx.at(key)))
+        out[key] = (T, marginals.marginalCovariance(key))
+    return out
+
+
 def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
                       max_sigma_m: float = MAX_DOWNLINK_SIGMA_M) -> list[PoseDownlink]:  # fmt: skip
     """One PoseDownlink per vehicle of ``graph`` (a solved :class:`~.fusion.graph.FusionGraph`) that the others
@@ -137,13 +172,15 @@ def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
     share is spread over the window, not one factor), and one whose horizontal position the others know to no
     better than ``max_sigma_m`` (:meth:`OthersOnly.position_sigma_m`)."""
     out = []
+    posterior = None
     for vid in sorted(graph.vehicles):
         chain = graph.vehicles[vid]
         s = chain.latest()
-        cov_h = graph.covariances.get(s.key)
-        if cov_h is None or list(chain.pose_prior_fids) != [chain.tkeys[-1]]:
+        if graph.covariances.get(s.key) is None or list(chain.pose_prior_fids) != [chain.tkeys[-1]]:
             continue  # not solved yet; a late frame; or per-frame priors, the own share spread over the window
-        o = horizontal(others_only(graph.values.atPose3(s.key), cov_h, s.T, s.cov_xi))
+        if posterior is None:
+            posterior = cross_localization(graph)
+        o = horizontal(others_only(*posterior[s.key], s.T, s.cov_xi))
         if o.rank == 0 or o.position_sigma_m() > max_sigma_m:
             continue
         out.append(
