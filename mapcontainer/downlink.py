@@ -159,9 +159,24 @@ def cross_localization(graph) -> dict[int, tuple[gtsam.Pose3, np.ndarray]]:
     is s^2 (f + (1 - f) / n), which n independent detections of variance s^2 (1 + f (n - 1)) have too; each is
     weighted so (the host's own graph counts them as independent)."""
     factors, cross = graph.vehicles_only()
+    poses, tied = set(), set()
+    for chain in graph.vehicles.values():
+        poses.update(s.key for s in chain.states.values())
+        i = len(chain.tkeys) - 1
+        tied.add(chain.states[chain.tkeys[i]].key)
+        while i > 0 and chain.tkeys[i - 1] in chain.motion:
+            i -= 1
+            tied.add(chain.states[chain.tkeys[i]].key)
+    # frames before a gap in a vehicle's motion (no motion factor) hang on nothing once the objects are out (a
+    # filtered sender's only prior is on its newest frame): what touches them says nothing about the frames tied
+    # to a prior and is left out (exact; a per-frame sender's such frames have priors: leaving them out is
+    # conservative)
+    loose = poses - tied
     nfg = gtsam.NonlinearFactorGraph()
     for f in factors:
-        nfg.add(f)
+        if loose.isdisjoint(f.keys()):
+            nfg.add(f)
+    cross = [(d, obs, tgt) for d, obs, tgt in cross if d.pose_key in tied and d.target_key in tied]
     share = persistent_share(graph.params)
     n = Counter((obs, tgt) for _, obs, tgt in cross)
     dets = [replace(d, weight=d.weight / (1.0 + share * (n[(obs, tgt)] - 1))) for d, obs, tgt in cross]

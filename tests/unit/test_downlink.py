@@ -14,6 +14,7 @@ from mapcontainer.downlink import (
     remove_own,
 )
 from mapcontainer.fusion import Container, FusionParams
+from mapcontainer.fusion.buffer import time_key
 from mapcontainer.fusion.poses import pose3_from_vector, pose_cov_to_tangent, sym_from_upper
 from schemas import PoseDownlink, decode, encode
 
@@ -208,3 +209,20 @@ def test_without_objects_and_persistent_detector_error_the_window_is_the_hosts_p
     for vid in info:  # ten detections by one partner in the window, 0.43 of their variance shared (the partner's
         # own pose error does not average out either: about half the information along the line of sight)
         assert np.linalg.eigvalsh(shared[vid])[1] < 0.65 * np.linalg.eigvalsh(info[vid])[1]
+
+
+def test_frames_past_a_gap_in_the_motion_do_not_break_the_window_without_objects():
+    """cv2's frames before a 0.6 s gap (no motion factor) hang only on its detections of a parked car in the host's
+    window; without the objects they hang on nothing, and the downlink is still made."""
+    box = Container(FusionParams(), "f", "host")
+    for m in _three_vehicles(16):
+        if m.sender == "cv2" and 0.65 < m.t_meas < 1.25:
+            continue
+        if m.sender == "cv2":
+            m = m.model_copy(update={"objects": prior(objects=((20.0, 3.0, 0.0),)).objects})
+        box.ingest(encode(m), m.t_meas)
+        if m.sender == "cv2":
+            box.fuse(m.t_meas)
+    chain = box.graph.vehicles["cv2"]
+    assert chain.tkeys[1] < time_key(0.7) < time_key(1.2) < chain.tkeys[-1]  # two frames before the gap, tied
+    assert sorted(m.target for m in box.downlink(1.5, 0)) == ["cv0", "cv1"]
