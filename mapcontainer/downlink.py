@@ -190,6 +190,8 @@ def cross_localization(graph) -> dict[int, tuple[gtsam.Pose3, np.ndarray]]:
     out = {}
     for chain in graph.vehicles.values():
         key = chain.latest().key
+        if not dx.exists(key):
+            continue
         T = graph.values.atPose3(key).compose(gtsam.Pose3.Expmap(dx.at(key)))
         out[key] = (T, marginals.marginalCovariance(key))
     return out
@@ -213,6 +215,8 @@ def downlink_messages(graph, fleet: str, host_id: str, t_sent: float, seq0: int,
             continue  # not solved yet; a late frame; or per-frame priors, the own share spread over the window
         if posterior is None:
             posterior = cross_localization(graph)
+        if s.key not in posterior:
+            continue
         o = horizontal(others_only(*posterior[s.key], s.T, s.cov_xi))
         if o.rank == 0 or o.position_sigma_m() > max_sigma_m:
             continue
