@@ -609,6 +609,21 @@ class FusionGraph:
             laps.ms,
         )
 
+    def vehicles_only(self) -> tuple[list[gtsam.NonlinearFactor], list[tuple[DetectionRecord, str, str]]]:
+        """The window without the objects (for the downlink, :mod:`mapcontainer.downlink`): every factor that
+        involves no track state (the vehicles' priors and motion, their persistent errors' priors) except the
+        cross-detections, which come apart as (record, observer's vid, observed vehicle's vid)."""
+        tracks = {s.key for c in self.tracks.values() for s in c.states.values()}
+        factors, cross = [], []
+        for fid, f in self._factors.items():
+            det = self._fid_det.get(fid)
+            if det is not None:
+                if det.cross:
+                    cross.append((det, self._pose_states[det.pose_key].vid, self._pose_states[det.target_key].vid))
+            elif not any(k in tracks for k in f.keys()):
+                factors.append(f)
+        return factors, cross
+
     # ------------------------------------------------------------------ results
     def vehicle_estimate(self, vid: str) -> tuple[float, gtsam.Pose3, np.ndarray | None]:
         """(t, Pose3, tangent covariance or None before a solve) of a vehicle's latest frame."""

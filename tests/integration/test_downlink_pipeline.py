@@ -2,9 +2,9 @@
 
 One 60 s urban run with the downlink on: every vehicle's on-board estimate (its own, with the host's
 "what the others know about you" fused) stays consistent (the mean NEES of its horizontal position inside
-the chi^2 band of one sample; all four vehicles' means inside the band of four), the downlink is used, and in
-every frame a vehicle did not fuse one its on-board covariance is exactly its own (nothing it was told earlier
-lingers as confidence).
+the chi^2 band of one sample; all four vehicles' means inside the band of four), the downlink is used where the
+others see a vehicle, and in every frame a vehicle did not fuse one its on-board covariance is exactly its own
+(nothing it was told earlier lingers as confidence).
 """
 
 import numpy as np
@@ -42,7 +42,10 @@ def test_on_board_nees_stays_in_band_with_the_downlink(run):
 
 def test_the_downlink_is_used_and_leaves_no_confidence_behind(run):
     used = sum(s in ("fused", "fused_ci") for rec in run.records for s in rec.downlink.values())
-    assert used > 0.5 * sum(len(rec.downlink) for rec in run.records)  # seen by others most of the time
+    # in the frames where others see it: the others' view is that of the window without the objects (it was used in
+    # 31 % of the vehicle frames of this run; more than half while it still came through the objects too, which
+    # handed the vehicles their own past: docs/downlink.md)
+    assert used > 0.25 * sum(len(rec.downlink) for rec in run.records)
     assert sum(run.rx_bytes.values()) > 0
     for rec in run.records:
         for vid, status in rec.downlink.items():

@@ -5,8 +5,16 @@ import numpy as np
 import pytest
 
 from mapcontainer import geometry as geo
-from mapcontainer.downlink import OthersOnly, downlink_messages, horizontal, others_only, remove_own
+from mapcontainer.downlink import (
+    OthersOnly,
+    cross_localization,
+    downlink_messages,
+    horizontal,
+    others_only,
+    remove_own,
+)
 from mapcontainer.fusion import Container, FusionParams
+from mapcontainer.fusion.buffer import time_key
 from mapcontainer.fusion.poses import pose3_from_vector, pose_cov_to_tangent, sym_from_upper
 from schemas import PoseDownlink, decode, encode
 
@@ -154,3 +162,67 @@ def test_the_horizontal_marginal_is_the_information_of_x_y_with_the_rest_unknown
     # a whole pose known: the marginal is the x, y block of its covariance
     full = OthersOnly(np.zeros(6), np.linalg.inv(np.diag([0.2, 0.3, 0.1, 0.01, 0.01, 0.02]) ** 2), 6)
     np.testing.assert_allclose(np.linalg.inv(horizontal(full).info[:2, :2]), np.diag([0.04, 0.09]), rtol=1e-9)
+
+
+def _alone_past_parked_cars(n=25):
+    """cv3 drives alone at 8 m/s past two parked cars ahead, left and right, that only it sees; 0.1 s frames."""
+    cars = np.array([[30.0, 5.0, 0.0], [26.0, -6.0, 0.0]])
+    for k in range(n):
+        t = 0.1 * k
+        pose = [8 * t, 0, 0, 0, 0, 0.0]
+        z = geo.transform_points(geo.inverse(geo.pose_to_matrix(np.array(pose))), cars)
+        yield prior("cv3", k, t, pose=pose, objects=z, v=(8, 0, 0)).model_copy(update={"pose_filtered": True})
+
+
+def test_a_vehicle_that_alone_sees_an_object_does_not_get_its_own_past_back():
+    """Rumour through the objects: once the cars' tracks are older than the lag, their priors hold cv3's detections
+    placed with cv3's reported poses (its own estimates); cv3's newest detections of them then tells the host where
+    cv3 is -- from cv3's own past. Subtracting the newest prior leaves that in: the channel filter of the window
+    with the objects sent cv3 a downlink (1-sigmas 0.23 and 0.41 m) though nobody sees it. Without them: nothing."""
+    box = Container(FusionParams(), "f", "host")
+    for m in _alone_past_parked_cars():
+        box.ingest(encode(m), m.t_meas)
+        box.fuse(m.t_meas)
+    assert box.graph.tracks and any(c.prior is not None and c.prior.info[0, 0] > 1.0 for c in box.graph.tracks.values())
+    assert box.downlink(2.5, 0) == []
+
+
+def test_without_objects_and_persistent_detector_error_the_window_is_the_hosts_posterior():
+    """The vehicles-only window equals the host's own solution when there are no objects, and with the detector's
+    persistent share its cross-detections count as their mean does: less information, the same pose."""
+    plain = FusionParams(detection_persistent_fraction=0.0)
+    box = Container(plain, "f", "host")
+    for m in _three_vehicles():
+        box.ingest(encode(m), m.t_meas)
+        if m.sender == "cv2":
+            box.fuse(m.t_meas)
+    post = cross_localization(box.graph)
+    for chain in box.graph.vehicles.values():
+        key = chain.latest().key
+        T, cov = post[key]
+        np.testing.assert_allclose(T.matrix(), box.graph.values.atPose3(key).matrix(), atol=1e-6)
+        np.testing.assert_allclose(cov, box.graph.covariances[key], rtol=1e-6, atol=1e-12)
+    info = {m.target: sym_from_upper(m.pose_info)[:2, :2] for m in downlink_messages(box.graph, "f", "h", 2.0, 0)}
+    box.graph.params = FusionParams(detection_persistent_fraction=0.5)
+    shared = {m.target: sym_from_upper(m.pose_info)[:2, :2] for m in downlink_messages(box.graph, "f", "h", 2.0, 0)}
+    assert sorted(info) == sorted(shared) == ["cv0", "cv1"]
+    for vid in info:  # ten detections by one partner in the window, 0.43 of their variance shared (the partner's
+        # own pose error does not average out either: about half the information along the line of sight)
+        assert np.linalg.eigvalsh(shared[vid])[1] < 0.65 * np.linalg.eigvalsh(info[vid])[1]
+
+
+def test_frames_past_a_gap_in_the_motion_do_not_break_the_window_without_objects():
+    """cv2's frames before a 0.6 s gap (no motion factor) hang only on its detections of a parked car in the host's
+    window; without the objects they hang on nothing, and the downlink is still made."""
+    box = Container(FusionParams(), "f", "host")
+    for m in _three_vehicles(16):
+        if m.sender == "cv2" and 0.65 < m.t_meas < 1.25:
+            continue
+        if m.sender == "cv2":
+            m = m.model_copy(update={"objects": prior(objects=((20.0, 3.0, 0.0),)).objects})
+        box.ingest(encode(m), m.t_meas)
+        if m.sender == "cv2":
+            box.fuse(m.t_meas)
+    chain = box.graph.vehicles["cv2"]
+    assert chain.tkeys[1] < time_key(0.7) < time_key(1.2) < chain.tkeys[-1]  # two frames before the gap, tied
+    assert sorted(m.target for m in box.downlink(1.5, 0)) == ["cv0", "cv1"]
