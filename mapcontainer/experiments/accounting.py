@@ -84,7 +84,8 @@ def _with_dask_defaults(argv: list[str], out: Path, workers: int) -> dict[str, A
     with (
         dask.config.set({"distributed.worker.profile.enabled": False}),
         LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},  # a free port for its HTTP server, not 8787
         ) as cluster,
     ):
         doc = command_accounting([*argv, "--executor", "dask", "--scheduler", cluster.scheduler_address], out)

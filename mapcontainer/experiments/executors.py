@@ -242,6 +242,9 @@ def local_cluster(workers: int) -> Iterator[Any]:
             processes=True,
             host="127.0.0.1",
             dashboard_address=None,
+            # no dashboard, but the scheduler's HTTP server (health routes) starts anyway, on Dask's fixed 8787
+            # unless told: a free loopback port, so that two clusters (tests, users) never collide
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
             silence_logs=logging.ERROR,
         )
     with cluster:

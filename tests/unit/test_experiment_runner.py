@@ -262,7 +262,10 @@ def test_a_cluster_whose_workers_have_dasks_malloc_trim_threshold_is_warned_abou
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "")  # (undone at the end: Dask's nanny sets it in this process)
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
     with (
-        distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as dask_s,
+        distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+        ) as dask_s,
         caplog.at_level(logging.WARNING),
         open_pool(Executor("dask", scheduler=dask_s.scheduler_address)),
     ):
