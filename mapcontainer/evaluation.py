@@ -66,6 +66,7 @@ __all__ = [
     "rmse_sq",
     "rmse_vs_time",
     "score_frame",
+    "score_near_vehicles",
     "vehicle_pose",
     "within_radius",
 ]
@@ -373,6 +374,24 @@ def score_frame(
         gospa=gospa_parts(d, n_truth - len(oi), n_false, c, GOSPA_P),
     )
 
+
+
+def score_near_vehicles(fused: FusedState, truth: GroundTruth, radius_m: float) -> tuple[FrameScore, int]:
+    """:func:`score_frame` with the objects scoped to those within ``radius_m`` of any connected vehicle's
+    true position (true obstacles and fused objects alike): the scaling experiment's and the centralized
+    bench's scope. Returns the score and the number of true obstacles in scope."""
+    cv = np.asarray(truth.vehicle_pose, dtype=float).reshape(-1, 6)[:, :2]
+    p_true = np.asarray(truth.obstacle_p_map, dtype=float).reshape(-1, 3)[:, :2]
+    p_est = np.asarray(fused.object_p_map, dtype=float).reshape(-1, 3)[:, :2]
+    t_in = _near_any(p_true, cv, radius_m)
+    return score_frame(fused, truth, truth_in_scope=t_in, est_in_scope=_near_any(p_est, cv, radius_m)), int(t_in.sum())
+
+
+def _near_any(p: np.ndarray, centres: np.ndarray, radius_m: float) -> np.ndarray:
+    """Which of the points p (n, 2) lie within radius_m of any of the centres (k, 2)."""
+    if not len(p) or not len(centres):
+        return np.zeros(len(p), dtype=bool)
+    return np.min(np.linalg.norm(p[:, None, :] - centres[None], axis=2), axis=1) <= radius_m
 
 def frame_row(s: FrameScore) -> dict[str, float | int]:
     """A flat per-frame record (the evaluator's ``eval_frames.csv``, the experiments' per-frame tables):

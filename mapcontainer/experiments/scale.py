@@ -47,7 +47,7 @@ import numpy as np
 
 from .. import jsonout
 from ..channel import load_profile
-from ..evaluation import Totals, score_frame
+from ..evaluation import Totals, score_near_vehicles
 from ..fusion.compiled import COMPILED
 from ..jsonout import rounded
 from ..pipeline import View, run_pipeline
@@ -117,13 +117,6 @@ def scenario_with_connected(scenario: str | ScenarioConfig, n: int) -> ScenarioC
     return scale_scenario(sc, n)
 
 
-def _near_any(p: np.ndarray, centres: np.ndarray, radius_m: float) -> np.ndarray:
-    """Which of the points p (n, 2) lie within radius_m of any of the centres (k, 2)."""
-    if not len(p) or not len(centres):
-        return np.zeros(len(p), dtype=bool)
-    return np.min(np.linalg.norm(p[:, None, :] - centres[None], axis=2), axis=1) <= radius_m
-
-
 def run_scale_point(
     n: int,
     mode: str,
@@ -148,14 +141,9 @@ def run_scale_point(
     in_scope = []
     scored = [r for r in res.records if r.t >= warmup_s - 1e-9 and "fused" in r.fused]
     for rec in scored:
-        truth, fused = rec.truth, rec.fused["fused"]
-        cv = np.asarray(truth.vehicle_pose, dtype=float).reshape(-1, 6)[:, :2]
-        p_true = np.asarray(truth.obstacle_p_map, dtype=float).reshape(-1, 3)[:, :2]
-        p_est = np.asarray(fused.object_p_map, dtype=float).reshape(-1, 3)[:, :2]
-
-        t_in = _near_any(p_true, cv, radius_m)
-        in_scope.append(int(t_in.sum()))
-        totals.add(score_frame(fused, truth, truth_in_scope=t_in, est_in_scope=_near_any(p_est, cv, radius_m)))
+        score, n_in_scope = score_near_vehicles(rec.fused["fused"], rec.truth, radius_m)
+        in_scope.append(n_in_scope)
+        totals.add(score)
     s = totals.summary()
     senders = sorted(res.tx_msgs)
     total_bps = sum(res.tx_bytes.values()) / duration

@@ -25,8 +25,7 @@ import numpy as np
 
 from schemas import GroundTruth, encode
 
-from ..evaluation import Totals, score_frame
-from ..experiments.scale import _near_any  # the scaling experiment's object scope, scored alike
+from ..evaluation import Totals, score_near_vehicles  # the scaling experiment's object scope, scored alike
 from ..sim import World, load_scenario
 from ..sim.config import scale_scenario
 from ..vehicle import VehicleAgent
@@ -112,17 +111,7 @@ def replay_joint(
         tracks.append(st["tracks_confirmed"])
         for phase, ms in st["last_phases_cpu_ms"].items():
             phases.setdefault(phase, []).append(ms)
-        cv = np.asarray(truth.vehicle_pose, dtype=float).reshape(-1, 6)[:, :2]
-        p_true = np.asarray(truth.obstacle_p_map, dtype=float).reshape(-1, 3)[:, :2]
-        p_est = np.asarray(fused.object_p_map, dtype=float).reshape(-1, 3)[:, :2]
-        totals.add(
-            score_frame(
-                fused,
-                truth,
-                truth_in_scope=_near_any(p_true, cv, radius_m),
-                est_in_scope=_near_any(p_est, cv, radius_m),
-            )
-        )
+        totals.add(score_near_vehicles(fused, truth, radius_m)[0])
     s = totals.summary()
     st = host.stats()
     p50 = float(np.percentile(wall, 50))
