@@ -10,6 +10,7 @@ import numpy as np
 from schemas import body_pose_cov, encode
 
 from . import geometry as geo
+from .fusion.jointbench import yardstick_ms
 from .localization import LocalizerParams
 from .localization.search import PoseSearchParams
 from .metrics import percentile, rmse
@@ -34,6 +35,7 @@ def bench_localization(
     stanford_png: str | None = None,
     startup_accept: Literal["landmarks", "posterior"] = "landmarks",
     search_budget: int | None = PoseSearchParams().solves_per_frame,
+    yardstick_every: int = 200,
 ) -> dict:
     """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes (seeds
     ``seed0`` ... ``seed0 + seeds - 1``; development seeds are below :data:`~mapcontainer.seeds.EVAL_SEED0`).
@@ -56,7 +58,11 @@ def bench_localization(
     noisier, with its own covariance. Frames in the first ``warmup_s`` seconds (initialisation
     from GNSS) are not scored, nor frames without a pose (``no_pose_frames``: the localizer re-initialising).
     Time is the whole vehicle step (PNG decode, distance transform,
-    matching, message build); ``solves_per_frame_*``: the matcher's solves per step (association rounds + LM
+    matching, message build): ``ms_per_frame_*`` in wall time, ``cpu_ms_per_frame_*`` in this process's CPU time
+    (``time.process_time``: what a loaded machine's waits do not inflate), and ``yardstick_ms_p50`` a fixed workload
+    (:func:`~mapcontainer.fusion.jointbench.yardstick_ms`) timed every ``yardstick_every`` frames, with the frame's
+    wall p50 / p99 over it (``*_over_yardstick``: the machine's speed at the time divided out);
+    ``solves_per_frame_*``: the matcher's solves per step (association rounds + LM
     from one start pose), the machine-independent part of that time (the start-up search's anytime budget,
     ``PoseSearchParams.solves_per_frame``, bounds it; ``search_budget``, None: no budget).
     ``after_localized_rmse_m``: every vehicle's horizontal RMSE from the frame it localizes on (steady state,
@@ -78,9 +84,10 @@ def bench_localization(
     runs = []
     for seed in range(seed0, seed0 + seeds):
         with World(sc, seed=seed) as world:
-            runs.append({"locks": _episode(world, duration_s, warmup_s, acc, params)})
+            runs.append({"locks": _episode(world, duration_s, warmup_s, acc, params, yardstick_every)})
+    yard = float(np.median(acc["yardstick"]))
     (e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes) = (
-        acc[k] for k in _ACC[:-5]
+        acc[k] for k in _ACC[:14]
     )
     return {
         "scenario": scenario,
@@ -111,6 +118,11 @@ def bench_localization(
         "nees_axes_mean": dict(zip(_AXES, np.round(np.mean(nees_axes, axis=0), 2).tolist(), strict=True)),
         "ms_per_frame_p50": round(percentile(ms, 50), 2),
         "ms_per_frame_p99": round(percentile(ms, 99), 2),
+        "cpu_ms_per_frame_p50": round(percentile(acc["cpu_ms"], 50), 2),
+        "cpu_ms_per_frame_p99": round(percentile(acc["cpu_ms"], 99), 2),
+        "yardstick_ms_p50": round(yard, 2),
+        "ms_p50_over_yardstick": round(percentile(ms, 50) / yard, 3),
+        "ms_p99_over_yardstick": round(percentile(ms, 99) / yard, 3),
         "solves_per_frame_p99": percentile(acc["solves"], 99),
         "solves_per_frame_max": int(np.max(acc["solves"], initial=0)),
         "prior_bytes_mean": round(float(np.mean(sizes)), 1),
@@ -125,28 +137,37 @@ def bench_localization(
 _AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 _ACC = (
     "e_pos", "e_lat", "e_lon", "e_yaw", "e_gnss", "nees", "ms", "sizes", "matched", "e_prior", "nees_prior", "e_all",
-    "e_all_yaw", "nees_axes", "no_pose", "e_all_lat", "e_all_lon", "integrity", "solves",
+    "e_all_yaw", "nees_axes", "no_pose", "e_all_lat", "e_all_lon", "integrity", "solves", "cpu_ms", "yardstick",
 )  # fmt: skip
 ALERT_LIMIT_M = 0.5  # lateral protection level at most this: the frame is available (local streets)
 
 
 def _episode(
-    world: World, duration_s: float, warmup_s: float, acc: dict[str, list], params: LocalizerParams
+    world: World,
+    duration_s: float,
+    warmup_s: float,
+    acc: dict[str, list],
+    params: LocalizerParams,
+    yardstick_every: int = 100,
 ) -> list[list[float]]:
     """Every vehicle of one episode localized frame by frame (with ``params``); the scored frames' figures appended
-    to ``acc`` (lists named in :data:`_ACC`); returns the cold-start rows [t, vehicle index, says map_matching,
+    to ``acc`` (lists named in :data:`_ACC`; the yardstick timed once per ``yardstick_every`` frames, between
+    frames); returns the cold-start rows [t, vehicle index, says map_matching,
     horizontal error]."""
     e_pos, e_lat, e_lon, e_yaw, e_gnss, nees, ms, sizes, matched, e_prior, nees_prior, e_all, e_all_yaw, nees_axes = (
-        acc[k] for k in _ACC[:-5]
+        acc[k] for k in _ACC[:14]
     )
     agents = {v: VehicleAgent(world.hdmap, v, world.fleet, params=params) for v in world.vehicle_ids}
     index = {v: i for i, v in enumerate(world.vehicle_ids)}
     locks: list[list[float]] = []
     for tick in world.run(duration_s):
         for vid, frame in tick.frames.items():
-            t0, solves0 = time.perf_counter(), agents[vid].localizer.matcher.solves
+            if len(ms) % yardstick_every == 0:
+                acc["yardstick"].append(yardstick_ms())
+            t0, c0, solves0 = time.perf_counter(), time.process_time(), agents[vid].localizer.matcher.solves
             prior = agents[vid].handle(tick.t, frame)
             ms.append((time.perf_counter() - t0) * 1e3)
+            acc["cpu_ms"].append((time.process_time() - c0) * 1e3)
             acc["solves"].append(agents[vid].localizer.matcher.solves - solves0)
             sizes.append(len(encode(prior)))
             res = agents[vid].last_result
