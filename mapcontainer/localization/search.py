@@ -106,13 +106,13 @@ class PoseSearchParams(BaseModel):
         "weighs basins: heavy tails for multipath jumps of several metres",
     )
     solves_per_frame: int | None = Field(
-        None,
+        6,
         ge=1,
-        description="anytime budget (opt-in): a search solves starts until it has used this many of the matcher's "
+        description="anytime budget: a search solves starts until it has used this many of the matcher's "
         "solves (association rounds + LM from one start pose; the lane search and the polish count) in the step, "
         "the hypotheses' matches included; the starts left are returned as pending and solved on the next frames "
-        "(carried by the odometry), and nothing is accepted while any is pending. None (the default): every start "
-        "in the frame (see docs/localization.md for the figures of both)",
+        "(carried by the odometry), and nothing is accepted while any is pending. None: every start in the frame "
+        "(unbounded frame time; see docs/localization.md for the figures of both)",
     )
     grid_detections: int = Field(
         64,

@@ -501,19 +501,50 @@ def _yaws_both_ways(yaw, half_deg=6.0, step_deg=1.5):
     return geo.wrap_angle(np.radians(np.concatenate([k, k + 180.0])) + yaw)
 
 
+WHOLE = PoseSearchParams(solves_per_frame=None)  # every start solved in the frame: the search's decision in one call
+
+
 @pytest.mark.parametrize("s", [10.0, 190.0, 205.0])
 def test_search_finds_the_basin_from_a_gnss_fix_facing_either_way(s):
+    """The search's decision over all its starts (no budget: one call solves them all)."""
     rng = np.random.default_rng(int(s))
     m = MapMatcher(HDMAP)
     truth = pose_on(s)
     frame, _ = synth_frame(truth, rng)
     start = truth + np.array([2.5, -2.0, 0.0, 0.0, 0.0, np.pi])  # GNSS-level off and facing backwards
     cov = np.diag([9.0, 9.0, 0.04, 4e-4, 4e-4, np.pi**2 / 3])
-    out = PoseSearch(m).search(frame, start, cov, _yaws_both_ways(truth[5]), radius_m=9.0)
+    out = PoseSearch(m, WHOLE).search(frame, start, cov, _yaws_both_ways(truth[5]), radius_m=9.0)
     assert out.match is not None, out.reason
     e = pose_error(out.match.pose_filtered, truth)
     assert np.hypot(*e[:2]) < 0.3 and abs(np.degrees(e[5])) < 0.5
     assert out.runner_up_score - out.best_score >= PoseSearchParams().margin
+
+
+@pytest.mark.parametrize("s", [10.0, 190.0, 205.0])
+def test_the_budgeted_start_up_finds_the_basin_from_a_gnss_fix_over_a_few_frames(s):
+    """The same start as above through the localizer, with the default anytime budget (search.solves_per_frame):
+    no heading, the fix 3.2 m off, the vehicle standing still (the same frame each step, zero odometry). The search
+    spreads its starts over the first frames and its basins are tracked until one wins: map matched within 4
+    frames, as accurate as the whole search, never a map-matched pose before; and no step uses more than the
+    budget and one start's solves (a lane search and a polish, 4 at most)."""
+    rng = np.random.default_rng(int(s))
+    truth = pose_on(s)
+    frame, _ = synth_frame(truth, rng)
+    loc = Localizer(HDMAP, LocalizerParams(**EXACT))
+    fix = GnssMeasurement(truth[:3] + np.array([2.5, -2.0, 0.0]), 2.0, 3.0)
+    modes, solves = [], []
+    for k in range(8):
+        solves0 = loc.matcher.solves
+        res = loc.step(0.1 * k, frame, OdometryMeasurement(0.0, 0.0), fix)
+        solves.append(loc.matcher.solves - solves0)
+        modes.append(res.mode)
+        if res.mode == "map_matching":
+            e = pose_error(res.pose, truth)
+            assert np.hypot(*e[:2]) < 0.3 and abs(np.degrees(e[5])) < 0.5, (k, e)
+    assert "map_matching" in modes[:4], modes
+    first = modes.index("map_matching")
+    assert modes[first:] == ["map_matching"] * (8 - first), modes
+    assert max(solves) <= loc.params.search.solves_per_frame + 4, solves
 
 
 def test_a_budgeted_search_carries_its_starts_and_decides_once_all_are_solved():
@@ -526,15 +557,15 @@ def test_a_budgeted_search_carries_its_starts_and_decides_once_all_are_solved():
     frame, _ = synth_frame(truth, np.random.default_rng(int(s)))
     start = truth + np.array([2.5, -2.0, 0.0, 0.0, 0.0, np.pi])
     cov = np.diag([9.0, 9.0, 0.04, 4e-4, 4e-4, np.pi**2 / 3])
-    search = PoseSearch(m)
+    search = PoseSearch(m, WHOLE)
     whole = search.search(frame, start, cov, _yaws_both_ways(truth[5]), radius_m=9.0)
     solves = m.solves
     first = search.search(frame, start, cov, _yaws_both_ways(truth[5]), radius_m=9.0, budget=1)
     assert first.match is None and first.reason.startswith("searching") and len(first.solutions) == 1
     assert whole.match is not None and whole.pending == ()
     assert len(first.pending) >= 1 and m.solves - solves <= 4  # one start (its lane search, its polish)
-    # Resumed, the carried starts are solved; their basins join the caller's hypotheses (nothing accepted: the
-    # first frame's basins are not among them), and the true one is there.
+    # Resumed without a budget, the carried starts are all solved; their basins join the caller's hypotheses
+    # (nothing accepted: the first frame's basins are not among them), and the true one is there.
     rest = search.search(frame, start, cov, _yaws_both_ways(truth[5]), radius_m=9.0, starts=first.pending)
     assert rest.pending == () and rest.match is None and rest.solutions
     e = pose_error(rest.solutions[0].pose_filtered, truth)

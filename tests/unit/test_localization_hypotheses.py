@@ -248,19 +248,24 @@ def test_relocalization_after_a_kidnap():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("rule", ["landmarks", "posterior"])
-def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes(rule):
+@pytest.mark.parametrize(
+    ("rule", "budget"), [("landmarks", None), ("landmarks", PoseSearchParams().solves_per_frame), ("posterior", None)]
+)
+def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes(rule, budget):
     """Development seed 1 of paper-urban, every error source on, cv2 from a cold start: the search found the true
     basin from one pole and the lanes at 2.0 s (0.3 m along, 0.2 m across) and rejected it as 'too few features
     (3 constraints)'; the vehicle published a GNSS-grade fallback 1.1-1.3 m off until 3.0 s. Rule 'landmarks' (the
     default) still does exactly that (main's decisions, traced frame by frame: first lock at 3.0 s, 0.11 m off).
     By its posterior mass (rule 'posterior') it locks at 0.5 s (0.5 m along at 1.5 sigma) and is within 0.3 m 0.2 s
-    later."""
+    later. These decisions are checked with the search's budget off (every start solved in its frame). With the
+    default anytime budget (search.solves_per_frame) the landmark rule locks one frame later, at 3.1 s: the search
+    that finds the basin at 1.9 s solves its best start first (not the true basin), and the starts it carries are
+    solved on later frames."""
     from mapcontainer.sim import World, load_scenario
     from mapcontainer.vehicle import VehicleAgent
 
     with World(load_scenario("paper-urban"), seed=1) as world:
-        params = LocalizerParams(search=PoseSearchParams(accept=rule))
+        params = LocalizerParams(search=PoseSearchParams(accept=rule, solves_per_frame=budget))
         agent = VehicleAgent(world.hdmap, "cv2", world.fleet, params=params)
         rows = []
         for tick in world.run(3.5):
@@ -269,7 +274,9 @@ def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes(rule):
             err = np.hypot(*(r.pose_filtered - tick.states["cv2"].pose)[:2]) if r.pose_filtered is not None else np.inf
             rows.append((tick.t, r.mode, err, r.reason))
     first = next(t for t, mode, _, _ in rows if mode == "map_matching")
-    if rule == "landmarks":
+    if rule == "landmarks" and budget is not None:
+        assert first == pytest.approx(3.1), rows
+    elif rule == "landmarks":
         assert first == pytest.approx(3.0), rows
         assert sum(reason == "too few features to search" for *_, reason in rows) == 7, rows
         assert all(reason == "searching: 1 hypotheses" for t, *_, reason in rows if 2.0 - 1e-9 < t < first), rows

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from mapcontainer.localization import GnssMeasurement, Localizer, LocalizerParams, OdometryMeasurement
+from mapcontainer.localization.matcher import MapMatcher
 from mapcontainer.localization.search import PoseSearchParams, SearchOutcome
 from mapcontainer.localization.startup import Phase, StartupMachine
 
@@ -48,8 +49,12 @@ def _first_steps(params):
 def test_initial_yaw_waits_for_gnss_then_tracks():
     loc, res, _, rng = _first_steps(LocalizerParams(**EXACT))
     # The GNSS position is too wide for one local solve: the search runs, and leaves its basins as hypotheses.
+    # Its budget (search.solves_per_frame) solves the best start only (its basin a hypothesis); the other two are
+    # carried to the next frame (with the budget off, this frame's search rejected the lone basin as 'too few
+    # features (3 constraints)': the frames after are the same either way).
     assert loc.phase is Phase.SEARCHING and res.mode == "fallback" and res.reason.startswith("search: ")
-    assert res.reason == "search: too few features (3 constraints)" and len(loc.startup.hyps) == 1
+    assert res.reason == "search: searching: 2 starts pending" and len(loc.startup.hyps) == 1
+    assert len(loc.startup.pending) == 2
     # The lone hypothesis has not won on the next frame: the search runs again for rivals.
     frame, _ = synth_frame(pose_on(41.0), rng)
     res = loc.step(0.2, frame, ODO, _fix(pose_on(41.0)))
@@ -62,14 +67,29 @@ def test_initial_yaw_waits_for_gnss_then_tracks():
 
 def test_initial_yaw_waits_for_gnss_then_tracks_by_posterior_mass():
     loc, res, truth, rng = _first_steps(LocalizerParams(**EXACT, **POSTERIOR))
-    # The GNSS position is too wide for one local solve: the search runs. A point and a pole explained (three
-    # constraints on x, y, yaw) and no rival basin: the basin holds the posterior mass, it is taken at once.
-    assert loc.phase is Phase.TRACKING and res.mode == "map_matching" and loc.startup.hyps == []
-    assert np.hypot(*pose_error(res.pose, truth)[:2]) < 0.2
-    frame, _ = synth_frame(pose_on(41.0), rng)
-    res = loc.step(0.2, frame, ODO, _fix(pose_on(41.0)))
-    assert loc.phase is Phase.TRACKING and res.mode == "map_matching"
-    assert np.hypot(*pose_error(res.pose, pose_on(41.0))[:2]) < 0.2
+    # The GNSS position is too wide for one local solve: the search runs; its budget solves the best start (its basin
+    # a hypothesis) and carries the other two to the next frame.
+    assert loc.phase is Phase.SEARCHING and res.mode == "fallback" and len(loc.startup.hyps) == 1
+    assert res.reason == "search: searching: 2 starts pending"
+    # A point and a pole explained again (three constraints on x, y, yaw) and no rival basin: the basin holds the
+    # posterior mass, it is taken.
+    steps = []
+    for k, s in enumerate((41.0, 42.0, 43.0, 44.0)):
+        frame, _ = synth_frame(pose_on(s), rng)
+        res = loc.step(0.2 + 0.1 * k, frame, ODO, _fix(pose_on(s)))
+        steps.append((loc.phase, res.mode))
+        e = pose_error(res.pose, pose_on(s))[:2]
+        assert e @ np.linalg.solve(res.cov[:2, :2], e) < 13.8  # honest: within its 99.9 % ellipse
+        if res.mode == "map_matching":  # the first lock 0.25 m off (along the road, where its sigma is metres)
+            assert np.hypot(*e) < 0.3
+    # That lock is wide along the road (one point, one pole: about 6 m 1-sigma), so the prediction stays wide and
+    # the next frame is searched again: one frame in fallback while its starts are solved, then tracking again.
+    assert steps == [
+        (Phase.TRACKING, "map_matching"),
+        (Phase.SEARCHING, "fallback"),
+        (Phase.TRACKING, "map_matching"),
+        (Phase.TRACKING, "map_matching"),
+    ]
 
 
 def test_the_phase_is_uninitialised_exactly_while_there_is_no_state():
@@ -160,11 +180,16 @@ def test_a_gap_starts_again():
 
 
 def _machine_tracking_at(s, **params):
-    """A tracking localizer's machine on the synthetic map, and a converged match of a frame at s."""
+    """A tracking localizer's machine on the synthetic map, and a converged match of a frame at s. The vehicle
+    stands at s (the same frame each step, zero odometry) until the start-up search, spread over frames by its
+    budget (search.solves_per_frame), has found the basin: 4 frames at most."""
     loc = Localizer(HDMAP, LocalizerParams(**EXACT, **params), initial_yaw=pose_on(s)[5])
     truth = pose_on(s)
     frame, _ = synth_frame(truth, np.random.default_rng(0))
-    loc.step(0.0, frame, ODO, _fix(truth))
+    for k in range(4):
+        loc.step(0.1 * k, frame, OdometryMeasurement(0.0, 0.0), _fix(truth))
+        if loc.phase is Phase.TRACKING:
+            break
     assert loc.phase is Phase.TRACKING
     match = loc.matcher.match(frame, truth + [0.3, 0.2, 0, 0, 0, 0.01], P_TRACK, None)
     assert match.converged
@@ -220,20 +245,42 @@ def test_a_lone_well_constrained_hypothesis_wins_at_once():
     assert np.hypot(*pose_error(got.pose_filtered, pose_on(170.0))[:2]) < 0.2
 
 
-def test_a_lone_hypothesis_wins_by_posterior_mass_only_on_new_evidence():
+@pytest.mark.parametrize(
+    "budget",
+    [
+        None,
+        pytest.param(
+            PoseSearchParams().solves_per_frame,
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="known limitation of the anytime search under the posterior rule: a vehicle standing still "
+                "with a lone hypothesis never localizes. A search spread over frames cannot accept (its parts' basins "
+                "are not solved on one frame), and the same view again is no new evidence for the hypotheses, so "
+                "the lone basin stays at about half of the mass against elsewhere (docs/localization.md, Real time)",
+            ),
+        ),
+    ],
+)
+def test_a_lone_hypothesis_wins_by_posterior_mass_only_on_new_evidence(budget):
     """Rule 'posterior': a lone hypothesis has no rival but *elsewhere*: the same frame again from the same place is
-    no new evidence, so the search runs again on it and, the frame rich in landmarks, accepts its basin at once;
-    the machine goes back to TRACKING with the winner's match."""
-    loc, m, frame, match = _machine_tracking_at(170.0, **POSTERIOR)
+    no new evidence, so the search runs again on it and, the frame rich in landmarks, accepts its basin (within 3
+    frames); the machine goes back to TRACKING with the winner's match."""
+    loc, m, frame, match = _machine_tracking_at(
+        170.0, search=PoseSearchParams(accept="posterior", solves_per_frame=budget)
+    )
     y, P = loc.y.copy(), loc.P.copy()
     m._spawn(y, P, _one_basin(match, "ambiguous"))
     P_wide = P.copy()
     P_wide[0, 0] = P_wide[1, 1] = 4.0
     n_search = loc.stats.get("search", 0)
-    got, reason, _, _ = m.match(frame, y, P_wide, 0.0, ODO, ODO, None)
-    assert loc.stats.get("search", 0) == n_search + 1
+    for k in range(3):
+        got, reason, _, _ = m.match(frame, y, P_wide, 0.0, ODO, ODO, None)
+        assert loc.stats.get("search", 0) == n_search + k + 1  # the search runs on every frame until one wins
+        if got is not None:
+            break
+        assert m.phase is Phase.SEARCHING and reason.startswith("searching")
     assert got is not None and m.attempt is got and reason == ""
-    assert m.phase is Phase.TRACKING and m.hyps == []
+    assert m.phase is Phase.TRACKING and m.hyps == [] and m.pending == []
     assert np.hypot(*pose_error(got.pose_filtered, pose_on(170.0))[:2]) < 0.2
 
 
@@ -263,7 +310,8 @@ def test_repeated_jumps_distrust_the_prediction_and_search():
 
 @pytest.mark.parametrize("verify", [0, 3])
 def test_constructor_states(verify):
-    m = StartupMachine(HDMAP, LocalizerParams(verify_start_frames=verify), None, None, lambda key: None, lambda x: None)
+    params = LocalizerParams(verify_start_frames=verify)
+    m = StartupMachine(HDMAP, params, MapMatcher(HDMAP, params.matcher), None, lambda key: None, lambda x: None)
     assert m.phase is Phase.UNINITIALISED and m.hyps == [] and m.verify_left == 0 and m.jumps == m.far == 0
     truth = pose_on(40.0)
     state = m.try_initialise(None, _fix(truth), 0.0, None, None)
