@@ -18,8 +18,10 @@ which would otherwise move the localizer's time ahead and make every later frame
 
 from __future__ import annotations
 
+import threading
+from collections import deque
 from dataclasses import replace
-from typing import Literal
+from typing import Generic, Literal, TypeVar
 
 import numpy as np
 
@@ -43,10 +45,61 @@ from .localization.health import PoseHealth, PoseHealthParams, advance, verdict
 from .localization.startup import Phase
 from .onboard import DownlinkFusion, DownlinkParams, Onboard
 
-__all__ = ["FUTURE_TOLERANCE_S", "Mode", "VehicleAgent", "camera_frame"]
+__all__ = ["FUTURE_TOLERANCE_S", "FrameBacklog", "Mode", "VehicleAgent", "camera_frame"]
 
 Mode = Literal["distributed", "centralized"]
 FUTURE_TOLERANCE_S = 1.0  # as the host's (FusionParams.future_tolerance_s)
+
+
+T = TypeVar("T")
+
+
+class FrameBacklog(Generic[T]):
+    """The frames waiting for a vehicle that may fall behind: the newest is matched, the ones before it are stale.
+
+    ``put`` (the receiving thread) appends a frame; ``take`` (the worker) returns every frame waiting, in arrival
+    order, as (stale, newest): the stale ones go to :meth:`VehicleAgent.skip` (the localizer steps through their
+    odometry and GNSS fix without the camera, so no stretch of the path goes unmeasured), the newest to
+    :meth:`VehicleAgent.handle`. A vehicle whose frame takes longer than the frame period therefore always
+    matches the freshest frame there is, and its priors are at most one frame period plus one frame's work
+    old, instead of queueing frames it then matches late. At most ``max_waiting`` wait: beyond, the oldest is
+    dropped whole (:meth:`pop_dropped` counts them: a flood must not grow the backlog without bound). Thread-safe.
+    """
+
+    def __init__(self, max_waiting: int = 256):
+        if max_waiting < 1:
+            raise ValueError(f"max_waiting must be at least 1, got {max_waiting}")
+        self.max_waiting = max_waiting
+        self._dropped = 0
+        self._items: deque[T] = deque()
+        self._ready = threading.Condition()
+
+    def put(self, item: T) -> None:
+        with self._ready:
+            if len(self._items) >= self.max_waiting:
+                self._items.popleft()
+                self._dropped += 1
+            self._items.append(item)
+            self._ready.notify()
+
+    def take(self, timeout_s: float | None = None) -> tuple[list[T], T] | None:
+        """Every frame waiting as (stale, newest), waiting up to ``timeout_s`` for one (None: none came)."""
+        with self._ready:
+            if not self._ready.wait_for(lambda: bool(self._items), timeout_s):
+                return None
+            items = list(self._items)
+            self._items.clear()
+        return items[:-1], items[-1]
+
+    def pop_dropped(self) -> int:
+        """Frames dropped whole since the last call."""
+        with self._ready:
+            n, self._dropped = self._dropped, 0
+        return n
+
+    def __len__(self) -> int:
+        with self._ready:
+            return len(self._items)
 
 
 def _max_pixels(obs: Observations) -> int:

@@ -85,8 +85,6 @@ class Service:
     process alive but dead inside would never be restarted).
     """
 
-    OVERFLOW_MAX = 256  # subscribe_queued: samples waiting for the overflow handler (a cold start's search: 2-3 s)
-
     def __init__(
         self,
         role: str,
@@ -441,56 +439,43 @@ class Service:
         handler: Callable[[Received], None],
         maxsize: int = 16,
         name: str = "worker",
-        overflow: Callable[[Received], None] | None = None,
     ):
         """Subscribe with a bounded queue and one worker thread running ``handler`` in arrival order.
 
         When ``maxsize`` samples wait for ``handler``, a new sample is counted as reject ``queue_full``
-        and dropped; with ``overflow`` it is counted as ``skipped`` and passed to ``overflow`` instead, in
-        the same worker and in arrival order (a cheap partial handling: a vehicle keeps the odometry of a
-        frame it has no time to match), until ``OVERFLOW_MAX`` samples wait for it, beyond
-        which it is dropped as ``queue_full`` too (a flood must not grow the queue without bound). The
-        handler's run time is recorded as the processing latency.
+        and dropped. The handler's run time is recorded as the processing latency. (A vehicle's frames
+        use a backlog whose newest frame wins instead: ``mapcontainer.vehicle.FrameBacklog``.)
         """
-        q: queue.SimpleQueue[tuple[Received, bool]] = queue.SimpleQueue()
+        q: queue.SimpleQueue[Received] = queue.SimpleQueue()
         lock = threading.Lock()
-        waiting = 0  # samples in q for ``handler``
-        skipping = 0  # samples in q for ``overflow``
+        waiting = 0  # samples in q
 
         def enqueue(msg: Received) -> None:
-            nonlocal waiting, skipping
+            nonlocal waiting
             with lock:
                 full = waiting >= maxsize
-                drop = full and (overflow is None or skipping >= self.OVERFLOW_MAX)
                 waiting += not full
-                skipping += full and not drop
-            if drop:
+            if full:
                 self.metrics.reject("queue_full", f"{name}: {maxsize} samples waiting, dropped", self.log)
                 return
-            if full:
-                self.metrics.reject("skipped", f"{name}: {maxsize} samples waiting, handled in part", self.log)
-            q.put((msg, not full))
+            q.put(msg)
 
         def work() -> None:
-            nonlocal waiting, skipping
+            nonlocal waiting
             while not self.stop_requested.is_set():
                 try:
-                    msg, whole = q.get(timeout=0.2)
+                    msg = q.get(timeout=0.2)
                 except queue.Empty:
                     continue
                 with lock:
-                    if whole:
-                        waiting -= 1
-                    else:
-                        skipping -= 1
+                    waiting -= 1
                 t0 = time.perf_counter()
                 try:
-                    (handler if whole else overflow)(msg)
+                    handler(msg)
                 except Exception as e:
                     self.metrics.error(f"{type(e).__name__}: {e}")
                     self.log.exception("handler %s failed on %s", name, msg.key)
-                if whole:
-                    self.metrics.latency.add(time.perf_counter() - t0)
+                self.metrics.latency.add(time.perf_counter() - t0)
 
         self.spawn(work, name)
         return self.subscribe(key, enqueue)

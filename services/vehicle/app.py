@@ -1,14 +1,16 @@
 """Vehicle service: sensors in, V2X message out.
 
-Subscribes ``mc/{fleet}/sim/{vid}/sensors``; each frame goes through a bounded queue to one worker
-thread that calls ``VehicleAgent.handle(t, frame)`` and publishes the result on
+Subscribes ``mc/{fleet}/sim/{vid}/sensors``; frames wait in a backlog (``mapcontainer.vehicle.FrameBacklog``)
+for one worker thread that calls ``VehicleAgent.handle(t, frame)`` on the newest and publishes the result on
 ``mc/{fleet}/v2x/tx/{vid}/prior`` (distributed) or ``.../raw`` (centralized). The attachment passes
 the world's clock on and adds ``t_capture_wall_ns`` (when the world published the frame).
 
-Frames are handled in order. When the vehicle cannot keep up, new frames are counted as
-``skipped`` and not matched or sent; in distributed mode the worker still passes their odometry and
-GNSS fix to the localizer, in order (``VehicleAgent.skip``), so that no stretch of the path goes
-unmeasured.
+Frames are handled in order, and the newest one waiting is the one matched: when the vehicle cannot keep
+up (a frame's work took longer than the frame period), the frames that arrived meanwhile are stale, counted
+as ``skipped`` and not matched or sent; in distributed mode the worker still passes their odometry and GNSS
+fix to the localizer, in order (``VehicleAgent.skip``), so that no stretch of the path goes unmeasured and
+the track is kept (tests/integration/test_vehicle_agent.py: a vehicle that can match one frame in three
+keeps its lock). Its priors are then at most one frame period plus one frame's work old.
 
 The host's downlink (distributed mode): ``mc/{fleet}/v2x/rx/{vid}/*/downlink`` (PoseDownlink, through the
 channel emulator; on a signed fleet verified against the host id in the key) is kept by the Zenoh callback
@@ -37,6 +39,7 @@ from mapcontainer.localization.health import PoseHealthParams
 from mapcontainer.security import CA_NAME, VERIFY_WINDOW_S, Signer, Verifier, load_certificate, load_credentials, unwrap
 from mapcontainer.sim.config import load_scenario
 from mapcontainer.sim.errors import published_map
+from mapcontainer.vehicle import FrameBacklog
 from schemas import Rejection, SensorFrame, encode
 from schemas.topics import topic
 
@@ -58,12 +61,6 @@ class VehicleSettings(ServiceSettings):
     scenario: str = "paper-urban"  # the HD map comes from the scenario's map spec and the seed
     seed: int = Field(0, ge=0, description="the run's seed: the HD map's error is drawn from it (as the world's)")
     mode: Literal["distributed", "centralized"] = "distributed"
-    # frames waiting before new ones are skipped (not matched or sent): 2 (0.2 s). A vehicle that
-    # cannot keep up (a cold start's pose searches on a loaded machine) then works on fresh frames;
-    # with 8 its backlog of 0.8 s plus processing made its priors older than the host's 1 s window,
-    # and the host refused them all as stale (fleet e2e p50 0.7-1.0 s; once no fused state after
-    # 1.5 s). Measured with 2: e2e p50 0.19-0.29 s, every fused state evaluated.
-    queue: int = 2
     health: PoseHealthParams = Field(default_factory=PoseHealthParams, description="when the pose health is degraded")
     keys: str | None = Field(None, description="directory of the fleet's keys: sign every V2X message (None: unsigned)")
 
@@ -75,12 +72,6 @@ def parse_args(argv: list[str] | None = None) -> VehicleSettings:
         "--seed", type=int, default=0, help="the run's seed (the world's): the HD map's error is drawn from it"
     )
     p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
-    p.add_argument(
-        "--queue",
-        type=int,
-        default=VehicleSettings.model_fields["queue"].default,
-        help="frames waiting before new ones are skipped (not matched or sent; their odometry and GNSS are kept)",
-    )
     p.add_argument("--keys", default=None, help="directory of the fleet's keys (mapc keys init): sign what is sent")
     add_service_args(p, "vehicle")
     a = p.parse_args(argv)
@@ -89,7 +80,6 @@ def parse_args(argv: list[str] | None = None) -> VehicleSettings:
         scenario=a.scenario,
         seed=a.seed,
         mode=a.mode,
-        queue=a.queue,
         keys=a.keys,
     )
 
@@ -190,14 +180,37 @@ def main(s: VehicleSettings) -> int:
             if got is not None and not refused(agent.skip(got[1], got[0])):
                 extra["skipped"] += 1
 
+        backlog: FrameBacklog[Received] = FrameBacklog()
+
+        def work() -> None:
+            """The newest frame waiting is matched; the stale ones before it are skipped (their odometry kept)."""
+            while not svc.stop_requested.is_set():
+                got = backlog.take(timeout_s=0.2)
+                if got is None:
+                    continue
+                stale, newest = got
+                for msg in stale:
+                    svc.metrics.reject("skipped", "a newer frame is waiting: handled in part", log)
+                    run(on_skipped_frame if s.mode == "distributed" else count_skipped, msg)
+                t0 = time.perf_counter()
+                run(on_frame, newest)
+                svc.metrics.latency.add(time.perf_counter() - t0)
+                for _ in range(backlog.pop_dropped()):
+                    svc.metrics.reject("queue_full", f"more than {backlog.max_waiting} frames waiting: dropped", log)
+
+        def count_skipped(msg: Received) -> None:
+            extra["skipped"] += 1
+
+        def run(handler, msg: Received) -> None:
+            try:
+                handler(msg)
+            except Exception as e:
+                svc.metrics.error(f"{type(e).__name__}: {e}")
+                log.exception("frame handler failed on %s", msg.key)
+
         if s.mode == "distributed":
             svc.subscribe(topic("downlink_rx").pattern(fleet=s.fleet, dst=s.id), on_downlink)
-        svc.subscribe_queued(
-            topic("sensors").key(fleet=s.fleet, vid=s.id),
-            on_frame,
-            maxsize=s.queue,
-            name="frames",
-            overflow=on_skipped_frame if s.mode == "distributed" else None,
-        )
+        svc.spawn(work, "frames")
+        svc.subscribe(topic("sensors").key(fleet=s.fleet, vid=s.id), backlog.put)
         svc.wait()
     return 0

@@ -1,4 +1,4 @@
-"""``Service`` on a real Zenoh session: ``subscribe_queued`` (order, bound, overflow handler), worker threads."""
+"""``Service`` on a real Zenoh session: ``subscribe_queued`` (order, bound), worker threads."""
 
 from __future__ import annotations
 
@@ -9,37 +9,29 @@ import pytest
 from services.runtime import EXIT_THREAD_DIED, Service, ServiceSettings, ZenohSettings
 
 
-@pytest.mark.parametrize("with_overflow", [False, True])
-def test_a_full_queue_drops_new_samples_or_hands_them_to_overflow(fleet_name, wait_for, with_overflow) -> None:
+def test_a_full_queue_drops_new_samples(fleet_name, wait_for) -> None:
     settings = ServiceSettings(fleet=fleet_name, id="q0", zenoh=ZenohSettings(listen=["tcp/127.0.0.1:0"]))
-    calls: list[tuple[str, bytes]] = []
+    calls: list[bytes] = []
     started, release = threading.Event(), threading.Event()
 
     def handler(msg) -> None:
-        calls.append(("handler", msg.payload))
+        calls.append(msg.payload)
         started.set()
         release.wait(10.0)
 
-    def overflow(msg) -> None:
-        calls.append(("overflow", msg.payload))
-
     with Service("vehicle", settings) as svc:
         key = f"{fleet_name}/test/frames"
-        svc.subscribe_queued(key, handler, maxsize=2, name="frames", overflow=overflow if with_overflow else None)
+        svc.subscribe_queued(key, handler, maxsize=2, name="frames")
         pub = svc.publisher(key)
         pub.put(b"0")
         assert started.wait(10.0), "the worker never took the first sample"
         for k in range(1, 6):  # the worker is busy with "0": "1" and "2" wait, "3"-"5" find the queue full
             pub.put(str(k).encode())
-        reason = "skipped" if with_overflow else "queue_full"  # handled in part, or lost
-        wait_for(lambda: svc.metrics.rejects.get(reason) == 3, 10.0, "3 samples over the bound")
-        assert (svc.current_state()[0] == "degraded") is not with_overflow  # lost input degrades
+        wait_for(lambda: svc.metrics.rejects.get("queue_full") == 3, 10.0, "3 samples over the bound")
+        assert svc.current_state()[0] == "degraded"  # lost input degrades
         release.set()
-        expected = [("handler", b"0"), ("handler", b"1"), ("handler", b"2")]
-        if with_overflow:
-            expected += [("overflow", b"3"), ("overflow", b"4"), ("overflow", b"5")]
-        wait_for(lambda: len(calls) == len(expected), 10.0, "every sample handled")
-    assert calls == expected
+        wait_for(lambda: len(calls) == 3, 10.0, "every sample queued handled")
+    assert calls == [b"0", b"1", b"2"]
     assert svc.metrics.latency.percentiles_ms()[0] is not None  # the handler's run time is recorded
 
 
