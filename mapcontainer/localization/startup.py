@@ -98,6 +98,7 @@ class _Hypothesis:
     last: MatchResult | None = None
     last_nll: float = 0.0
     odo: float = 0.0  # the odometer (StartupMachine.odometer) at its last view folded in
+    alias: bool = False  # an along-road copy of a one-pole basin (StartupMachine._aliases), not a search's solution
     weight: float = 1.0  # that view's information weight (see StartupMachine._view_weight)
 
     def add(self, m: MatchResult, nll: float) -> None:
@@ -148,6 +149,7 @@ class StartupMachine:
             yaw.append(np.arctan2(tng[:, 1], tng[:, 0]))
         self._cl_tree = cKDTree(np.vstack(xy)) if xy else None  # centre-line samples: driving directions
         self._cl_yaw = np.concatenate(yaw) if yaw else np.zeros(0)
+        self._pole_xy = np.array([f.base[:2] for f in hdmap.poles], dtype=float).reshape(-1, 2)
         self.reset(None, None)
 
     def reset(self, initial_yaw: float | None, initial_pose: tuple[np.ndarray, np.ndarray] | None) -> None:
@@ -562,12 +564,46 @@ class StartupMachine:
                 h = _Hypothesis(*ekf.match_update(y0, P0, sol), 0.0, odo=self.odometer)
                 h.add(sol, nll)
                 hyps.append(h)
+        if hyps:
+            hyps += self._aliases(min(hyps, key=lambda h: h.nll), hyps)
         self._set_hyps(hyps)
         if hyps:
             self.null_nll = out.null_nll
             best = out.solutions[int(np.argmin(out.nll))]
             self.credited = {k: 0.0 for k, _ in best.inliers(self.params.matcher.inlier_chi2)}
             self.mass = self._masses()
+
+    def _aliases(self, h: _Hypothesis, others: list[_Hypothesis]) -> list[_Hypothesis]:
+        """Rule 'posterior': the along-road copies of a basin that one pole holds (its only landmark inlier), moved
+        so that the neighbouring poles of the same row (one ahead, one behind along its heading) sit where that pole
+        is seen; the copies distinct from ``others``, with its evidence so far (the frames could not tell them
+        apart: the lane lines are the same along the road).
+
+        One pole with the lanes fixes the pose along the road only up to which pole it is: the search returns
+        the basins within its radius of the fix, and a neighbour one lamp spacing away along a straight road is
+        the same picture. Without the copies *elsewhere* was the basin's only rival there, and a pole seen over
+        a baseline of travel outweighed it (paper-suburban, evaluation seeds: locks 1-14 m off along the road).
+        With them, the newest GNSS fix (heavy-tailed) and the next frames' landmarks decide."""
+        if not self.posterior or h.last is None or len(self._pole_xy) < 2:
+            return []
+        inl = h.last.inliers(self.params.matcher.inlier_chi2)
+        if len(inl) != 1 or inl[0][0][0] != "pole":
+            return []
+        j = inl[0][0][1]
+        heading = np.array([np.cos(h.y[5]), np.sin(h.y[5])])
+        d = self._pole_xy - self._pole_xy[j]
+        along, across = d @ heading, d @ np.array([-heading[1], heading[0]])
+        row = (np.abs(across) <= self.params.search.distinct_m) & (np.abs(along) > self.params.search.distinct_m)
+        out: list[_Hypothesis] = []
+        for side in (1.0, -1.0):
+            c = np.flatnonzero(row & (side * along > 0))
+            if len(c) == 0:
+                continue
+            y = h.y.copy()
+            y[:2] += along[c[np.argmin(np.abs(along[c]))]] * heading
+            if all(self.search.distinct(y, o.y) for o in [*others, *out]):
+                out.append(_Hypothesis(y, h.P.copy(), h.nll, h.score, odo=h.odo, weight=h.weight, alias=True))
+        return out
 
     def _view_weight(self, h: _Hypothesis) -> float:
         """The information weight of a hypothesis' view of this frame: the distance travelled since its last view
@@ -698,7 +734,7 @@ class StartupMachine:
             )
         win = kept[i]
         if win.last is None or not won:
-            if (len(kept) == 1 or self.pending) and n_det:
+            if (sum(not h.alias for h in kept) == 1 or self.pending) and n_det:
                 return self._rivals(search, n_det)
             return None
         self._count("hypothesis accepted")
@@ -718,7 +754,7 @@ class StartupMachine:
         (``search.solves_per_frame``) it also runs while an earlier search's starts are pending, whatever the
         number of hypotheses: their solutions join as rivals of the leading one.
         """
-        lone = self.hyps[0]  # the leading one (sorted by rank)
+        lone = next((h for h in self.hyps if not h.alias), self.hyps[0])  # the leading one (sorted by rank)
         self._count("search")
         try:
             found = search()
@@ -744,7 +780,7 @@ class StartupMachine:
                 h = _Hypothesis(*ekf.match_update(y0, P0, sol), lone.nll - ref, earlier, odo=self.odometer)
                 h.add(sol, nll)
                 h.last_nll = nll - ref
-                self.hyps.append(h)
+                self.hyps += [h, *self._aliases(h, self.hyps)]
         if len(self.hyps) > 1:
             self.mass = self._masses()
         return None
