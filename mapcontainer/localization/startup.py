@@ -692,8 +692,10 @@ class StartupMachine:
                 h.add(res, w * (res.evidence + res.prior_chi2))
                 if best is None or h.last_nll < best[0]:
                     best = (h.last_nll, res, w)
-            else:  # nothing explained: every detection costs like an outlier
-                h.nll += w * p.matcher.inlier_chi2 * n_det
+            else:  # nothing explained: every detection costs like an outlier, at full weight (a basin that explains
+                # nothing is no repeated view; tempered, a leading basin kept its mass through three misses, and
+                # when it was dropped a weakly supported rival won at once: ideal paper-urban seed 0, cv2)
+                h.nll += p.matcher.inlier_chi2 * n_det
                 h.score += p.matcher.inlier_chi2 * n_det
                 h.misses += 1
         if lead is not None and lead.last is not None:
