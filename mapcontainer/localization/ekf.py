@@ -120,7 +120,9 @@ def transition(
     return y, F, Q
 
 
-def match_update(y: np.ndarray, P: np.ndarray, match: MatchResult) -> tuple[np.ndarray, np.ndarray]:
+def match_update(
+    y: np.ndarray, P: np.ndarray, match: MatchResult, weight: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Fold the matcher's posterior on the pose into the whole state (information form).
 
     The matcher solved with the pose marginal (x_pred, P_xx) as its prior and returned the
@@ -128,21 +130,35 @@ def match_update(y: np.ndarray, P: np.ndarray, match: MatchResult) -> tuple[np.n
     information is Lambda = P_f^-1 - P_xx^-1 with the information vector P_f^-1 (x_f - x_pred).
     Adding both to the state's information gives the pose posterior (x_f, P_f) again and updates
     the odometry and GNSS biases through their correlation with the pose.
+
+    ``weight`` w in [0, 1] scales both (the measurement's noise inflated by 1 / w): a view whose errors
+    the views before repeat (a landmark's own map error, seen again from nearly the same place) is worth
+    a fraction of an independent one::
+
+        Y = P^-1 + w Lambda,   y += Y^-1 w P_f^-1 (x_f - x_pred)
+
+    At w = 1 the pose block is the matcher's (nonlinear) solution x_f exactly.
     """
+    if not 0.0 <= weight <= 1.0:
+        raise ValueError(f"weight must be in [0, 1], got {weight}")
     Pxx = P[:6, :6]
     I_f = np.linalg.inv(match.cov_filtered)
     Lam = I_f - np.linalg.inv(Pxx)
     d = match.pose_filtered - y[:6]
     d[5] = wrap_angle(d[5])
     Y = np.linalg.inv(P)
-    Y[:6, :6] += 0.5 * (Lam + Lam.T)
+    Y[:6, :6] += weight * 0.5 * (Lam + Lam.T)
     P_new = np.linalg.inv(Y)
     eta = np.zeros(N)
-    eta[:6] = I_f @ d
+    eta[:6] = weight * (I_f @ d)
     dy = P_new @ eta  # the prior is centred on y: delta form
     y = y.copy()
-    y[:6] = match.pose_filtered  # the exact nonlinear solution for the pose block
-    y[6:] += dy[6:]
+    if weight == 1.0:
+        y[:6] = match.pose_filtered  # the exact nonlinear solution for the pose block
+        y[6:] += dy[6:]
+    else:
+        y += dy
+        y[5] = wrap_angle(y[5])
     return y, 0.5 * (P_new + P_new.T)
 
 

@@ -32,6 +32,9 @@ costs add to it directly.
   ``view_baseline_m`` of travel. Its GNSS term is the density at the prior's expected spread
   (Mahalanobis^2 = 2). So one pole in one frame is not enough; a pole seen over a baseline of travel,
   with the lanes, is.
+* **Views, not frames**: by the same argument a hypothesis' own view of a frame is worth the travel since
+  its last view over ``view_baseline_m`` (at most 1): its frame -2 log-likelihood is multiplied by that
+  weight, and its filter folds the match in with the information scaled by it (:mod:`.startup`).
 
 :func:`masses` normalises, :func:`mixture` moment-matches a set of weighted Gaussians (the pose a
 vehicle publishes while it is still ambiguous: wide and honest, never one basin among rivals).

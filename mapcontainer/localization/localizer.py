@@ -237,7 +237,7 @@ class Localizer:
             F = ekf.transition(y_prior, dt, odo_prev, odometry, p)[1]
             self.conditioned = (np.eye(ekf.N) if F is None else F, y_pred, P_pred)
         if match is not None:
-            y, P = ekf.match_update(y_pred, P_pred, match)
+            y, P = ekf.match_update(y_pred, P_pred, match, self.startup.weight)
             mode = "map_matching"
         else:
             self._count("fallback")

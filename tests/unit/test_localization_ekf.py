@@ -158,6 +158,30 @@ def test_match_update_is_the_linear_kalman_update_of_the_pose_block():
     np.testing.assert_allclose(P, P_ref, rtol=1e-7, atol=1e-12)
 
 
+@pytest.mark.parametrize("w", [0.0, 0.3, 1.0])
+def test_a_weighted_match_update_is_the_kalman_update_with_the_noise_over_the_weight(w):
+    """weight w: the same pseudo-measurement z with its noise R / w (w = 0: nothing learnt)."""
+    rng = np.random.default_rng(5)
+    y0, P0 = _state(), _spd(rng, 10, 0.2)
+    Pxx = P0[:6, :6]
+    Lam = _spd(rng, 6, 5.0)
+    P_f = np.linalg.inv(np.linalg.inv(Pxx) + Lam)
+    x_f = y0[:6] + rng.normal(0, 0.05, 6)
+    y, P = ekf.match_update(y0, P0, SimpleNamespace(pose_filtered=x_f, cov_filtered=P_f), w)
+    if w == 0.0:
+        np.testing.assert_allclose(y, y0, atol=1e-12)
+        np.testing.assert_allclose(P, P0, rtol=1e-9, atol=1e-12)
+        return
+    R = np.linalg.inv(Lam)
+    z = R @ (np.linalg.solve(P_f, x_f) - np.linalg.solve(Pxx, y0[:6]))
+    H = np.hstack([np.eye(6), np.zeros((6, 4))])
+    y_ref, P_ref = ekf.kf_update(y0, P0, H, z - y0[:6], R / w)
+    np.testing.assert_allclose(y, y_ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(P, P_ref, rtol=1e-7, atol=1e-12)
+    with pytest.raises(ValueError, match="weight"):
+        ekf.match_update(y0, P0, SimpleNamespace(pose_filtered=x_f, cov_filtered=P_f), 1.5)
+
+
 def test_match_update_reproduces_the_matchers_posterior():
     truth = pose_on(170.0)
     frame, _ = synth_frame(truth, np.random.default_rng(4))

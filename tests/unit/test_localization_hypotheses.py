@@ -6,6 +6,8 @@ multipath jump survived; relocalization after a kidnap)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -154,8 +156,6 @@ def _machine_with_two_basins(offset_m: float, seed: int = 0):
         truth,
         np.diag([0.3**2, 0.3**2, 0.05**2, 0.005**2, 0.005**2, np.radians(0.5) ** 2]),
     )
-    from dataclasses import replace
-
     along = np.r_[np.cos(truth[5]), np.sin(truth[5])] * offset_m
     wrong = replace(res, pose_filtered=res.pose_filtered + np.r_[along, 0, 0, 0, 0])
     y, P = loc.y.copy(), loc.P.copy()
@@ -190,11 +190,15 @@ def test_an_ambiguity_along_the_road_is_published_wide_and_not_accepted_until_re
     out = _run(loc, 10, s0=171.0, seed=1, t0=1.2, frames=lanes_only)
     k = _first_lock(out)
     assert k is not None and k >= 3, [r.reason for _, r in out]
-    for t, r in out[:k]:
+    for i, (t, r) in enumerate(out[:k]):
         assert r.mode == "fallback" and r.reason == "searching: 2 hypotheses"
         heading = np.r_[np.cos(t[5]), np.sin(t[5])]
-        var_along = heading @ r.cov_filtered[:2, :2] @ heading  # both basins inside (the fixes favour the true one)
-        assert var_along >= 1.5**2 and abs(heading @ pose_error(r.pose_filtered, t)[:2]) < 3.0 * np.sqrt(var_along)
+        var_along = heading @ r.cov_filtered[:2, :2] @ heading
+        if i < 3:  # lanes only: both basins inside (the fixes favour the true one)
+            assert var_along >= 1.5**2
+        # once the pole is in view the mass moves to the true basin over the views (each worth the travel since the
+        # last one over view_baseline_m): the published mixture narrows with it, and stays honest
+        assert abs(heading @ pose_error(r.pose_filtered, t)[:2]) < 3.0 * np.sqrt(var_along)
     assert all(_err(t, r) < 0.3 for t, r in out[k:] if r.mode == "map_matching")
 
 
@@ -284,3 +288,81 @@ def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes(rule, budget)
         assert first <= 1.0, rows
     assert all(mode == "map_matching" and err < 0.6 for t, mode, err, _ in rows if t >= first), rows
     assert all(err < 0.3 for t, _, err, _ in rows if t >= first + 0.3), rows  # the pole's bearing, over travel
+
+
+def _suburban_seed10_cv0(seconds: float) -> np.ndarray:
+    """Development seed 10 of paper-suburban, every error source on, cv0 from a cold start under rule 'posterior':
+    rows [t, |lateral error|, |along-road error|, lateral PL, longitudinal PL, along-road sigma, wheel-speed scale]
+    of the frames it claims integrity (map matched, a protection level stated)."""
+    from mapcontainer.sim import World, load_scenario
+    from mapcontainer.vehicle import VehicleAgent
+
+    with World(load_scenario("paper-suburban"), seed=10) as world:
+        agent = VehicleAgent(world.hdmap, "cv0", world.fleet, params=LocalizerParams(**POSTERIOR))
+        rows = []
+        for tick in world.run(seconds):
+            agent.handle(tick.t, tick.frames["cv0"])
+            r, truth = agent.last_result, tick.states["cv0"].pose
+            if r.protection_level is None:
+                continue
+            R = geo.rot_z(truth[5]).T[:2, :2]
+            e_along, e_across = R @ (r.pose_filtered[:2] - truth[:2])
+            sigma_along = float(np.sqrt((R @ r.cov_filtered[:2, :2] @ R.T)[0, 0]))
+            rows.append((tick.t, abs(e_across), abs(e_along), *r.protection_level, sigma_along, agent.localizer.y[6]))
+    return np.array(rows)
+
+
+@pytest.mark.slow
+def test_a_one_pole_basin_is_accepted_with_an_honest_along_road_sigma():
+    """The traced suburban start (development seed 10, cv0): the basins of one pole lie on a ridge along the road
+    (the search returned four, 1 m apart), and each view of the pole was folded into the hypotheses as independent
+    at 10 frames a second: the basin accepted at 4.8 s was 1.82 m off along the road at an along-road sigma of
+    0.43 m (4.2 sigma, beyond its protection level). A view is now worth the travel since the hypothesis' last one
+    over view_baseline_m: accepted at 4.2 s, 1.55 m off at 0.73 m (2.1 sigma), inside its protection level."""
+    a = _suburban_seed10_cv0(4.5)
+    assert len(a) and a[0, 0] < 4.5, a  # it locks
+    t, e_lat, e_along, pl_lat, pl_lon, sigma_along, _ = a[0]
+    assert e_along <= pl_lon and e_lat <= pl_lat and e_along < 3.0 * sigma_along, a[0]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limitation: once tracking, the same pole's views are folded in as independent at 10 frames a "
+    "second; its along-road sigma falls to 0.34 m within 0.8 s while the error is still 1.4 m (HMI), and the "
+    "correction turns into a 4 % wheel-speed scale error (docs/localization.md)",
+)
+def test_a_basin_accepted_off_along_the_road_tracks_honestly():
+    """The same start after the lock: every frame the vehicle claims integrity, its errors are inside its protection
+    levels, and the wheel-speed scale estimate stays within 3 % of 1."""
+    a = _suburban_seed10_cv0(12.0)
+    assert np.all(a[:, 1] <= a[:, 3]) and np.all(a[:, 2] <= a[:, 4]), a
+    assert np.all(np.abs(a[:, 6] - 1.0) < 0.03), a
+
+
+def test_a_one_pole_basin_has_rivals_one_pole_spacing_along_the_road():
+    """Rule 'posterior': a basin whose only landmark is one pole gets along-road copies that put the neighbouring
+    poles of the same row (one ahead, one behind) where that pole is seen, with its evidence so far; a basin with
+    a second landmark, poles of another row and rule 'landmarks' get none."""
+    loc, m, truth = _machine_with_two_basins(6.0)
+    h = m.hyps[0]
+    j = h.last.pole_pairs[0, 0]
+    heading = np.r_[np.cos(h.y[5]), np.sin(h.y[5])]
+    lateral = np.r_[-heading[1], heading[0]]
+    p0 = m._pole_xy[j].copy()
+    row = np.array([p0 - 25.0 * heading, p0 + 31.0 * heading, p0 + 12.0 * heading + 4.0 * lateral, p0 - 70 * heading])
+    m._pole_xy = np.vstack([m._pole_xy, row])
+    one_pole = replace(h.last, point_pairs=h.last.point_pairs[:0], pole_pairs=h.last.pole_pairs[:1])
+    one_pole = replace(one_pole, pair_chi2=np.r_[1.0])
+    h.last = one_pole
+    copies = m._aliases(h, [h])
+    offsets = sorted(float(heading @ (c.y[:2] - h.y[:2])) for c in copies)
+    assert offsets == pytest.approx([-25.0, 31.0], abs=1e-6)
+    assert all(c.alias and c.nll == h.nll and np.array_equal(c.P, h.P) for c in copies)
+    two = replace(one_pole, pair_chi2=np.r_[1.0, 1.0], pole_pairs=np.r_[one_pole.pole_pairs, [[j + 1, 0]]])
+    h.last = two
+    assert m._aliases(h, [h]) == []
+    loc.params = loc.params.model_copy(update={"search": PoseSearchParams(accept="landmarks")})
+    m.params = loc.params
+    h.last = one_pole
+    assert m._aliases(h, [h]) == []
