@@ -49,7 +49,8 @@ def test_cooperation_sees_more_targets_and_places_them_better(urban):
 @pytest.mark.xfail(
     strict=True,
     reason="cv3's fused pose is worse than its own filtered one (0.159 vs 0.133 m): the vehicles' clock offsets "
-    "(v * offset, unknown to the host); issue 20's closing note",
+    "(v * offset, unknown to the host; issue 20's closing note) and the track priors' echo of each vehicle's own "
+    "earlier filtered error (tests/integration/test_fusion_echo.py; docs/host.md)",
 )
 def test_cooperation_never_hurts_a_vehicle(urban):
     for vid, f in urban["per_vehicle_rmse_m"].items():
