@@ -174,7 +174,7 @@ class Container:
             self.graph.remove_track(tid)
         self._counts["fused_cycles"] += 1
         laps.mark("tracks")
-        out = self._output(t)
+        out = self._output(t, tolerance_s)
         laps.mark("output")
         self._last_cycle_ms = sum(laps.ms.values())
         solve = self._last.phases_ms or {}
@@ -329,10 +329,12 @@ class Container:
         self._counts["cross_detections"] += len(items)
         self._cross = waiting
 
-    def _output(self, t: float) -> FusedState:
+    def _output(self, t: float, tolerance_s: float = 0.0) -> FusedState:
         """The fused state at t: every vehicle's newest pose and every confirmed track's newest state,
         predicted to t with constant velocity (vehicles: the reported v_map and the motion factor's
-        noise; tracks: the WNOA model), so that V2X latency does not leave them behind."""
+        noise; tracks: the WNOA model), so that V2X latency does not leave them behind. A vehicle's frame
+        of the instant itself (within ``tolerance_s``: stamped by another clock) is not moved
+        (:func:`.hostcore.vehicle_at`)."""
         g = self.graph
         vids = sorted(g.vehicles)
         poses, pose_covs = [], []
@@ -347,7 +349,7 @@ class Container:
                 cov = g.vehicles[vid].latest().cov
             else:
                 cov = pose_cov_from_tangent(pose, cov_xi)
-            pose, cov = vehicle_at(pose, cov, g.vehicles[vid].latest().v_map, t - ts, pp)
+            pose, cov = vehicle_at(pose, cov, g.vehicles[vid].latest().v_map, t - ts, pp, tolerance_s)
             if vid in self._bias_sigma:  # the body is off the pose its camera sees by this
                 cov = cov + bias_cov(self._bias_sigma[vid], float(pose[5]))
             poses.append(pose)

@@ -181,7 +181,15 @@ class FusionGraph:
         earlier frames stay, tied by the motion factors, for the detections made from them. Otherwise
         every frame's prior is independent evidence apart from the persistent part (``_pose_prior``).
         """
-        chain = self.vehicles.setdefault(vid, Chain(cls=int(ObjectClass.VEHICLE)))
+        chain = self.vehicles.get(vid)
+        if chain is None:
+            p = self.params
+            persist = (
+                (p.filtered_pose_error_persistent_fraction, p.filtered_pose_error_persistence_s)
+                if filtered
+                else (p.pose_error_persistent_fraction, p.pose_error_persistence_s)
+            )
+            chain = self.vehicles[vid] = Chain(cls=int(ObjectClass.VEHICLE), persist=persist)
         tk = time_key(t)
         if tk in chain.states:
             return None
@@ -211,14 +219,15 @@ class FusionGraph:
             for old in list(chain.pose_prior_fids):
                 self._remove_factor(chain.pose_prior_fids.pop(old))
                 chain.states[old].prior_lin = None
-            self._pose_prior(chain, i, persistent=False)
+            self._pose_prior(chain, i)
         return key
 
-    def _pose_prior(self, chain: Chain, i: int, persistent: bool = True) -> None:
+    def _pose_prior(self, chain: Chain, i: int) -> None:
         """(Re)make the self-localization factor of the chain's i-th frame (module docstring).
 
-        With pose_error_persistent_fraction a = 0 or not ``persistent`` (a filtered prior, the only one
-        of its vehicle): PriorFactorPose3 with the reported covariance. With
+        With the vehicle's persistent fraction a = 0 (``Chain.persist``: pose_error_persistent_fraction for
+        per-frame evidence, filtered_pose_error_persistent_fraction for a filtered prior, the only one of
+        its vehicle): PriorFactorPose3 with the reported covariance. With
         a > 0 the whitened prior residual u_k = L_k^-1 r_k (r_k = Local(z_k, x_k), L_k L_k^T = the
         reported covariance in the tangent) is u_k = beta + n_k: beta ~ N(0, a I) one vector per vehicle
         shared by all its frames in the window (the error that persists), n_k ~ N(0, (1 - a) I) per
@@ -230,7 +239,7 @@ class FusionGraph:
         tk = chain.tkeys[i]
         s = chain.states[tk]
         self._remove_factor(chain.pose_prior_fids.pop(tk, -1))
-        a = self.params.pose_error_persistent_fraction if persistent else 0.0
+        a = chain.persist[0]
         if a <= 0:
             f = gtsam.PriorFactorPose3(s.key, s.T, gtsam.noiseModel.Gaussian.Covariance(s.cov_xi))
             s.prior_lin = None
@@ -366,22 +375,27 @@ class FusionGraph:
         """Information of detections about [s, b_v] (:func:`.marginalize.detection_information`) with their
         observers' reported poses; returns (vid or None per detection: the vehicle whose persistent error
         b_v it involves, S, G, m)."""
-        a = self.params.pose_error_persistent_fraction
         states = [self._pose_states[d.pose_key] for d in dets]
         vids = [ps.vid for ps in states]
-        has_b = np.array([a > 0 and self.vehicles[v].bias_key is not None for v in vids])
+        persist = np.array([self._persistence(v) for v in vids]).reshape(-1, 2)
+        has_b = persist[:, 0] > 0
         S, G, m = marginalize.detection_information(
             np.array([ps.M for ps in states]),
             np.array([ps.L_xi for ps in states]),
             np.array([d.z for d in dets]),
             np.array([d.cov for d in dets]),
-            has_b,
+            persist,
             p0,
             self.params,
             extra,
             age,
         )
         return [v if b else None for v, b in zip(vids, has_b, strict=True)], S, G, m
+
+    def _persistence(self, vid: str) -> tuple[float, float]:
+        """(a, tau) of the vehicle's persistent error b_v (``Chain.persist``), (0, 1) while it has no b."""
+        chain = self.vehicles[vid]
+        return chain.persist if chain.bias_key is not None else (0.0, 1.0)
 
     def _summarize_first(self, chains: list[Chain]) -> None:
         """Fold each chain's first state (its prior and its detections) into a prior on its second state
@@ -403,7 +417,7 @@ class FusionGraph:
             np.array([accel_psd(self.params, c.cls) for c in chains]),
             np.array(owner, dtype=int),
             info,
-            self.params,
+            {v: c.persist for v, c in self.vehicles.items()},
             _BATCH_UNITS,
         )
         keys = [self._prior_keys(chains[i], prior) for i, prior, _ in summaries]
@@ -432,7 +446,7 @@ class FusionGraph:
     def _forget_bias(self, vid: str) -> None:
         """A vehicle leaves the graph: its persistent error b_v is marginalised out of the track priors
         that hold it, at its prior N(0, a I)."""
-        a = self.params.pose_error_persistent_fraction
+        a = self.vehicles[vid].persist[0]
         for chain in self.tracks.values():
             prior = chain.prior
             if prior is None or vid not in prior.vids:

@@ -338,11 +338,22 @@ def observer_biases(p_map, seen: list[list[tuple]], observers: dict) -> np.ndarr
 _NO_BIAS = np.zeros((3, 3))
 
 
-def vehicle_at(pose, cov, v_map, dt: float, params: FusionParams) -> tuple[np.ndarray, np.ndarray]:
+def vehicle_at(
+    pose, cov, v_map, dt: float, params: FusionParams, same_instant_s: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """A vehicle's pose and covariance moved dt at constant velocity v_map, with the vehicle motion
-    factor's noise (its newest frame is not at the output time: latency, clocks)."""
+    factor's noise (its newest frame is not at the output time: latency).
+
+    A frame within ``same_instant_s`` of the output time (the frame gate's tolerance) is of the same
+    instant: the fleet samples on one clock, and the stamps differ by the vehicles' clock offsets, which
+    the host does not know. Moving it by v dt would turn a clock's error into a position error (v dt: 2-4 cm
+    at 10 m/s); it stays where it is, and its covariance takes the motion it would be if the gap were real,
+    v v^T dt^2."""
     pose, cov = np.array(pose, dtype=float), np.array(cov, dtype=float)
-    if dt != 0:
+    if 0 < abs(dt) <= same_instant_s:
+        v = np.asarray(v_map, dtype=float)
+        cov[:3, :3] += np.outer(v, v) * dt**2
+    elif dt != 0:
         pose[:3] += np.asarray(v_map, dtype=float) * dt
         s_t2 = (params.vehicle_velocity_sigma_mps * dt) ** 2 + (0.5 * params.vehicle_accel_sigma_mps2 * dt**2) ** 2
         s_r2 = (params.vehicle_rate_sigma_radps * dt) ** 2

@@ -163,7 +163,7 @@ def detection_information(
     L_xi: np.ndarray,
     z: np.ndarray,
     Sz: np.ndarray,
-    has_b: np.ndarray,
+    persist: np.ndarray,
     p0: np.ndarray,
     params: FusionParams,
     extra: np.ndarray | None = None,
@@ -173,11 +173,13 @@ def detection_information(
     L L^T = S_xi) about [s, b_v] (s the state whose position they measure, directly or through H; b_v the
     observer's persistent error): r = p - J L b_v - m ~
     N(0, C / w), C = R S_z R^T + (1 - a) J S_xi J^T (+ ``extra``), w the Huber weight at the estimate p0
-    (N, 3). Where the observer has no b (``has_b`` false: a = 0, or a vehicle without b) C has the whole
+    (N, 3). ``persist`` (N, 2): each observer's (a, tau), its persistent fraction and that part's
+    correlation time (the graph's ``FusionGraph.persistence``); where a = 0 (an observer without b) C has the whole
     J S_xi J^T and b_v is not involved. Returns (S = w C^-1 (N, 3, 3), G = -J L (N, 3, 6), m (N, 3)).
-    ``age``: the detections are that much older than the b they are tied to, b(t - age) = rho b(t) + w
-    (see :func:`summarize_first`): G = -rho J L and a (1 - rho^2) J S_xi J^T more noise."""
-    a = params.pose_error_persistent_fraction
+    ``age``: the detections are that much older than the b they are tied to, b(t - age) = rho b(t) + w,
+    rho = exp(-age / tau) (see :func:`summarize_first`): G = -rho J L and a (1 - rho^2) J S_xi J^T more
+    noise."""
+    a, tau = persist[:, 0], persist[:, 1]
     m, Cz, J = in_map(M, z, Sz)
     JL = J @ L_xi
     Cpose = JL @ JL.transpose(0, 2, 1)
@@ -187,10 +189,10 @@ def detection_information(
     dist = np.sqrt(np.einsum("ni,nij,nj->n", r, np.linalg.inv(Cz + Cpose), r))
     k = params.huber_k
     w = np.ones(len(z)) if k is None else np.minimum(1.0, k / np.maximum(dist, 1e-12))
-    rho = float(np.exp(-abs(age) / params.pose_error_persistence_s))
-    C = Cz + np.where(has_b, 1.0 - a * rho**2, 1.0)[:, None, None] * Cpose
+    rho = np.exp(-abs(age) / tau)
+    C = Cz + (1.0 - a * rho**2)[:, None, None] * Cpose
     S = w[:, None, None] * np.linalg.inv(C)
-    return S, -rho * JL, m
+    return S, -rho[:, None, None] * JL, m
 
 
 def summarize_first(
@@ -200,7 +202,7 @@ def summarize_first(
     q: np.ndarray,
     owner: np.ndarray,
     dets: tuple | None,
-    params: FusionParams,
+    persist: dict[str, tuple[float, float]],
     batch_units: float,
 ) -> list[tuple[int, TrackPrior, tuple[np.ndarray, np.ndarray]]]:
     """Each track's first state (its prior ``priors[i]`` and its detections) folded into a prior on its
@@ -209,9 +211,10 @@ def summarize_first(
     The prior (information over [s0, b...]) plus the first state's detections (``dets``: (vid or None,
     S, G, m) per detection as :func:`detection_information` gives them, ``owner`` the prior each belongs
     to; None if there are none) plus the constant-velocity model s1 = F s0 + w, w ~ N(0, Q), with s0
-    marginalised out (Schur complement); then the persistent errors age by dt: b(t0) = rho b(t1) + w,
-    rho = exp(-dt / tau), w ~ N(0, a (1 - rho^2) I), b(t0) marginalised out (tau =
-    pose_error_persistence_s), so that old detections do not stay tied to a vehicle's current error. The
+    marginalised out (Schur complement); then the persistent errors age by dt: b_v(t0) = rho_v b_v(t1) + w,
+    rho_v = exp(-dt / tau_v), w ~ N(0, a_v (1 - rho_v^2) I), b(t0) marginalised out (``persist``: vid ->
+    (a_v, tau_v), the graph's ``FusionGraph.persistence``), so that old detections do not stay tied to a vehicle's current
+    error. The
     result is information over [s1, b(t1)...], the prior's vehicles and then those of its detections.
     Vectorised in batches (:func:`batches`): a prior padded with zero information over vehicles it does
     not hold stays zero and uncoupled there through every step, and the leading block of a Cholesky
@@ -219,7 +222,6 @@ def summarize_first(
 
     Returns (index, new prior, its :func:`sqrt_information`) per track, batch by batch.
     """
-    a = params.pose_error_persistent_fraction
     vid_lists = [list(p.vids) for p in priors]
     slot = np.full(len(owner), -1)
     if dets is not None:
@@ -272,18 +274,25 @@ def summarize_first(
             new[:, 6:, :6] = new[:, :6, 6:].transpose(0, 2, 1)
             new[:, 6:, 6:] = info[:, 6:, 6:] - Isb.transpose(0, 2, 1) @ K0 @ Isb
             new_eta[:, 6:] = eta[:, 6:] - np.einsum("nji,njk,nk->ni", Isb, K0, eta[:, :6])
-            # b(t0) = rho b(t1) + w, b(t0) marginalised
-            rho = np.exp(-np.abs(dt[idx]) / params.pose_error_persistence_s)
-            omega = 1.0 / (a * (1.0 - rho**2))
-            Mi = np.linalg.inv(new[:, 6:, 6:] + omega[:, None, None] * np.eye(6 * mm))
+            # b(t0) = R b(t1) + w, w ~ N(0, D^-1), b(t0) marginalised; R, D diagonal (per vehicle: rho_v,
+            # 1 / (a_v (1 - rho_v^2)); padding (a, tau) = (1, 1): zero information stays zero)
+            at = np.ones((g, mm, 2))
+            for r, i in enumerate(idx):
+                for j, v in enumerate(vid_lists[i]):
+                    at[r, j] = persist[v]
+            rho = np.repeat(np.exp(-np.abs(dt[idx])[:, None] / at[..., 1]), 6, axis=1)  # (g, 6 mm)
+            omega = np.repeat(1.0 / at[..., 0], 6, axis=1) / (1.0 - rho**2)
+            Mi = np.linalg.inv(new[:, 6:, 6:] + omega[:, :, None] * np.eye(6 * mm))
             Lsb, eb = new[:, :6, 6:].copy(), new_eta[:, 6:].copy()
             LM = Lsb @ Mi
+            MiD = Mi * omega[:, None, :]
             new[:, :6, :6] -= LM @ Lsb.transpose(0, 2, 1)
-            new[:, :6, 6:] = (rho * omega)[:, None, None] * LM
+            new[:, :6, 6:] = LM * (omega * rho)[:, None, :]
             new[:, 6:, :6] = new[:, :6, 6:].transpose(0, 2, 1)
-            new[:, 6:, 6:] = (rho**2 * omega)[:, None, None] * (np.eye(6 * mm) - omega[:, None, None] * Mi)
+            DMiD = omega[:, :, None] * MiD
+            new[:, 6:, 6:] = (rho[:, :, None] * rho[:, None, :]) * (omega[:, :, None] * np.eye(6 * mm) - DMiD)
             new_eta[:, :6] -= np.einsum("nij,nj->ni", LM, eb)
-            new_eta[:, 6:] = (rho * omega)[:, None] * np.einsum("nij,nj->ni", Mi, eb)
+            new_eta[:, 6:] = (rho * omega) * np.einsum("nij,nj->ni", Mi, eb)
         new = 0.5 * (new + new.transpose(0, 2, 1))
         A, rhs = sqrt_information(new, new_eta)
         for r, i in enumerate(idx):

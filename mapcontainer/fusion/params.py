@@ -219,6 +219,28 @@ class FusionParams(BaseModel):
         ),
     )
 
+    filtered_pose_error_persistent_fraction: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description=(
+            "the same for a vehicle that sends its filtered estimate (VehiclePrior.pose_filtered): the fraction"
+            " of its reported variance that the detections folded into track priors share with its later"
+            " frames (its b is kept in those priors, so that they do not correct it as independent evidence)."
+            " A filter's error moves slowly: measured correlation of its whitened 6-DoF errors 0.97 at 0.1 s,"
+            " 0.88 at 0.3 s, 0.84 at 0.5 s, 0.81 at 1 s (paper-urban development seeds 1000-1002): 0.85 with"
+            " filtered_pose_error_persistence_s 10 s fits 0.3-1 s, the ages at which detections are folded."
+            " 0 (default): no b for a filtered sender, its folded detections' pose error independent of its"
+            " later frames. 0.85 makes a lone vehicle's fused pose consistent (tests/unit/test_fusion_graph.py)"
+            " but did not help the simulated fleets (development seeds, docs/host.md)"
+        ),
+    )
+    filtered_pose_error_persistence_s: float = Field(
+        10.0,
+        gt=0,
+        description="correlation time of that persistent part of a filtered estimate's error (s)",
+    )
+
     detection_persistent_fraction: float = Field(
         0.5,
         ge=0,

@@ -51,6 +51,7 @@ class Chain:
     prior_fid: int = -1
     pose_prior_fids: dict[int, int] = field(default_factory=dict)  # vehicles: tkey -> self-localization factor
     bias_key: int | None = None  # vehicles: the persistent part of the self-localization error (whitened)
+    persist: tuple[float, float] = (0.0, 1.0)  # vehicles: that part's fraction a and correlation time tau (s)
     cls: int = int(ObjectClass.UNKNOWN)
 
     def latest(self):

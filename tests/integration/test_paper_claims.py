@@ -46,12 +46,10 @@ def test_cooperation_sees_more_targets_and_places_them_better(urban):
     assert urban["target_rmse_m"]["cooperative"] < 0.7
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cv3's fused pose is worse than its own filtered one (0.159 vs 0.133 m): the vehicles' clock offsets "
-    "(v * offset, unknown to the host); issue 20's closing note",
-)
 def test_cooperation_never_hurts_a_vehicle(urban):
+    # seeds 1000-1003, fused against on board: cv0 0.149 / 0.154, cv1 0.175 / 1.255, cv2 0.250 / 0.375,
+    # cv3 0.133 / 0.133 m; cv3 was 0.159 while the host moved a frame of the instant by the gap between the
+    # vehicles' clocks (docs/host.md, "a vehicle's own echo")
     for vid, f in urban["per_vehicle_rmse_m"].items():
         assert f["cooperative"] <= 1.05 * f["onboard"], (vid, f)
 

@@ -172,24 +172,26 @@ def test_detection_information_covariances_and_huber_weight():
     L = np.linalg.cholesky(np.stack([_spd(6, rng) * 1e-4 for _ in range(3)]))
     z, Sz = rng.normal(0, 10, (3, 3)), np.stack([_spd(3, rng) * 0.01 for _ in range(3)])
     m, Cz, J = in_map(M, z, Sz)
-    has_b = np.array([True, False, True])
-    a, tau, age = 0.5, 1.0, 0.3
-    params = FusionParams(pose_error_persistent_fraction=a, pose_error_persistence_s=tau, huber_k=None)
-    S_, G, m_out = detection_information(M, L, z, Sz, has_b, m, params, age=age)
-    rho = np.exp(-age / tau)
+    # per observer (a, tau): a per-frame sender, none (no b), a filtered sender
+    persist = np.array([[0.5, 1.0], [0.0, 1.0], [0.9, 5.0]])
+    age = 0.3
+    params = FusionParams(huber_k=None)
+    S_, G, m_out = detection_information(M, L, z, Sz, persist, m, params, age=age)
     np.testing.assert_allclose(m_out, m)
     for n in range(3):
+        a, tau = persist[n]
+        rho = np.exp(-age / tau)
         JL = J[n] @ L[n]
         np.testing.assert_allclose(G[n], -rho * JL, atol=1e-15)
-        C = Cz[n] + (1 - a * rho**2 if has_b[n] else 1.0) * JL @ JL.T
+        C = Cz[n] + (1 - a * rho**2) * JL @ JL.T
         np.testing.assert_allclose(S_[n], np.linalg.inv(C), rtol=1e-9)
     # Huber: full weight at the estimate, k / d for a residual of Mahalanobis length d > k
     k = 1.5
-    params = FusionParams(pose_error_persistent_fraction=a, pose_error_persistence_s=tau, huber_k=k)
+    params = FusionParams(huber_k=k)
     C0 = Cz[0] + J[0] @ L[0] @ (J[0] @ L[0]).T
     off = 4.0 * np.linalg.cholesky(C0) @ np.array([1.0, 0.0, 0.0])  # Mahalanobis length 4
-    S_h, _, _ = detection_information(M[:1], L[:1], z[:1], Sz[:1], has_b[:1], m[:1] + off, params)
-    S_0, _, _ = detection_information(M[:1], L[:1], z[:1], Sz[:1], has_b[:1], m[:1], params)
+    S_h, _, _ = detection_information(M[:1], L[:1], z[:1], Sz[:1], persist[:1], m[:1] + off, params)
+    S_0, _, _ = detection_information(M[:1], L[:1], z[:1], Sz[:1], persist[:1], m[:1], params)
     np.testing.assert_allclose(S_h[0], k / 4.0 * S_0[0], rtol=1e-9)
 
 
@@ -216,7 +218,7 @@ def test_fold_adds_the_detections_quadratic():
         np.testing.assert_allclose(new.eta, eta + Jfull.T @ S_ @ m, rtol=1e-12, atol=1e-12)
 
 
-def _summary_by_hand(prior, dets, dt, q, a, tau, vids_out):
+def _summary_by_hand(prior, dets, dt, q, persist, vids_out):
     """The joint Gaussian over [s0, b(t0)..., s1, b(t1)...] of the prior, the detections (S, G, m, vid)
     on s0's position, s1 = F s0 + w and b(t0) = rho b(t1) + w', each written as a stacked Jacobian;
     s0 and every b(t0) eliminated at once by the Schur complement."""
@@ -238,8 +240,9 @@ def _summary_by_hand(prior, dets, dt, q, a, tau, vids_out):
     Jm = np.zeros((6, N))
     Jm[:, :6], Jm[:, n0 : n0 + 6] = -F, np.eye(6)
     info += Jm.T @ np.linalg.inv(Q) @ Jm
-    rho = np.exp(-abs(dt) / tau)
     for i in range(mb):
+        a, tau = persist[vids_out[i]]
+        rho = np.exp(-abs(dt) / tau)
         Jb = np.zeros((6, N))
         Jb[:, 6 + 6 * i : 12 + 6 * i] = np.eye(6)
         Jb[:, n0 + 6 + 6 * i : n0 + 12 + 6 * i] = -rho * np.eye(6)
@@ -251,11 +254,10 @@ def _summary_by_hand(prior, dets, dt, q, a, tau, vids_out):
 
 def test_summarize_first_is_the_dense_marginal_and_padding_changes_nothing():
     """Three tracks whose priors hold 0, 1 and 2 vehicles, detections with and without b and of a new
-    vehicle: each summary equals the dense joint marginalised by hand, in one padded batch or one batch
-    per size."""
+    vehicle, the vehicles' errors persisting differently (per-frame and filtered senders): each summary
+    equals the dense joint marginalised by hand, in one padded batch or one batch per size."""
     rng = np.random.default_rng(7)
-    a, tau = 0.5, 1.0
-    params = FusionParams(pose_error_persistent_fraction=a, pose_error_persistence_s=tau)
+    persist = {"cv0": (0.5, 1.0), "cv1": (0.9, 5.0), "cv2": (0.7, 0.5)}
     priors = [
         TrackPrior(10, _spd(6, rng), rng.normal(size=6), ()),
         TrackPrior(11, _spd(12, rng), rng.normal(size=12), ("cv0",)),
@@ -272,7 +274,7 @@ def test_summarize_first_is_the_dense_marginal_and_padding_changes_nothing():
     next_tkeys = [20, 21, 22]
     results = {}
     for units in (0.0, 1e12):
-        out = summarize_first(priors, next_tkeys, dt, q, owner, (dvids, S_, G, m), params, units)
+        out = summarize_first(priors, next_tkeys, dt, q, owner, (dvids, S_, G, m), persist, units)
         assert sorted(i for i, _, _ in out) == [0, 1, 2]
         results[units] = {i: (p, sq) for i, p, sq in out}
     expect_vids = [("cv0",), ("cv0", "cv2"), ("cv1", "cv0")]
@@ -281,7 +283,7 @@ def test_summarize_first_is_the_dense_marginal_and_padding_changes_nothing():
             p, (A, r) = results[units][i]
             assert p.tkey == next_tkeys[i] and p.vids == expect_vids[i]
             dets = [(S_[d], G[d], m[d], dvids[d]) for d in np.flatnonzero(owner == i)]
-            ref_info, ref_eta = _summary_by_hand(priors[i], dets, dt[i], q[i], a, tau, list(expect_vids[i]))
+            ref_info, ref_eta = _summary_by_hand(priors[i], dets, dt[i], q[i], persist, list(expect_vids[i]))
             scale = np.max(np.abs(ref_info))
             np.testing.assert_allclose(p.info, ref_info, rtol=1e-6, atol=1e-8 * scale)
             np.testing.assert_allclose(p.eta, ref_eta, rtol=1e-6, atol=1e-8 * np.max(np.abs(ref_eta)))
@@ -294,7 +296,7 @@ def test_summarize_first_without_detections_is_the_prediction():
     rng = np.random.default_rng(8)
     prior = TrackPrior(0, _spd(6, rng), rng.normal(size=6))
     dt, q = np.array([0.3]), np.array([[1.0, 1.0, 0.2]])
-    ((i, p, _),) = summarize_first([prior], [5], dt, q, np.array([], dtype=int), None, FusionParams(), 1e5)
+    ((i, p, _),) = summarize_first([prior], [5], dt, q, np.array([], dtype=int), None, {}, 1e5)
     P = np.linalg.inv(prior.info)
     mu = P @ prior.eta
     F, Q = cv_model(dt[0], q[0])
