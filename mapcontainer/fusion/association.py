@@ -127,19 +127,19 @@ def _quad_inv3(S: np.ndarray, d: np.ndarray, logdet: bool = False):
     return out
 
 
-def _match_probability(nll: np.ndarray, gated: np.ndarray, clutter_density: float) -> np.ndarray:
+def _match_probability(nll: np.ndarray, gated: np.ndarray, density: float) -> np.ndarray:
     """P[i, j]: the probability that detection i is of candidate j, given the gated candidates of its row and
-    the hypothesis that it is of none of them (a new object, a false alarm) with spatial density
-    ``clutter_density`` (per m^3), as in JPDA's single-detection marginals:
+    the hypothesis that it is of none of them (an object not yet tracked, a false alarm) with spatial density
+    ``density`` (per m^3), as in JPDA's single-detection marginals:
 
         P[i, j] = N_ij / (lambda + sum_k N_ik),   N_ij = (2 pi)^-3/2 exp(-nll_ij / 2),   nll = d2 + ln det S.
     """
     if nll.size == 0:
         return np.zeros_like(nll)
     log_n = np.where(gated, -0.5 * nll - 1.5 * np.log(2.0 * np.pi), -np.inf)
-    top = np.maximum(log_n.max(axis=1, keepdims=True, initial=np.log(clutter_density)), np.log(clutter_density))
+    top = np.maximum(log_n.max(axis=1, keepdims=True, initial=np.log(density)), np.log(density))
     n = np.exp(log_n - top)
-    return n / (np.exp(np.log(clutter_density) - top) + n.sum(axis=1, keepdims=True))
+    return n / (np.exp(np.log(density) - top) + n.sum(axis=1, keepdims=True))
 
 
 def classes_compatible(a: int, b: int) -> bool:
@@ -199,6 +199,7 @@ class Assignment:
     target: int | str
     det: Detection
     d2: float = 0.0  # Mahalanobis distance squared of the match (innovation)
+    p: float = 1.0  # probability that the detection is of the target (Tracker.associate)
 
 
 @dataclass
@@ -290,10 +291,32 @@ class Tracker:
         self.counts: Counter[str] = Counter()
         self.t_data = float("-inf")  # newest t_meas shown to the tracker (observe / associate)
         self._instant: _Instant | None = None  # see _at
+        # each sender's recent detections (decayed over window_s of measurement time): (untracked, all, at t)
+        self._recent: dict[str, tuple[float, float, float]] = {}
 
     def observe(self, t_meas: float) -> None:
         """A message measured at ``t_meas`` was fused (with or without detections): the tracker's data clock."""
         self.t_data = max(self.t_data, float(t_meas))
+
+    def untracked_density(self, sender: str) -> float:
+        """Spatial density (per m^3) of what a detection of ``sender`` may be of besides the candidates in its
+        gate: false alarms (``clutter_density_m3``) and objects not yet tracked, ``object_density_m3`` times
+        the share of the sender's recent detections (window_s, measurement time) that no connected vehicle
+        and no confirmed track another sender saw took (all of them before it has detected anything). The
+        new-target density of JPDA's likelihood ratio, observed around that observer: where it sees objects
+        the others do not track (a cold start; a vehicle ahead of the rest), a lone track in a wide gate is
+        not evidence that its detection is of it; a track it alone saw is its own earlier view, placed with
+        its own pose error."""
+        untracked, seen, _ = self._recent.get(sender, (0.0, 0.0, float("-inf")))
+        share = untracked / seen if seen > 0 else 1.0
+        return self.params.clutter_density_m3 + self.params.object_density_m3 * share
+
+    def _count_recent(self, sender: str, t: float, n: int, untracked: int) -> None:
+        """Add one message's detections (``untracked``: see untracked_density) to its sender's recent counts,
+        the older ones decayed by exp(-dt / window_s)."""
+        u, s, t0 = self._recent.get(sender, (0.0, 0.0, float("-inf")))
+        w = float(np.exp(-max(t - t0, 0.0) / self.params.window_s)) if np.isfinite(t0) else 0.0
+        self._recent[sender] = (w * u + untracked, w * s + n, max(t, t0))
 
     # ---------------------------------------------------------------- queries
     def confirmed(self) -> dict[int, Track]:
@@ -357,7 +380,8 @@ class Tracker:
         rows, cols = linear_sum_assignment(cost)
         ok = gated[rows, cols]
         matched: dict[int, int] = dict(zip(rows[ok].tolist(), cols[ok].tolist(), strict=True))
-        p_match = _match_probability(nll, gated, self.params.clutter_density_m3)
+        sender = dets[0].sender
+        p_match = _match_probability(nll, gated, self.untracked_density(sender))
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
         excluded = (d2_all[:, ~taken] <= self.exclusion_gate).any(axis=1)  # for the unmatched rows
@@ -379,20 +403,25 @@ class Tracker:
                 if p_match[i, j] < self.params.vehicle_association_probability:  # another candidate may be it
                     self.counts["vehicle_ambiguous"] += 1
                     continue
-                out.append(Assignment("vehicle", vehicles[j].vid, det, float(d2[i, j])))
+                out.append(Assignment("vehicle", vehicles[j].vid, det, float(d2[i, j]), float(p_match[i, j])))
                 self.counts["matched_vehicle"] += 1
             else:
                 tr = live[j - nv]
                 self._record(tr, det)
                 kf.append((int(near[j - nv]), det))
                 if tr.confirmed:
-                    out.append(Assignment("track", tr.id, det, float(d2[i, j])))
+                    out.append(Assignment("track", tr.id, det, float(d2[i, j]), float(p_match[i, j])))
                     self.counts["matched_track"] += 1
                 else:
                     tr.pending.append((det, float(d2[i, j])))
                     self.counts["matched_tentative"] += 1
                     self._maybe_confirm(tr, out, born)
         self._update(inst, kf)
+        shared = sum(
+            a.det.t == t and (a.kind == "vehicle" or any(o != sender for o, _ in self.by_id(a.target).frames))
+            for a in out
+        )
+        self._count_recent(sender, t, len(dets), len(dets) - shared)
         return out, born
 
     def _maybe_confirm(self, tr: Track, out: list[Assignment], born: list[int]) -> None:
