@@ -5,16 +5,8 @@ import pytest
 
 from mapcontainer import geometry as geo
 from mapcontainer.fusion import FusionParams
-from mapcontainer.fusion.association import (
-    Detection,
-    Tracker,
-    VehicleCandidate,
-    cv_predict,
-    mahalanobis_logdet,
-    mahalanobis_matrix,
-    observations_to_map,
-    protection_gate,
-)
+from mapcontainer.fusion.association import Detection, Tracker, VehicleCandidate, cv_predict, protection_gate
+from mapcontainer.fusion.mapframe import mahalanobis_logdet, mahalanobis_matrix, observations_to_map
 from schemas import ObjectClass
 
 PED, VEH = int(ObjectClass.PEDESTRIAN), int(ObjectClass.VEHICLE)
@@ -138,9 +130,10 @@ def test_a_wide_vehicle_does_not_capture_the_detection_of_a_tight_one_next_to_it
     cv2 = VehicleCandidate("cv2", np.array([20.4, 0.3, 0.0]), np.diag([0.1, 0.1, 0.05]) ** 2)
     cv1 = VehicleCandidate("cv1", np.array([20.8, 0.8, 0.0]), np.diag([1.6, 1.6, 0.3]) ** 2)
     det = _det([20.0, 0.0, 0.0], 0.0)
-    assert mahalanobis_matrix([det.p_map], [det.cov_map], [cv1.p_map], [cv1.cov])[0, 0] < mahalanobis_matrix(
-        [det.p_map], [det.cov_map], [cv2.p_map], [cv2.cov]
-    )[0, 0]  # by distance alone cv1 would win
+    assert (
+        mahalanobis_matrix([det.p_map], [det.cov_map], [cv1.p_map], [cv1.cov])[0, 0]
+        < mahalanobis_matrix([det.p_map], [det.cov_map], [cv2.p_map], [cv2.cov])[0, 0]
+    )  # by distance alone cv1 would win
     a, _ = tr.associate([det], [cv1, cv2])
     assert [(x.kind, x.target) for x in a] == [("vehicle", "cv2")]
 
@@ -150,7 +143,10 @@ def test_a_detection_two_vehicles_explain_alike_constrains_neither():
     is it with probability ~1/2, so neither pose is constrained by it, and it starts no track."""
     tr = Tracker(FusionParams())
     cov = np.diag([1.0, 1.0, 0.2]) ** 2
-    a_, b_ = VehicleCandidate("a", np.array([20.0, 1.0, 0.0]), cov), VehicleCandidate("b", np.array([20.0, -1.0, 0]), cov)
+    a_, b_ = (
+        VehicleCandidate("a", np.array([20.0, 1.0, 0.0]), cov),
+        VehicleCandidate("b", np.array([20.0, -1.0, 0]), cov),
+    )
     a, _ = tr.associate([_det([20.0, 0.0, 0.0], 0.0)], [a_, b_])
     assert a == [] and tr.counts["vehicle_ambiguous"] == 1 and not tr.tracks
     a, _ = tr.associate([_det([20.0, 1.8, 0.0], 0.1)], [a_, b_])  # a, with probability 0.97

@@ -234,5 +234,3 @@ def test_a_fallback_frame_corrects_its_pose_only_through_sure_associations_to_sh
     assert host._sure("a", Assignment("track", 1, det, 0.0, p + 0.01))
     assert not host._sure("a", Assignment("track", 1, det, 0.0, p - 0.01))
     assert not host._sure("a", Assignment("track", 2, det, 0.0, 0.999))  # a saw it alone
-
-
