@@ -1,13 +1,10 @@
 """Association of body-frame detections to tracks and connected vehicles, and track management.
 
-Each message's detections are moved to the map frame with the sender's reported pose,
-
-    m = R z + t,     S_m = R S_z R^T + J S_pose J^T,     J = d m / d [x, y, z, roll, pitch, yaw]
-                                                            = [I, dR/droll z, dR/dpitch z, dR/dyaw z],
-
-and compared with (a) the other connected vehicles' reported positions at t_meas (extrapolated with
-their v_map) and (b) every live track predicted to t_meas with a constant-velocity Kalman filter
-(white-noise acceleration, the same PSDs as the factor graph). The cost is the Mahalanobis distance
+Each message's detections are moved to the map frame with the sender's reported pose
+(:func:`~.mapframe.observations_to_map`) and compared with (a) the other connected vehicles' reported
+positions at t_meas (extrapolated with their v_map) and (b) every live track predicted to t_meas with a
+constant-velocity Kalman filter (white-noise acceleration, the same PSDs as the factor graph). The cost is
+the Mahalanobis distance
 
     d^2 = (m - c)^T (S_m + S_c)^-1 (m - c),
 
@@ -15,7 +12,13 @@ gated at chi2_3(gate_probability); incompatible classes are not matched. One Hun
 (scipy.optimize.linear_sum_assignment) per message solves the frame. A detection matched to a
 connected vehicle becomes a cross-localization constraint on that vehicle's pose; one matched to a
 confirmed track becomes an observation of it; one matched to a tentative track is held by it; the
-rest start tentative tracks. A tentative track is confirmed (and gets the next stable global id)
+rest start tentative tracks. Each assignment carries the probability that the detection is of its target
+(JPDA's single-detection marginal against every other gated candidate and against "none of them": false
+alarms and objects not yet tracked, :meth:`Tracker.untracked_density`, the density of objects around the
+sender that no connected vehicle or shared track explains). A detection of a connected vehicle constrains
+that vehicle's pose only if the probability is at least ``vehicle_association_probability``; the
+centralized host applies the same test before a detection corrects the pose of an observer that is not map
+matching. A tentative track is confirmed (and gets the next stable global id)
 once it has detections at ``birth_hits`` distinct instants; its held detections then enter the
 graph. Tentative tracks die after ``tentative_timeout_s`` without a detection, counted in measurement
 time: from the track's last detection to the newest ``t_meas`` the tracker has been shown
@@ -41,9 +44,9 @@ from scipy.spatial import cKDTree
 
 from schemas import ObjectClass
 
-from .. import geometry as geo
 from ..metrics import chi2_quantile
 from .buffer import time_key
+from .mapframe import mahalanobis_logdet, mahalanobis_matrix
 from .motion import accel_psd, cv_predict, speed_prior
 from .params import FusionParams
 
@@ -55,91 +58,25 @@ __all__ = [
     "VehicleCandidate",
     "classes_compatible",
     "cv_predict",
-    "mahalanobis_matrix",
-    "observations_to_map",
-    "rotated_to_map",
     "protection_gate",
 ]
 
 _INFEASIBLE = 1e12
 
 
-def observations_to_map(pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray]:
-    """Map-frame positions (N, 3) and covariances (N, 3, 3) of body-frame detections.
-
-    ``pose`` = [x, y, z, roll, pitch, yaw] with covariance ``pose_cov`` (6, 6); ``p_body`` (N, 3) with
-    covariances ``cov_body`` (N, 3, 3). First-order propagation of both uncertainties (module docstring).
-    """
-    pose = np.asarray(pose, dtype=float)
-    return rotated_to_map(pose, geo.rpy_to_matrix_jac(*pose[3:]), pose_cov, p_body, cov_body)
-
-
-def rotated_to_map(pose, jac, pose_cov, p_body, cov_body, rowwise: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`observations_to_map` with the pose's rotation and its derivatives ``jac`` given
-    (:func:`mapcontainer.geometry.rpy_to_matrix_jac`), for a caller that has them already. ``rowwise``: each
-    row's Jacobian as one (1, 3) product, the numbers of N calls with one row each to the last bit (BLAS
-    rounds an (N, 3) product's rows differently)."""
-    p_body = np.asarray(p_body, dtype=float).reshape(-1, 3)
-    cov_body = np.asarray(cov_body, dtype=float).reshape(-1, 3, 3)
-    R, dR_r, dR_p, dR_y = jac
-    m = p_body @ R.T + pose[:3]
-    J = np.empty((len(p_body), 3, 6))
-    J[:, :, :3] = np.eye(3)
-    rows = p_body[:, None, :] if rowwise else p_body
-    J[:, :, 3] = (rows @ dR_r.T).reshape(-1, 3)
-    J[:, :, 4] = (rows @ dR_p.T).reshape(-1, 3)
-    J[:, :, 5] = (rows @ dR_y.T).reshape(-1, 3)
-    S = R @ cov_body @ R.T + J @ np.asarray(pose_cov, dtype=float) @ J.transpose(0, 2, 1)
-    return m, 0.5 * (S + S.transpose(0, 2, 1))
-
-
-def mahalanobis_matrix(m, S_m, c, S_c) -> np.ndarray:
-    """d2[i, j] = (m_i - c_j)^T (S_m_i + S_c_j)^-1 (m_i - c_j) for (N, 3) / (K, 3) points and their covariances."""
-    return mahalanobis_logdet(m, S_m, c, S_c)[0]
-
-
-def mahalanobis_logdet(m, S_m, c, S_c) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`mahalanobis_matrix` and ln det(S_m_i + S_c_j) of every pair (inf where not positive definite)."""
-    m = np.asarray(m, dtype=float).reshape(-1, 3)
-    c = np.asarray(c, dtype=float).reshape(-1, 3)
-    if len(m) == 0 or len(c) == 0:
-        return np.zeros((len(m), len(c))), np.zeros((len(m), len(c)))
-    diff = m[:, None, :] - c[None, :, :]
-    S = np.asarray(S_m, dtype=float)[:, None] + np.asarray(S_c, dtype=float)[None, :]
-    return _quad_inv3(S, diff, logdet=True)
-
-
-def _quad_inv3(S: np.ndarray, d: np.ndarray, logdet: bool = False):
-    """d^T S^-1 d for stacks of symmetric positive definite 3x3 S (..., 3, 3) and vectors d (..., 3), by
-    the adjugate (closed form; a batched LAPACK solve costs ~1 us of overhead per matrix); with ``logdet``
-    also ln det S."""
-    a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
-    e, f, i = S[..., 1, 1], S[..., 1, 2], S[..., 2, 2]
-    A00, A01, A02 = e * i - f * f, c * f - b * i, b * f - c * e
-    A11, A12, A22 = a * i - c * c, b * c - a * f, a * e - b * b
-    det = a * A00 + b * A01 + c * A02
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    q = A00 * x * x + A11 * y * y + A22 * z * z + 2.0 * (A01 * x * y + A02 * x * z + A12 * y * z)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = np.where(det > 0, q / det, np.inf)
-        if logdet:
-            return out, np.where(det > 0, np.log(np.where(det > 0, det, 1.0)), np.inf)
-    return out
-
-
-def _match_probability(nll: np.ndarray, gated: np.ndarray, clutter_density: float) -> np.ndarray:
+def _match_probability(nll: np.ndarray, gated: np.ndarray, density: float) -> np.ndarray:
     """P[i, j]: the probability that detection i is of candidate j, given the gated candidates of its row and
-    the hypothesis that it is of none of them (a new object, a false alarm) with spatial density
-    ``clutter_density`` (per m^3), as in JPDA's single-detection marginals:
+    the hypothesis that it is of none of them (an object not yet tracked, a false alarm) with spatial density
+    ``density`` (per m^3), as in JPDA's single-detection marginals:
 
         P[i, j] = N_ij / (lambda + sum_k N_ik),   N_ij = (2 pi)^-3/2 exp(-nll_ij / 2),   nll = d2 + ln det S.
     """
     if nll.size == 0:
         return np.zeros_like(nll)
     log_n = np.where(gated, -0.5 * nll - 1.5 * np.log(2.0 * np.pi), -np.inf)
-    top = np.maximum(log_n.max(axis=1, keepdims=True, initial=np.log(clutter_density)), np.log(clutter_density))
+    top = np.maximum(log_n.max(axis=1, keepdims=True, initial=np.log(density)), np.log(density))
     n = np.exp(log_n - top)
-    return n / (np.exp(np.log(clutter_density) - top) + n.sum(axis=1, keepdims=True))
+    return n / (np.exp(np.log(density) - top) + n.sum(axis=1, keepdims=True))
 
 
 def classes_compatible(a: int, b: int) -> bool:
@@ -199,6 +136,7 @@ class Assignment:
     target: int | str
     det: Detection
     d2: float = 0.0  # Mahalanobis distance squared of the match (innovation)
+    p: float = 1.0  # probability that the detection is of the target (Tracker.associate)
 
 
 @dataclass
@@ -290,10 +228,32 @@ class Tracker:
         self.counts: Counter[str] = Counter()
         self.t_data = float("-inf")  # newest t_meas shown to the tracker (observe / associate)
         self._instant: _Instant | None = None  # see _at
+        # each sender's recent detections (decayed over window_s of measurement time): (untracked, all, at t)
+        self._recent: dict[str, tuple[float, float, float]] = {}
 
     def observe(self, t_meas: float) -> None:
         """A message measured at ``t_meas`` was fused (with or without detections): the tracker's data clock."""
         self.t_data = max(self.t_data, float(t_meas))
+
+    def untracked_density(self, sender: str) -> float:
+        """Spatial density (per m^3) of what a detection of ``sender`` may be of besides the candidates in its
+        gate: false alarms (``clutter_density_m3``) and objects not yet tracked, ``object_density_m3`` times
+        the share of the sender's recent detections (window_s, measurement time) that no connected vehicle
+        and no confirmed track another sender saw took (all of them before it has detected anything). The
+        new-target density of JPDA's likelihood ratio, observed around that observer: where it sees objects
+        the others do not track (a cold start; a vehicle ahead of the rest), a lone track in a wide gate is
+        not evidence that its detection is of it; a track it alone saw is its own earlier view, placed with
+        its own pose error."""
+        untracked, seen, _ = self._recent.get(sender, (0.0, 0.0, float("-inf")))
+        share = untracked / seen if seen > 0 else 1.0
+        return self.params.clutter_density_m3 + self.params.object_density_m3 * share
+
+    def _count_recent(self, sender: str, t: float, n: int, untracked: int) -> None:
+        """Add one message's detections (``untracked``: see untracked_density) to its sender's recent counts,
+        the older ones decayed by exp(-dt / window_s)."""
+        u, s, t0 = self._recent.get(sender, (0.0, 0.0, float("-inf")))
+        w = float(np.exp(-max(t - t0, 0.0) / self.params.window_s)) if np.isfinite(t0) else 0.0
+        self._recent[sender] = (w * u + untracked, w * s + n, max(t, t0))
 
     # ---------------------------------------------------------------- queries
     def confirmed(self) -> dict[int, Track]:
@@ -357,7 +317,8 @@ class Tracker:
         rows, cols = linear_sum_assignment(cost)
         ok = gated[rows, cols]
         matched: dict[int, int] = dict(zip(rows[ok].tolist(), cols[ok].tolist(), strict=True))
-        p_match = _match_probability(nll, gated, self.params.clutter_density_m3)
+        sender = dets[0].sender
+        p_match = _match_probability(nll, gated, self.untracked_density(sender))
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
         excluded = (d2_all[:, ~taken] <= self.exclusion_gate).any(axis=1)  # for the unmatched rows
@@ -379,20 +340,25 @@ class Tracker:
                 if p_match[i, j] < self.params.vehicle_association_probability:  # another candidate may be it
                     self.counts["vehicle_ambiguous"] += 1
                     continue
-                out.append(Assignment("vehicle", vehicles[j].vid, det, float(d2[i, j])))
+                out.append(Assignment("vehicle", vehicles[j].vid, det, float(d2[i, j]), float(p_match[i, j])))
                 self.counts["matched_vehicle"] += 1
             else:
                 tr = live[j - nv]
                 self._record(tr, det)
                 kf.append((int(near[j - nv]), det))
                 if tr.confirmed:
-                    out.append(Assignment("track", tr.id, det, float(d2[i, j])))
+                    out.append(Assignment("track", tr.id, det, float(d2[i, j]), float(p_match[i, j])))
                     self.counts["matched_track"] += 1
                 else:
                     tr.pending.append((det, float(d2[i, j])))
                     self.counts["matched_tentative"] += 1
                     self._maybe_confirm(tr, out, born)
         self._update(inst, kf)
+        shared = sum(
+            a.det.t == t and (a.kind == "vehicle" or any(o != sender for o, _ in self.by_id(a.target).frames))
+            for a in out
+        )
+        self._count_recent(sender, t, len(dets), len(dets) - shared)
         return out, born
 
     def _maybe_confirm(self, tr: Track, out: list[Assignment], born: list[int]) -> None:

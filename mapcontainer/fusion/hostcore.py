@@ -10,7 +10,7 @@ alike lives here, once:
 * :class:`Intake`: decode, sender screening (fleet, known senders), the reorder buffer, the counters;
   the messages of a solve (:meth:`Intake.pop`) and the ones that left the window meanwhile;
 * :func:`detections_in_map`: a message's body-frame detections, the too-close ones dropped, moved to
-  the map frame with the sender's pose (:func:`~.association.observations_to_map`);
+  the map frame with the sender's pose (:func:`~.mapframe.observations_to_map`);
 * :func:`vehicle_candidate`: a connected vehicle's reported position at a detection's time, for gating;
 * :func:`cross_observation`: a detection of a connected vehicle corrected to the observed vehicle's
   frame time;
@@ -35,8 +35,9 @@ from scipy.stats import norm
 from schemas import FusedState, Rejection, decode
 
 from .. import geometry as geo
-from .association import Detection, Tracker, VehicleCandidate, observations_to_map, rotated_to_map
+from .association import Detection, Tracker, VehicleCandidate
 from .buffer import ReorderBuffer
+from .mapframe import observations_to_map, rotated_to_map
 from .params import FusionParams
 from .poses import sym_from_upper, upper_from_sym
 
@@ -301,7 +302,7 @@ def observer_biases(p_map, seen: list[list[tuple]], observers: dict) -> np.ndarr
     ``seen[k]``: object k's observers as (key into ``observers``, w_v, D_v (3, 3) or None), in the order
     their terms are summed; ``observers``: key -> (pose_v (6,), S_v (6, 6)). Each observer's rotation and
     its derivatives are computed once, and its terms for every object it saw in one array operation
-    (:func:`~.association.rotated_to_map`), instead of once per object and observer."""
+    (:func:`~.mapframe.rotated_to_map`), instead of once per object and observer."""
     p = np.asarray(p_map, dtype=float).reshape(-1, 3)
     if len(seen) != len(p):
         raise ValueError(f"{len(p)} objects but {len(seen)} lists of observers")

@@ -34,14 +34,19 @@ vehicles saw; through the tracks they shared, their GNSS fixes and detections sh
 1.25 m and then, once another vehicle map-matched, to 0.25 m, error unchanged (its detections were of the
 neighbouring cars, 5-6 m apart); its localizer, re-seeded from that block, locked its map matching on a
 wrong basin (11 m off, NEES 1,899). A GNSS-grade pose is not one to resolve detection associations with,
-unless the association is unambiguous: a frame of such a vehicle whose every detection has one confirmed
-track alone in its gate (the detection's map-frame covariance with the observer's pose uncertainty, plus
-the track's; ``FusionParams.gate_probability``) updates its pose as any other (counted otherwise as
-``detections_ambiguous``); nothing else does. So its block holds what its own localizer measured and what
-its unambiguous detections add, and the localizer started from it is not re-seeded tighter than that
-evidence; from its first map-matched frame it gains from everything again. Suburban development seeds
-1000, 1003, 1004 (centralized, vehicle RMSE / ANEES): 0.48 / 12.7, 0.40 / 7.9, 3.43 / 483 before;
-0.44 / 12.0, 0.45 / 6.6, 0.80 / 8.5 after (a consider state in every update: 1.46, 1.27, 2.12 m).
+unless the association is sure: a frame of such a vehicle updates its pose as any other only if each of its
+detections of a track is of that track with probability at least ``vehicle_association_probability`` (the
+tracker's JPDA marginal against the other gated candidates, false alarms and objects not yet tracked,
+:meth:`~.association.Tracker.untracked_density`) and another vehicle saw the track (counted otherwise as
+``detections_ambiguous``). A lone track in the gate is not enough: traced (suburban development seed 1006),
+a vehicle 0.9 m off with sigma 1.9 m saw, in its first frame with detections, an object nobody tracked yet
+7.5 m from a confirmed track alone in its gate (d2 1.5); that one update moved it 3.6 m onto the wrong
+object with sigma 0.6 m, and its localizer, started from that, locked 10 m off (RMSE 8.2 m, NEES 1,337).
+With the density of objects around it that no track explains, that detection is the track's with
+probability 0.3. So its block holds what its own localizer measured and what its sure detections add, and
+the localizer started from it is not re-seeded tighter than that evidence; from its first map-matched frame
+it gains from everything again. Suburban development seeds (centralized, vehicle RMSE m / ANEES):
+see docs/host.md, "The centralized reference".
 
 Approximations, each stated: a filter, not a smoother (a measurement is linearized once);
 a newly confirmed track starts from the frame's detection of it, correlated with its observer as a
@@ -405,21 +410,20 @@ class JointHost:
             det = next((a.det for a in assignments if a.target == tid and a.det.sender == vid and a.det.t == t), None)
             if det is not None:  # confirmed by this frame's detection (always, as the tracker works)
                 self._birth(key, tid, det)
-        rows, cross, dets_used = [], [], []
+        rows, cross, sure = [], [], True
         for a in assignments:
             if a.kind == "vehicle":
                 if self.params.cross_localization:
                     cross.append((a.target, a.det))
             elif a.target not in born and ("o", a.target) in self._off:
                 rows.append((("o", a.target), a.det.p_body, a.det.cov_body))
-                dets_used.append(a.det)
+                sure &= self._sure(vid, a)
         self._lap("birth", t0)
         t0 = time.process_time()
         self._counts["detections"] += len(rows)
-        free = key if dets_used and self._unambiguous(dets_used) else None
-        self._lap("ambiguity", t0)
-        t0 = time.process_time()
-        self._ekf_update(key, rows, free=free)
+        if rows and not sure and (res := self._results.get(vid)) is not None and res.mode != "map_matching":
+            self._counts["detections_ambiguous"] += 1
+        self._ekf_update(key, rows, free=key if sure else None)
         self._lap("update", t0)
         # the tracker is synced again before it is next asked (the next frame's association, the cycle's end)
         return cross
@@ -473,21 +477,15 @@ class JointHost:
             self._counts["cross_detections"] += len(rows)
             self._ekf_update(("v", observer), rows)
 
-    def _unambiguous(self, dets: list[Detection]) -> bool:
-        """Whether every detection of a frame has one confirmed track alone in its gate (the map-frame
-        covariance of the detection with its observer's pose uncertainty, plus the track's)."""
-        off = np.array([self._off[k] for k in self._keys if k[0] == "o"], dtype=int)
-        if not len(off):
-            return True
-        idx = off[:, None] + np.arange(3)
-        mus, Ps = self.mu[idx], self.P[idx[:, :, None], idx[:, None, :]]  # (tracks, 3), (tracks, 3, 3)
-        e = mus[None] - np.array([d.p_map for d in dets])[:, None]  # (detections, tracks, 3)
-        S = Ps[None] + np.array([d.cov_map for d in dets])[:, None]
-        d2 = np.einsum("dni,dni->dn", e, np.linalg.solve(S, e[..., None])[..., 0])
-        if np.any((d2 < self.params.gate_chi2).sum(axis=1) > 1):
-            self._counts["detections_ambiguous"] += 1
-            return False
-        return True
+    def _sure(self, observer: str, a) -> bool:
+        """Whether assignment ``a`` of a detection of ``observer`` to a track may correct the observer's pose
+        when it is not map matching: the detection is of that track with probability at least
+        ``vehicle_association_probability`` (its JPDA marginal against the other gated candidates, clutter
+        and objects not yet tracked: ``Tracker.untracked_density``), and another vehicle saw the track (one
+        the observer alone saw is its own earlier view, placed with its own pose error)."""
+        tr = self.tracker.by_id(a.target)
+        others = tr is not None and any(o != observer for o, _ in tr.frames)
+        return others and a.p >= self.params.vehicle_association_probability
 
     def _ekf_update(self, obs_key, rows: list, free=None) -> None:
         """One stacked EKF update of detections z_k = R_v^T (c_k - c_v) + n_k, n_k ~ N(0, cov_k), made by

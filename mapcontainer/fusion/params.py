@@ -63,8 +63,18 @@ class FusionParams(BaseModel):
         1e-5,
         gt=0,
         description=(
-            "spatial density (per m^3) of detections of nothing the host holds (new objects, false alarms): the"
+            "spatial density (per m^3) of false alarms (detections of nothing): the"
             " detector's 0.1 false objects a frame over its 60 m, 120 deg, ~3 m high field of view (~1e-5)"
+        ),
+    )
+    object_density_m3: float = Field(
+        0.01,
+        gt=0,
+        description=(
+            "spatial density (per m^3) of road users around the connected vehicles, before any is tracked: one"
+            " per 100 m^2 of road and sidewalk (the paper scenarios' traffic near the fleet: about 12 road users"
+            " on 60 m of a 20 m wide road), their centres within about 1 m of height. Times the share of recent"
+            " detections no track explained, it is the density of objects not yet tracked"
         ),
     )
     vehicle_association_probability: float = Field(
@@ -72,8 +82,9 @@ class FusionParams(BaseModel):
         gt=0,
         lt=1,
         description=(
-            "a detection assigned to a connected vehicle constrains its pose only if it is that vehicle with at"
-            " least this probability against every other gated vehicle, track and clutter (else not used)"
+            "a detection constrains a vehicle's pose (of the connected vehicle it is assigned to; of its observer"
+            " when that is not map matching, centralized) only if its association is right with at least this"
+            " probability against every other gated vehicle and track, clutter and objects not yet tracked"
         ),
     )
     merge_cycles: int = Field(3, ge=1, description="... for this many consecutive fuse() calls")

@@ -5,16 +5,8 @@ import pytest
 
 from mapcontainer import geometry as geo
 from mapcontainer.fusion import FusionParams
-from mapcontainer.fusion.association import (
-    Detection,
-    Tracker,
-    VehicleCandidate,
-    cv_predict,
-    mahalanobis_logdet,
-    mahalanobis_matrix,
-    observations_to_map,
-    protection_gate,
-)
+from mapcontainer.fusion.association import Detection, Tracker, VehicleCandidate, cv_predict, protection_gate
+from mapcontainer.fusion.mapframe import mahalanobis_logdet, mahalanobis_matrix, observations_to_map
 from schemas import ObjectClass
 
 PED, VEH = int(ObjectClass.PEDESTRIAN), int(ObjectClass.VEHICLE)
@@ -138,9 +130,10 @@ def test_a_wide_vehicle_does_not_capture_the_detection_of_a_tight_one_next_to_it
     cv2 = VehicleCandidate("cv2", np.array([20.4, 0.3, 0.0]), np.diag([0.1, 0.1, 0.05]) ** 2)
     cv1 = VehicleCandidate("cv1", np.array([20.8, 0.8, 0.0]), np.diag([1.6, 1.6, 0.3]) ** 2)
     det = _det([20.0, 0.0, 0.0], 0.0)
-    assert mahalanobis_matrix([det.p_map], [det.cov_map], [cv1.p_map], [cv1.cov])[0, 0] < mahalanobis_matrix(
-        [det.p_map], [det.cov_map], [cv2.p_map], [cv2.cov]
-    )[0, 0]  # by distance alone cv1 would win
+    assert (
+        mahalanobis_matrix([det.p_map], [det.cov_map], [cv1.p_map], [cv1.cov])[0, 0]
+        < mahalanobis_matrix([det.p_map], [det.cov_map], [cv2.p_map], [cv2.cov])[0, 0]
+    )  # by distance alone cv1 would win
     a, _ = tr.associate([det], [cv1, cv2])
     assert [(x.kind, x.target) for x in a] == [("vehicle", "cv2")]
 
@@ -150,11 +143,45 @@ def test_a_detection_two_vehicles_explain_alike_constrains_neither():
     is it with probability ~1/2, so neither pose is constrained by it, and it starts no track."""
     tr = Tracker(FusionParams())
     cov = np.diag([1.0, 1.0, 0.2]) ** 2
-    a_, b_ = VehicleCandidate("a", np.array([20.0, 1.0, 0.0]), cov), VehicleCandidate("b", np.array([20.0, -1.0, 0]), cov)
+    a_, b_ = (
+        VehicleCandidate("a", np.array([20.0, 1.0, 0.0]), cov),
+        VehicleCandidate("b", np.array([20.0, -1.0, 0]), cov),
+    )
     a, _ = tr.associate([_det([20.0, 0.0, 0.0], 0.0)], [a_, b_])
     assert a == [] and tr.counts["vehicle_ambiguous"] == 1 and not tr.tracks
     a, _ = tr.associate([_det([20.0, 1.8, 0.0], 0.1)], [a_, b_])  # a, with probability 0.97
     assert [(x.kind, x.target) for x in a] == [("vehicle", "a")]
+
+
+def test_a_lone_track_in_a_wide_gate_is_not_sure_where_the_observer_sees_untracked_objects():
+    """Development seed 1006, traced: a GNSS-grade observer (sigma ~2 m) saw, in its first frame with
+    detections, an object nobody tracked 7.5 m from a confirmed track alone in its gate; the update pinned it
+    onto the wrong object. Against the density of objects not yet tracked (all of them, for an observer whose
+    detections no shared track explained yet), the lone track is not sure; the same detection from a
+    well-localized pose, or from an observer whose recent detections were all of shared tracks, is."""
+    p = FusionParams(birth_hits=1)
+    wide, tight = np.diag([2.0, 2.0, 0.3]) ** 2, np.diag([0.2, 0.2, 0.1]) ** 2
+
+    def tracker_with_track():
+        tr = Tracker(p)
+        tr.associate([_det([0.0, 0.0, 0.0], 0.0, sender="cv1")], [])  # confirmed at once (birth_hits 1)
+        tr.sync(1, 0.0, np.zeros(6), np.diag([0.3, 0.3, 0.1, 0.5, 0.5, 0.1]) ** 2)
+        return tr
+
+    tr = tracker_with_track()
+    assert tr.untracked_density("cv0") == pytest.approx(p.clutter_density_m3 + p.object_density_m3)
+    (a,), _ = tr.associate([_det([1.5, 1.0, 0.0], 0.1, cov=wide)], [])
+    assert a.target == 1 and a.p < p.vehicle_association_probability
+    tr = tracker_with_track()
+    (a,), _ = tr.associate([_det([0.15, 0.1, 0.0], 0.1, cov=tight)], [])
+    assert a.target == 1 and a.p > 0.99
+    tr = tracker_with_track()
+    for k in range(10):  # cv0's detections, all of the shared track: nothing untracked around it
+        tr.associate([_det([0.0, 0.0, 0.0], 0.1 + 0.1 * k, cov=tight)], [])
+        tr.sync(1, 0.1 + 0.1 * k, np.zeros(6), np.diag([0.3, 0.3, 0.1, 0.5, 0.5, 0.1]) ** 2)
+    assert tr.untracked_density("cv0") < 0.01 * p.object_density_m3
+    (a,), _ = tr.associate([_det([1.5, 1.0, 0.0], 1.1, cov=wide)], [])
+    assert a.target == 1 and a.p > 0.95
 
 
 def test_unassigned_detection_close_to_an_untaken_track_starts_no_duplicate():
@@ -236,7 +263,7 @@ def test_a_vehicle_is_gated_by_its_protection_levels_where_it_claims_integrity()
     """A vehicle whose reported covariance is wide (here 1.5 m: the host adds the repeated error and the motion
     since its frame) but which claims integrity with protection levels of 0.6 m across and 1.0 m along cannot
     take a detection 2.5 m across its road: that is another car. Without a protection level its covariance
-    alone gates it, and it takes the detection."""
+    alone gates it."""
     cov = np.diag([1.5, 1.5, 0.2]) ** 2
     k = 3.29  # the Gaussian quantile of an integrity risk of 1e-3 per axis
     claims = VehicleCandidate("cv1", np.array([20.0, 0.0, 0.0]), cov, (0.0, 0.6, 1.0, k))
@@ -250,7 +277,14 @@ def test_a_vehicle_is_gated_by_its_protection_levels_where_it_claims_integrity()
     assert not protection_gate(np.array([det.p_map]), np.array([det.cov_map]), [north])[0, 0]  # 2.5 > 1.33
     near = _det([20.0, 1.2, 0.0], 0.0, cov=np.diag([0.2, 0.1, 0.05]) ** 2)
     assert protection_gate(np.array([near.p_map]), np.array([near.cov_map]), [north])[0, 0]  # 1.2 <= 1.33
-    a, _ = Tracker(FusionParams()).associate([det], [claims])
-    assert not [x for x in a if x.kind == "vehicle"]
-    a, _ = Tracker(FusionParams()).associate([det], [silent])
+    tr = Tracker(FusionParams())
+    a, _ = tr.associate([det], [claims])
+    assert not [x for x in a if x.kind == "vehicle"] and tr.counts["vehicle_ambiguous"] == 0  # not a candidate
+    # without: a candidate, assigned; at a cold start (every object around untracked) 2.5 m off a 1.5 m sigma
+    # is not sure enough to constrain it, and it is counted so
+    tr = Tracker(FusionParams())
+    a, _ = tr.associate([det], [silent])
+    assert not a and tr.counts["vehicle_ambiguous"] == 1
+    tr = Tracker(FusionParams(object_density_m3=1e-9))
+    a, _ = tr.associate([det], [silent])
     assert [(x.kind, x.target) for x in a] == [("vehicle", "cv1")]

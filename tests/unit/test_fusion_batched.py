@@ -9,8 +9,8 @@ import numpy as np
 
 from mapcontainer import geometry as geo
 from mapcontainer.fusion import FusionParams
-from mapcontainer.fusion.association import rotated_to_map
 from mapcontainer.fusion.hostcore import observer_bias, observer_biases
+from mapcontainer.fusion.mapframe import rotated_to_map
 from mapcontainer.fusion.misbehaviour import MisbehaviourMonitor
 
 

@@ -217,21 +217,20 @@ def test_a_vehicle_in_fallback_is_not_tightened_through_shared_objects(host):
     assert np.trace(host.P[sa, sa][:2, :2]) < 0.5 * np.trace(P_a[:2, :2])
 
 
-def test_a_detection_is_ambiguous_when_two_tracks_share_its_gate(host):
-    """A GNSS-grade observer's frame constrains its pose only if each detection has one track alone in its
-    gate: parked cars 5 m apart seen from a pose good to 2 m are not told apart."""
-    from mapcontainer.fusion.association import Detection
+def test_a_fallback_frame_corrects_its_pose_only_through_sure_associations_to_shared_tracks():
+    """A GNSS-grade observer's detection of a track corrects its pose only if it is that track with probability
+    >= vehicle_association_probability (against objects not yet tracked too) and another vehicle saw the
+    track: a track it alone saw is its own earlier view, with its own pose error."""
+    from mapcontainer.fusion.association import Assignment, Detection
 
-    rng = np.random.default_rng(17)
-    _joint(host, rng, [("v", "a"), ("o", 1), ("o", 2)])
-    for k, x in ((("o", 1)), np.array([10.0, 0.0, 0.0])), ((("o", 2)), np.array([15.0, 0.0, 0.0])):
-        s = host._sl(k)
-        host.mu[s][:3] = x
-        host.P[s, :] = host.P[:, s] = 0.0
-        host.P[s, s] = 0.01 * np.eye(6)
-
-    def det(cov_map):
-        return Detection("a", 0.0, 0, np.zeros(3), np.eye(3) * 0.04, 0, np.array([10.2, 0.0, 0.0]), cov_map)
-
-    assert host._unambiguous([det(np.eye(3) * 0.09)])  # a map-matched observer: o1 alone
-    assert not host._unambiguous([det(np.eye(3) * 4.0)])  # 2 m: o1 and o2 both in the gate
+    host = JointHost(generate_map(load_scenario("overlap").map), FusionParams(), "f", "host")
+    shared = host.tracker._new_track(Detection("b", 0.0, 0, np.zeros(3), np.eye(3), 0, np.zeros(3), np.eye(3)))
+    own = host.tracker._new_track(Detection("a", 0.0, 1, np.zeros(3), np.eye(3), 0, np.ones(3), np.eye(3)))
+    for k, tr in enumerate((shared, own)):
+        tr.id = k + 1
+        host.tracker._uid_of[tr.id] = tr.uid
+    det = Detection("a", 0.1, 0, np.zeros(3), np.eye(3), 0, np.zeros(3), np.eye(3))
+    p = host.params.vehicle_association_probability
+    assert host._sure("a", Assignment("track", 1, det, 0.0, p + 0.01))
+    assert not host._sure("a", Assignment("track", 1, det, 0.0, p - 0.01))
+    assert not host._sure("a", Assignment("track", 2, det, 0.0, 0.999))  # a saw it alone
