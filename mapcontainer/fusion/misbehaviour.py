@@ -1,42 +1,55 @@
 """Misbehaviour detection: does a vehicle's reported pose agree with what the other vehicles see of it?
 
-Every detection of a vehicle-like object (class vehicle or unknown) by another connected vehicle, at
-a map-frame position ``m`` (from the observer's pose), within ``misbehaviour_radius_m`` of vehicle V's
-reported position ``p_V`` at that instant, is a sighting of V with offset ``d = m - p_V``; per
-observer and instant only the nearest sighting counts, and it is none when V itself reports an object
-there at that instant (within the ``misbehaviour_probability`` quantile of the two detections' covariances):
-what O saw is then a vehicle beside V, not V, which O does not see (it is hidden, or out of view). On
-development seed 1001 (paper-urban, every error source) an honest cv3, 0.1 m off, was flagged by cv2 alone,
-which at 45 m saw the car 3.5 m beside cv3 and not cv3: its view was that car. A vehicle that is not where
-it says it is reports the objects about it shifted by its own error, so none of them where others see it.
-An honest V is seen where it says it is: its offsets scatter about zero by the observers' and V's pose
-errors and the detector's noise (a few decimetres). A vehicle whose pose is biased by ``b`` is seen at
-``-b`` from where it says it is, by every observer, instant after instant.
+*Sightings.* Every detection of a vehicle-like object (class vehicle or unknown) by another connected
+vehicle O, at a map-frame position ``m`` (from O's pose), within ``misbehaviour_radius_m`` of vehicle V's
+reported position ``p_V`` at that instant, is a sighting of V with offset ``d = m - p_V``; per observer and
+instant only the nearest one counts. Its weight ``w`` is the probability that it is V as the host's own
+association has it (:attr:`~.association.Tracker.vehicle_matches`): the association probability where the
+host matched the detection with V, one minus it where the host matched it with another connected vehicle,
+1 where it matched no connected vehicle (nothing any vehicle claims explains it). It is no sighting when V
+itself reports an object there at that instant (within the ``misbehaviour_probability`` quantile of the two
+detections' covariances): what O saw is then a vehicle beside V, not V, which O does not see (it is hidden,
+or out of view). On development seed 1001 (paper-urban, every error source) an honest cv3 was flagged by cv2
+alone, which at 45 m saw the car 3.5 m beside cv3 and not cv3. A vehicle that is not where it says it is
+reports the objects about it shifted by its own error, so none of them where others see it.
 
-Over the last ``misbehaviour_window_s`` seconds, each other vehicle O with at least
-``misbehaviour_min_sightings`` sightings of V has a *view* of V: the median of its offsets, with the
-mean of their covariances (the detection's map covariance, which carries O's pose covariance, plus V's
-reported position covariance; the mean, not the mean over the count, because the errors that matter
-persist over the window: the poses' and the detector's). The view agrees when it is within
-``misbehaviour_offset_m`` of zero or within the ``misbehaviour_probability`` chi-square quantile of its
-covariance, and disagrees otherwise: a vehicle that says it is uncertain (on GNSS, just started) is not
-accused of what its covariance admits, and the map and calibration errors of honest vehicles, which put
-their views a few decimetres to a metre off at range, are inside the detector's covariance. A disagreement says
-that O or V is wrong, not which: the two are *disputed*, and while they are, neither cross-localizes
-the other (one lying vehicle must not pull its honest neighbours). V is *flagged* as the wrong one
+*The bias state and its test.* V's offset ``b_V`` (true minus reported position, map x, y) is estimated
+from the sightings of the last ``misbehaviour_window_s`` seconds. A sighting's error has a part that
+averages out over O's frames (``A``: the detector's noise) and one that O's every frame repeats (``B``: O's
+pose error and its repeated calibration and map error, and the persistent share of the detector's error,
+:func:`~.hostcore.persistent_share` over the window), so O's *view* of V is
 
-* when at least ``misbehaviour_min_observers`` unflagged observers disagree with it and their views
-  agree with each other (each within ``misbehaviour_spread_m`` of their median): they independently see
-  V somewhere else; or
-* when a single observer O disagrees with it, and O is *corroborated* while V is not: O's views agreed
-  with some third vehicle now (O sees it, or is seen by it, where it says it is), V's do not. Only
-  current views vouch, for the accuser as for the accused: a vehicle that agreed with a third one before
-  its pose went wrong is not vouched for by that. With the agreements of the last
-  10 s vouching, a 3 m bias from 5 s on was flagged 5.8-6.5 s late on
-  evaluation seeds (when cv1's agreements from before its fault expired), and on development seed 1000
-  a cv1 1 m off, vouched for by its agreements from before, flagged the honest cv0 it saw 1.1 m off.
+    y_O = (sum_k w_k A_k^-1)^-1 sum_k w_k A_k^-1 d_k,     C_O = (sum_k w_k A_k^-1)^-1 + B_O,   B_O = mean_w B_k,
 
-The flag stays until every current view of V agrees again.
+with y_O ~ N(b_V, C_O), independent between observers given b_V. Every unflagged observer's view together
+(a Kalman update of b_V with no prior, the generalised least squares of the views):
+
+    b^ = P^ sum_O C_O^-1 y_O,    P^ = (sum_O C_O^-1)^-1,    r = sum_O (y_O - b^)^T C_O^-1 (y_O - b^).
+
+An honest V's offset is drawn from the error it states, ``P0``: its reported position covariance plus the
+error its every frame repeats (VehiclePrior.pose_bias_sigma); where it claims integrity, its protection
+levels, as the covariance whose 1-sigmas are the levels over their integrity risk's Gaussian quantile.
+Then b^ ~ N(0, P0 + P^), and
+
+    q = b^T (P0 + P^)^-1 b^ ~ chi2(2)   (honest V),       r ~ chi2(2 (n - 1))   (any V, n observers).
+
+The test's false-alarm probability ``alpha`` follows from the rate one states:
+``misbehaviour_false_alarms_per_hour`` per vehicle over 3600 / ``misbehaviour_test_period_s`` tests an hour
+(a union bound: the tests of consecutive frames share their evidence, so the rate is at most that), and V
+fails when q exceeds the chi-square(2) quantile 1 - alpha. A single view is tested the same way,
+``y_O^T (P0 + C_O)^-1 y_O`` (O and V *dispute*: O sees V elsewhere than either's stated errors allow, and
+while they do, neither cross-localizes the other: one lying vehicle must not pull its honest neighbours).
+V is *flagged*
+
+* when at least ``misbehaviour_min_observers`` unflagged observers have a view of it, q fails, and their
+  views agree with each other (r within its chi-square quantile 1 - alpha): they independently see V
+  somewhere else; or
+* when a single observer O disputes it, and O is *corroborated* while V is not: O has a view of some third
+  vehicle, or is seen by it, that does not dispute (O sees it, or is seen by it, where it says it is); V
+  has none. Only current views vouch, for the accuser as for the accused: on development seed 1000 a cv1
+  1 m off, vouched for by its agreements from before its fault, flagged the honest cv0 it saw 1.1 m off.
+
+The flag stays until no current view of V disputes it.
 
 Two more kinds of misbehaviour are flagged:
 
@@ -79,17 +92,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scipy.special import chdtri
+
 from ..metrics import chi2_quantile
+from .association import observations_to_map
+from .hostcore import persistent_share
 from .params import FusionParams
 
-__all__ = ["MisbehaviourMonitor", "Sighting"]
+__all__ = ["MisbehaviourMonitor", "Sighting", "View"]
 
 _SAME_INSTANT_S = 0.05  # detections this near in time are of one instant (frames are 0.1 s apart)
 
 
 @dataclass(eq=False)
 class Sighting:
-    """Observer ``observer`` saw something ``offset`` (map x, y) from where the vehicle said it was at ``t``.
+    """Observer ``observer`` saw something ``offset`` (map x, y) from where the vehicle said it was at ``t``,
+    with weight ``weight`` (the probability that it is that vehicle); ``white`` and ``persistent``: the (2, 2)
+    covariances of the parts of its error that average out over the observer's frames and that its every
+    frame repeats.
 
     ``checked`` and ``matched``: the newest of the observed vehicle's reports tested against the sighting and
     the newest one that reported an object there (report numbers, -1: none), so that each report is tested
@@ -98,11 +118,28 @@ class Sighting:
     t: float
     observer: str
     offset: np.ndarray
-    cov: np.ndarray  # (2, 2) of the offset: the detection's map covariance (with its observer's pose) and the vehicle's
+    white: np.ndarray
+    persistent: np.ndarray
+    weight: float
     where: np.ndarray  # the detection's map (x, y)
     det_cov: np.ndarray  # (2, 2): the detection's map covariance
     checked: int = field(default=-1, repr=False)
     matched: int = field(default=-1, repr=False)
+
+
+@dataclass(frozen=True)
+class View:
+    """An observer's view of a vehicle over the window: its offset ``y`` and covariance ``C`` (module doc),
+    and ``q``, the offset's chi-square against both's stated errors, ``y^T (P0 + C)^-1 y``."""
+
+    y: np.ndarray
+    C: np.ndarray
+    q: float
+
+
+def chi2_sf_quantile(alpha: float, dof: int) -> float:
+    """x with P(X > x) = alpha for X ~ chi2(dof), exact for small alpha (no 1 - alpha rounding)."""
+    return float(chdtri(dof, alpha))
 
 
 class MisbehaviourMonitor:
@@ -111,7 +148,13 @@ class MisbehaviourMonitor:
     def __init__(self, params: FusionParams):
         self.params = params
         self._gate = float(chi2_quantile(params.misbehaviour_probability, 2))
+        # the bias test's false-alarm probability per test, and the quantile it puts on q (2 dof)
+        self.alpha = params.misbehaviour_false_alarms_per_hour * params.misbehaviour_test_period_s / 3600.0
+        self.threshold = chi2_sf_quantile(self.alpha, 2)
+        # the share of a detection's variance that one observer's detections repeat over the window
+        self._share = persistent_share(params.model_copy(update={"window_s": params.misbehaviour_window_s}))
         self._sightings: dict[str, deque[Sighting]] = {}
+        self._prior: dict[str, np.ndarray] = {}  # vehicle -> the newest (2, 2) error it states (P0)
         # vehicle -> its reports of vehicle-like objects: (t, where (N, 2), cov (N, 2, 2), report number)
         self._reports: dict[str, deque[tuple[float, np.ndarray, np.ndarray, int]]] = {}
         self._report_no = 0  # numbers the reports of every vehicle in the order they came
@@ -124,9 +167,19 @@ class MisbehaviourMonitor:
         self._arrivals: dict[str, deque[tuple[float, bool]]] = {}  # vehicle -> (t_recv, repeats an instant)
         self._newest: dict[str, float] = {}  # vehicle -> newest t_meas of its messages so far
         self.disputed: set[frozenset[str]] = set()  # pairs whose views disagree now
-        # (observer, observed) -> the observer's view of it at the last update: (median offset, covariance)
-        self.views: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
+        self.views: dict[tuple[str, str], View] = {}  # (observer, observed) -> the view at the last update
+        self.tests: dict[str, tuple[np.ndarray, float, float, int]] = {}  # vehicle -> (b^, q, r, n) last update
         self.flagged_total = 0  # flags raised (a vehicle flagged, cleared and flagged again counts twice)
+
+    def errors(self, pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray]:
+        """The map covariances (N, 3, 3) of the two parts of the error of detections ``p_body`` (N, 3) (body-frame
+        covariances ``cov_body``) by an observer at ``pose``: what averages out over its frames (the detector's
+        noise but its persistent share over the window), and what it repeats frame after frame (its pose error
+        ``pose_cov`` (6, 6), what it reports and what every frame of it repeats, through the detections' lever
+        arms, and the detector's persistent share)."""
+        cov_body = np.asarray(cov_body, dtype=float)
+        white = observations_to_map(pose, np.zeros((6, 6)), p_body, (1.0 - self._share) * cov_body)[1]
+        return white, observations_to_map(pose, pose_cov, p_body, self._share * cov_body)[1]
 
     def observe(
         self,
@@ -136,21 +189,38 @@ class MisbehaviourMonitor:
         cov_map: np.ndarray,
         cls: np.ndarray,
         reported: tuple[np.ndarray, np.ndarray, np.ndarray],
+        errors: tuple[np.ndarray, np.ndarray] | None = None,
+        matches: list[tuple[str, float] | None] | None = None,
+        prior: dict[str, np.ndarray] | None = None,
     ):
         """One message's detections (map positions ``p_map`` (N, 3) with covariances ``cov_map`` (N, 3, 3),
         classes ``cls``) by ``observer`` at ``t``, against the connected vehicles' reported positions and
         their covariances at ``t``: ``reported`` = (ids (V,), positions (V, 3), covariances (V, 3, 3)).
-        Only vehicle-like detections count; each other vehicle's nearest one within the radius is a
-        sighting of it."""
+        ``errors``: the (N, 3, 3) covariances of the parts of the detections' error that average out over the
+        observer's frames and that it repeats (:meth:`errors`; None: ``cov_map`` split by the detector's
+        persistent share); ``matches``: the host's association of each detection (:attr:`~.association.Tracker.vehicle_matches`;
+        None: none known); ``prior``: vehicle -> the (2, 2) covariance of its position error as it states it (P0;
+        a vehicle not in it: its reported covariance). Only vehicle-like detections count; each other
+        vehicle's nearest one within the radius is a sighting of it."""
         r = self.params.misbehaviour_radius_m
         cls = np.asarray(cls)
         vehicle_like = (cls == 0) | (cls == 2)  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
         p = np.asarray(p_map, dtype=float).reshape(-1, 3)[vehicle_like, :2]
         S = np.asarray(cov_map, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2]
+        if errors is None:
+            A, B = (1.0 - self._share) * S, self._share * S
+        else:
+            A, B = (np.asarray(e, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2] for e in errors)
+        match = [None] * len(cls) if matches is None else list(matches)
+        match = [m for m, keep in zip(match, vehicle_like, strict=True) if keep]
         if len(p):
             self._reports.setdefault(observer, deque()).append((float(t), p, S, self._report_no))
             self._report_no += 1
         vids, pos, cov = reported
+        for vid, c in zip(vids, cov, strict=True):
+            self._prior[str(vid)] = np.asarray(c, dtype=float)[:2, :2] if prior is None else prior.get(
+                str(vid), np.asarray(c, dtype=float)[:2, :2]
+            )
         others = np.asarray(vids) != observer
         if not len(p) or not others.any():
             return
@@ -160,9 +230,13 @@ class MisbehaviourMonitor:
         k = np.argmin(dist, axis=1)
         rows = np.arange(len(vids))
         for i in np.flatnonzero(dist[rows, k] <= r):
-            C = S[k[i]] + cov[i, :2, :2]
-            sighting = Sighting(float(t), observer, d[i, k[i]], C, p[k[i]], S[k[i]])
-            self._sightings.setdefault(str(vids[i]), deque()).append(sighting)
+            vid, j = str(vids[i]), int(k[i])
+            w = 1.0 if match[j] is None else (match[j][1] if match[j][0] == vid else 1.0 - match[j][1])
+            if w <= 0.0:
+                continue
+            # the observer's error; the observed vehicle's own is the offset under test (its P0)
+            sighting = Sighting(float(t), observer, d[i, j], A[j], B[j], w, p[j], S[j])
+            self._sightings.setdefault(vid, deque()).append(sighting)
 
     def message(self, sender: str, t_meas: float, t_recv: float, refused: str | None) -> None:
         """One message of ``sender`` received at ``t_recv``, taken (``refused`` None) or refused with a reason."""
@@ -287,16 +361,6 @@ class MisbehaviourMonitor:
                 )
         return out
 
-    def _agrees(self, offset: np.ndarray, cov: np.ndarray) -> bool:
-        """A view agrees unless it is farther off than the floor and than its covariance allows."""
-        if float(np.hypot(*offset)) <= self.params.misbehaviour_offset_m:
-            return True
-        try:
-            d2 = float(offset @ np.linalg.solve(cov, offset))
-        except np.linalg.LinAlgError:
-            return False
-        return d2 <= self._gate
-
     def _reported_there(self, sightings: dict[str, deque[Sighting]]) -> None:
         """Test every report not yet tested against each sighting: did the observed vehicle itself report an
         object where the sighting saw something, at the same instant (within the ``misbehaviour_probability``
@@ -337,6 +401,25 @@ class MisbehaviourMonitor:
             if h:
                 s.matched = max(s.matched, no)
 
+    def _view(self, ss: list[Sighting], P0: np.ndarray) -> View:
+        """An observer's view from its sightings ``ss`` of a vehicle that states the error ``P0`` (module doc)."""
+        w = np.array([s.weight for s in ss])
+        Ainv = np.linalg.inv(np.array([s.white for s in ss]))  # (K, 2, 2)
+        info = np.einsum("k,kij->ij", w, Ainv)
+        cov_mean = np.linalg.inv(info)
+        y = cov_mean @ np.einsum("k,kij,kj->i", w, Ainv, np.array([s.offset for s in ss]))
+        C = cov_mean + np.einsum("k,kij->ij", w, np.array([s.persistent for s in ss])) / w.sum()
+        return View(y, C, float(y @ np.linalg.solve(P0 + C, y)))
+
+    def _bias_test(self, views: list[View], P0: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """b^, q and r of the views of one vehicle that states the error ``P0`` (module doc)."""
+        G = np.linalg.inv(np.array([v.C for v in views]))
+        P = np.linalg.inv(G.sum(axis=0))
+        b = P @ np.einsum("kij,kj->i", G, np.array([v.y for v in views]))
+        e = np.array([v.y for v in views]) - b
+        r = float(np.einsum("ki,kij,kj->", e, G, e))
+        return b, float(b @ np.linalg.solve(P0 + P, b)), r
+
     def _update_seen_off(self, t: float) -> None:
         pp = self.params
         for vid, q in list(self._reports.items()):
@@ -344,16 +427,13 @@ class MisbehaviourMonitor:
                 q.popleft()
             if not q:
                 del self._reports[vid]
-        views: dict[tuple[str, str], np.ndarray] = {}  # (observer, observed) -> median offset
-        covs: dict[
-            tuple[str, str], np.ndarray
-        ] = {}  # ... -> its covariance (the sightings' mean: their errors persist)
         for vid, q in list(self._sightings.items()):
             while q and q[0].t < t - pp.misbehaviour_window_s:
                 q.popleft()
             if not q:
                 del self._sightings[vid]
         self._reported_there(self._sightings)
+        views: dict[tuple[str, str], View] = {}
         for vid, q in self._sightings.items():
             reports = self._reports.get(vid)
             front = reports[0][3] if reports else self._report_no  # the oldest of its reports still here
@@ -362,32 +442,36 @@ class MisbehaviourMonitor:
                 if s.matched < front:  # not a vehicle it reported itself: a sighting of it
                     by_observer.setdefault(s.observer, []).append(s)
             for o, ss in by_observer.items():
-                if len(ss) >= pp.misbehaviour_min_sightings:
-                    views[(o, vid)] = np.median([s.offset for s in ss], axis=0)
-                    covs[(o, vid)] = np.mean([s.cov for s in ss], axis=0)
-        self.views = {k: (m, covs[k]) for k, m in views.items()}
-        agrees = {k: self._agrees(m, covs[k]) for k, m in views.items()}
-        self.disputed = {frozenset(k) for k, ok in agrees.items() if not ok}
-        agreed_now = {frozenset(k) for k, ok in agrees.items() if ok}
+                if sum(s.weight for s in ss) >= pp.misbehaviour_min_sightings:
+                    views[(o, vid)] = self._view(ss, self._prior[vid])
+        self.views = views
+        disputes = {k: v.q > self.threshold for k, v in views.items()}
+        self.disputed = {frozenset(k) for k, off in disputes.items() if off}
+        agreed_now = {frozenset(k) for k, off in disputes.items() if not off}
 
         def corroborated(x: str, other: str) -> bool:
             return any(x in pair and other not in pair for pair in agreed_now)
 
+        self.tests = {}
         for v in sorted({v for _, v in views}):
-            mine = {o: m for (o, vv), m in views.items() if vv == v}
-            if all(agrees[(o, v)] for o in mine):
+            mine = {o: view for (o, vv), view in views.items() if vv == v}
+            if not any(disputes[(o, v)] for o in mine):
                 self._seen_off.pop(v, None)
                 continue
-            accusers = {o: m for o, m in mine.items() if not agrees[(o, v)] and o not in self.flagged}
-            if not accusers:
+            fair = {o: view for o, view in mine.items() if o not in self.flagged}
+            if not fair:
                 continue
-            centre = np.median(np.array(list(accusers.values())), axis=0)
-            consistent = all(float(np.hypot(*(m - centre))) < pp.misbehaviour_spread_m for m in accusers.values())
-            by_many = len(accusers) >= pp.misbehaviour_min_observers and consistent
+            b, q, r = self._bias_test(list(fair.values()), self._prior[v])
+            self.tests[v] = (b, q, r, len(fair))
+            consistent = r <= chi2_sf_quantile(self.alpha, 2 * (len(fair) - 1)) if len(fair) > 1 else True
+            by_many = len(fair) >= pp.misbehaviour_min_observers and consistent and q > self.threshold
+            accusers = [o for o in fair if disputes[(o, v)]]
             by_trusted = [o for o in accusers if corroborated(o, v) and not corroborated(v, o)]
             if by_many or by_trusted:
-                who = sorted(accusers) if by_many else by_trusted
+                who = sorted(fair) if by_many else by_trusted
+                c = b if by_many else fair[by_trusted[0]].y
                 self._seen_off[v] = (
-                    f"seen {float(np.hypot(*centre)):.1f} m from its reported position ({centre[0]:+.1f}, "
-                    f"{centre[1]:+.1f}) by {', '.join(who)} in the last {pp.misbehaviour_window_s:g} s"
+                    f"seen {float(np.hypot(*c)):.1f} m from its reported position ({c[0]:+.1f}, {c[1]:+.1f}) by "
+                    f"{', '.join(who)} in the last {pp.misbehaviour_window_s:g} s (chi-square "
+                    f"{q if by_many else fair[by_trusted[0]].q:.0f} > {self.threshold:.1f})"
                 )
