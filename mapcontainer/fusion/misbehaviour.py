@@ -91,7 +91,6 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from scipy.special import chdtri
 
 from ..metrics import chi2_quantile
@@ -99,7 +98,7 @@ from .association import observations_to_map
 from .hostcore import persistent_share
 from .params import FusionParams
 
-__all__ = ["MisbehaviourMonitor", "Sighting", "View"]
+__all__ = ["BiasTest", "MisbehaviourMonitor", "Sighting", "View", "bias_test", "chi2_sf_quantile", "view_of"]
 
 _SAME_INSTANT_S = 0.05  # detections this near in time are of one instant (frames are 0.1 s apart)
 
@@ -137,6 +136,40 @@ class View:
     q: float
 
 
+@dataclass(frozen=True)
+class BiasTest:
+    """A vehicle's offset b^ (covariance P^) from ``n`` views, its chi-square q against the error it states and
+    the views' consistency r (module doc)."""
+
+    b: np.ndarray
+    P: np.ndarray
+    q: float
+    r: float
+    n: int
+
+
+def view_of(sightings: list[Sighting], P0: np.ndarray) -> View:
+    """One observer's view from its sightings of a vehicle that states the error ``P0`` (2, 2) (module doc):
+    y = (sum w A^-1)^-1 sum w A^-1 d,  C = (sum w A^-1)^-1 + sum w B / sum w,  q = y^T (P0 + C)^-1 y."""
+    w = np.array([s.weight for s in sightings])
+    Ainv = np.linalg.inv(np.array([s.white for s in sightings]))  # (K, 2, 2)
+    cov_mean = np.linalg.inv(np.einsum("k,kij->ij", w, Ainv))
+    y = cov_mean @ np.einsum("k,kij,kj->i", w, Ainv, np.array([s.offset for s in sightings]))
+    C = cov_mean + np.einsum("k,kij->ij", w, np.array([s.persistent for s in sightings])) / w.sum()
+    return View(y, C, float(y @ np.linalg.solve(P0 + C, y)))
+
+
+def bias_test(views: list[View], P0: np.ndarray) -> BiasTest:
+    """The views of one vehicle that states the error ``P0`` together (module doc): b^ = P^ sum C^-1 y,
+    P^ = (sum C^-1)^-1, q = b^T (P0 + P^)^-1 b^, r = sum (y - b^)^T C^-1 (y - b^)."""
+    y = np.array([v.y for v in views])
+    G = np.linalg.inv(np.array([v.C for v in views]))
+    P = np.linalg.inv(G.sum(axis=0))
+    b = P @ np.einsum("kij,kj->i", G, y)
+    e = y - b
+    return BiasTest(b, P, float(b @ np.linalg.solve(P0 + P, b)), float(np.einsum("ki,kij,kj->", e, G, e)), len(views))
+
+
 def chi2_sf_quantile(alpha: float, dof: int) -> float:
     """x with P(X > x) = alpha for X ~ chi2(dof), exact for small alpha (no 1 - alpha rounding)."""
     return float(chdtri(dof, alpha))
@@ -168,7 +201,7 @@ class MisbehaviourMonitor:
         self._newest: dict[str, float] = {}  # vehicle -> newest t_meas of its messages so far
         self.disputed: set[frozenset[str]] = set()  # pairs whose views disagree now
         self.views: dict[tuple[str, str], View] = {}  # (observer, observed) -> the view at the last update
-        self.tests: dict[str, tuple[np.ndarray, float, float, int]] = {}  # vehicle -> (b^, q, r, n) last update
+        self.tests: dict[str, BiasTest] = {}  # vehicle -> its bias test at the last update (if it was disputed)
         self.flagged_total = 0  # flags raised (a vehicle flagged, cleared and flagged again counts twice)
 
     def errors(self, pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray]:
@@ -198,9 +231,9 @@ class MisbehaviourMonitor:
         their covariances at ``t``: ``reported`` = (ids (V,), positions (V, 3), covariances (V, 3, 3)).
         ``errors``: the (N, 3, 3) covariances of the parts of the detections' error that average out over the
         observer's frames and that it repeats (:meth:`errors`; None: ``cov_map`` split by the detector's
-        persistent share); ``matches``: the host's association of each detection (:attr:`~.association.Tracker.vehicle_matches`;
-        None: none known); ``prior``: vehicle -> the (2, 2) covariance of its position error as it states it (P0;
-        a vehicle not in it: its reported covariance). Only vehicle-like detections count; each other
+        persistent share); ``matches``: the host's association of each detection
+        (:attr:`~.association.Tracker.vehicle_matches`; None: none known); ``prior``: vehicle -> the (2, 2)
+        covariance of its position error as it states it (P0; a vehicle not in it: its reported covariance). Only vehicle-like detections count; each other
         vehicle's nearest one within the radius is a sighting of it."""
         r = self.params.misbehaviour_radius_m
         cls = np.asarray(cls)
@@ -218,9 +251,8 @@ class MisbehaviourMonitor:
             self._report_no += 1
         vids, pos, cov = reported
         for vid, c in zip(vids, cov, strict=True):
-            self._prior[str(vid)] = np.asarray(c, dtype=float)[:2, :2] if prior is None else prior.get(
-                str(vid), np.asarray(c, dtype=float)[:2, :2]
-            )
+            stated = None if prior is None else prior.get(str(vid))
+            self._prior[str(vid)] = np.asarray(c, dtype=float)[:2, :2] if stated is None else stated
         others = np.asarray(vids) != observer
         if not len(p) or not others.any():
             return
@@ -401,25 +433,6 @@ class MisbehaviourMonitor:
             if h:
                 s.matched = max(s.matched, no)
 
-    def _view(self, ss: list[Sighting], P0: np.ndarray) -> View:
-        """An observer's view from its sightings ``ss`` of a vehicle that states the error ``P0`` (module doc)."""
-        w = np.array([s.weight for s in ss])
-        Ainv = np.linalg.inv(np.array([s.white for s in ss]))  # (K, 2, 2)
-        info = np.einsum("k,kij->ij", w, Ainv)
-        cov_mean = np.linalg.inv(info)
-        y = cov_mean @ np.einsum("k,kij,kj->i", w, Ainv, np.array([s.offset for s in ss]))
-        C = cov_mean + np.einsum("k,kij->ij", w, np.array([s.persistent for s in ss])) / w.sum()
-        return View(y, C, float(y @ np.linalg.solve(P0 + C, y)))
-
-    def _bias_test(self, views: list[View], P0: np.ndarray) -> tuple[np.ndarray, float, float]:
-        """b^, q and r of the views of one vehicle that states the error ``P0`` (module doc)."""
-        G = np.linalg.inv(np.array([v.C for v in views]))
-        P = np.linalg.inv(G.sum(axis=0))
-        b = P @ np.einsum("kij,kj->i", G, np.array([v.y for v in views]))
-        e = np.array([v.y for v in views]) - b
-        r = float(np.einsum("ki,kij,kj->", e, G, e))
-        return b, float(b @ np.linalg.solve(P0 + P, b)), r
-
     def _update_seen_off(self, t: float) -> None:
         pp = self.params
         for vid, q in list(self._reports.items()):
@@ -443,7 +456,7 @@ class MisbehaviourMonitor:
                     by_observer.setdefault(s.observer, []).append(s)
             for o, ss in by_observer.items():
                 if sum(s.weight for s in ss) >= pp.misbehaviour_min_sightings:
-                    views[(o, vid)] = self._view(ss, self._prior[vid])
+                    views[(o, vid)] = view_of(ss, self._prior[vid])
         self.views = views
         disputes = {k: v.q > self.threshold for k, v in views.items()}
         self.disputed = {frozenset(k) for k, off in disputes.items() if off}
@@ -461,8 +474,9 @@ class MisbehaviourMonitor:
             fair = {o: view for o, view in mine.items() if o not in self.flagged}
             if not fair:
                 continue
-            b, q, r = self._bias_test(list(fair.values()), self._prior[v])
-            self.tests[v] = (b, q, r, len(fair))
+            test = bias_test(list(fair.values()), self._prior[v])
+            b, q, r = test.b, test.q, test.r
+            self.tests[v] = test
             consistent = r <= chi2_sf_quantile(self.alpha, 2 * (len(fair) - 1)) if len(fair) > 1 else True
             by_many = len(fair) >= pp.misbehaviour_min_observers and consistent and q > self.threshold
             accusers = [o for o in fair if disputes[(o, v)]]
