@@ -233,8 +233,9 @@ class MisbehaviourMonitor:
         observer's frames and that it repeats (:meth:`errors`; None: ``cov_map`` split by the detector's
         persistent share); ``matches``: the host's association of each detection
         (:attr:`~.association.Tracker.vehicle_matches`; None: none known); ``prior``: vehicle -> the (2, 2)
-        covariance of its position error as it states it (P0; a vehicle not in it: its reported covariance). Only vehicle-like detections count; each other
-        vehicle's nearest one within the radius is a sighting of it."""
+        covariance of its position error as it states it (P0; a vehicle not in it: its reported covariance).
+        Only vehicle-like detections count; each other vehicle's nearest one within the radius is a sighting
+        of it."""
         r = self.params.misbehaviour_radius_m
         cls = np.asarray(cls)
         vehicle_like = (cls == 0) | (cls == 2)  # ObjectClass.UNKNOWN, ObjectClass.VEHICLE
