@@ -469,17 +469,18 @@ class MisbehaviourMonitor:
         self.tests = {}
         for v in sorted({v for _, v in views}):
             mine = {o: view for (o, vv), view in views.items() if vv == v}
-            if not any(disputes[(o, v)] for o in mine):
+            fair = {o: view for o, view in mine.items() if o not in self.flagged}
+            test = bias_test(list(fair.values()), self._prior[v]) if fair else None
+            off = test is not None and test.q > self.threshold
+            if not off and not any(disputes[(o, v)] for o in mine):
                 self._seen_off.pop(v, None)
                 continue
-            fair = {o: view for o, view in mine.items() if o not in self.flagged}
-            if not fair:
+            if test is None:
                 continue
-            test = bias_test(list(fair.values()), self._prior[v])
-            b, q, r = test.b, test.q, test.r
             self.tests[v] = test
+            b, q, r = test.b, test.q, test.r
             consistent = r <= chi2_sf_quantile(self.alpha, 2 * (len(fair) - 1)) if len(fair) > 1 else True
-            by_many = len(fair) >= pp.misbehaviour_min_observers and consistent and q > self.threshold
+            by_many = len(fair) >= pp.misbehaviour_min_observers and consistent and off
             accusers = [o for o in fair if disputes[(o, v)]]
             by_trusted = [o for o in accusers if corroborated(o, v) and not corroborated(v, o)]
             if by_many or by_trusted:
