@@ -15,39 +15,45 @@ reports the objects about it shifted by its own error, so none of them where oth
 
 *The bias state and its test.* V's offset ``b_V`` (true minus reported position, map x, y) is estimated
 from the sightings of the last ``misbehaviour_window_s`` seconds. A sighting's error has a part that
-averages out over O's frames (``A``: the detector's noise) and one that O's every frame repeats (``B``: O's
-pose error and its repeated calibration and map error, and the persistent share of the detector's error,
-:func:`~.hostcore.persistent_share` over the window), so O's *view* of V is
+averages out over O's frames (``A``: the detector's noise), one that O's every frame repeats (``B``: O's
+pose error, with its repeated calibration and map error) and one that every detection of V repeats,
+whoever makes it (``D``: the persistent share of the detector's error, :func:`~.hostcore.persistent_share`
+over the window: the object's shape and size prior and box fit), so O's *view* of V is
 
-    y_O = (sum_k w_k A_k^-1)^-1 sum_k w_k A_k^-1 d_k,     C_O = (sum_k w_k A_k^-1)^-1 + B_O,   B_O = mean_w B_k,
+    y_O = (sum_k w_k A_k^-1)^-1 sum_k w_k A_k^-1 d_k,     C_O = (sum_k w_k A_k^-1)^-1 + mean_w B_k,
 
-with y_O ~ N(b_V, C_O), independent between observers given b_V. Every unflagged observer's view together
-(a Kalman update of b_V with no prior, the generalised least squares of the views):
+with y_O ~ N(b_V + s_V, C_O), independent between observers given b_V and the shared error s_V ~ N(0, K),
+K = mean_w D_k. Every unflagged observer's view together (a Kalman update of b_V + s_V with no prior, the
+generalised least squares of the views):
 
     b^ = P^ sum_O C_O^-1 y_O,    P^ = (sum_O C_O^-1)^-1,    r = sum_O (y_O - b^)^T C_O^-1 (y_O - b^).
 
 An honest V's offset is drawn from the error it states, ``P0``: its reported position covariance plus the
 error its every frame repeats (VehiclePrior.pose_bias_sigma); where it claims integrity, its protection
 levels, as the covariance whose 1-sigmas are the levels over their integrity risk's Gaussian quantile.
-Then b^ ~ N(0, P0 + P^), and
+Then b^ ~ N(0, P0 + K + P^), and
 
-    q = b^T (P0 + P^)^-1 b^ ~ chi2(2)   (honest V),       r ~ chi2(2 (n - 1))   (any V, n observers).
+    q = b^T (P0 + K + P^)^-1 b^ ~ chi2(2)   (honest V),       r ~ chi2(2 (n - 1))   (any V, n observers).
 
 The test's false-alarm probability ``alpha`` follows from the rate one states:
 ``misbehaviour_false_alarms_per_hour`` per vehicle over 3600 / ``misbehaviour_test_period_s`` tests an hour
 (a union bound: the tests of consecutive frames share their evidence, so the rate is at most that), and V
 fails when q exceeds the chi-square(2) quantile 1 - alpha. A single view is tested the same way,
-``y_O^T (P0 + C_O)^-1 y_O`` (O and V *dispute*: O sees V elsewhere than either's stated errors allow, and
+``y_O^T (P0 + K_O + C_O)^-1 y_O`` (O and V *dispute*: O sees V elsewhere than either's stated errors allow, and
 while they do, neither cross-localizes the other: one lying vehicle must not pull its honest neighbours).
 V is *flagged*
 
 * when at least ``misbehaviour_min_observers`` unflagged observers have a view of it, q fails, and their
   views agree with each other (r within its chi-square quantile 1 - alpha): they independently see V
   somewhere else; or
-* when a single observer O disputes it, and O is *corroborated* while V is not: O has a view of some third
-  vehicle, or is seen by it, that does not dispute (O sees it, or is seen by it, where it says it is); V
-  has none. Only current views vouch, for the accuser as for the accused: on development seed 1000 a cv1
-  1 m off, vouched for by its agreements from before its fault, flagged the honest cv0 it saw 1.1 m off.
+* when a single observer O disputes it, O is *corroborated* while V is not, and V disputes with a third
+  vehicle too: O has a view of some third vehicle, or is seen by it, that does not dispute (O sees it, or
+  is seen by it, where it says it is); V has none, and V sees a third vehicle, or is seen by it, off. A
+  vehicle whose pose is off sees the others off by as much. One observer's view alone is no proof: on
+  development seed 1001 cv3 saw the car beside an honest cv1 (hidden) 4.3 m from it, and cv2 saw one
+  4.3 m beside an honest cv3, each flagging it with nothing else against it. Only current views vouch,
+  for the accuser as for the accused: on development seed 1000 a cv1 1 m off, vouched for by its
+  agreements from before its fault, flagged the honest cv0 it saw 1.1 m off.
 
 The flag stays until no current view of V disputes it.
 
@@ -106,9 +112,10 @@ _SAME_INSTANT_S = 0.05  # detections this near in time are of one instant (frame
 @dataclass(eq=False)
 class Sighting:
     """Observer ``observer`` saw something ``offset`` (map x, y) from where the vehicle said it was at ``t``,
-    with weight ``weight`` (the probability that it is that vehicle); ``white`` and ``persistent``: the (2, 2)
-    covariances of the parts of its error that average out over the observer's frames and that its every
-    frame repeats.
+    with weight ``weight`` (the probability that it is that vehicle); ``white``, ``persistent`` and ``shape``:
+    the (2, 2) covariances of the parts of its error that average out over the observer's frames, that the
+    observer's every frame repeats (its pose error), and that every detection of the vehicle repeats,
+    whoever makes it (the detector's persistent error: the object's shape and size prior).
 
     ``checked`` and ``matched``: the newest of the observed vehicle's reports tested against the sighting and
     the newest one that reported an object there (report numbers, -1: none), so that each report is tested
@@ -119,6 +126,7 @@ class Sighting:
     offset: np.ndarray
     white: np.ndarray
     persistent: np.ndarray
+    shape: np.ndarray
     weight: float
     where: np.ndarray  # the detection's map (x, y)
     det_cov: np.ndarray  # (2, 2): the detection's map covariance
@@ -128,11 +136,13 @@ class Sighting:
 
 @dataclass(frozen=True)
 class View:
-    """An observer's view of a vehicle over the window: its offset ``y`` and covariance ``C`` (module doc),
-    and ``q``, the offset's chi-square against both's stated errors, ``y^T (P0 + C)^-1 y``."""
+    """An observer's view of a vehicle over the window: its offset ``y``, its covariance ``C`` and the part
+    ``K`` of its error that every observer's view of the vehicle shares (module doc), and ``q``, the offset's
+    chi-square against the errors stated, ``y^T (P0 + C + K)^-1 y``."""
 
     y: np.ndarray
     C: np.ndarray
+    K: np.ndarray
     q: float
 
 
@@ -150,24 +160,29 @@ class BiasTest:
 
 def view_of(sightings: list[Sighting], P0: np.ndarray) -> View:
     """One observer's view from its sightings of a vehicle that states the error ``P0`` (2, 2) (module doc):
-    y = (sum w A^-1)^-1 sum w A^-1 d,  C = (sum w A^-1)^-1 + sum w B / sum w,  q = y^T (P0 + C)^-1 y."""
+    y = (sum w A^-1)^-1 sum w A^-1 d,  C = (sum w A^-1)^-1 + sum w B / sum w,  K = sum w D / sum w,
+    q = y^T (P0 + C + K)^-1 y."""
     w = np.array([s.weight for s in sightings])
     Ainv = np.linalg.inv(np.array([s.white for s in sightings]))  # (K, 2, 2)
     cov_mean = np.linalg.inv(np.einsum("k,kij->ij", w, Ainv))
     y = cov_mean @ np.einsum("k,kij,kj->i", w, Ainv, np.array([s.offset for s in sightings]))
     C = cov_mean + np.einsum("k,kij->ij", w, np.array([s.persistent for s in sightings])) / w.sum()
-    return View(y, C, float(y @ np.linalg.solve(P0 + C, y)))
+    K = np.einsum("k,kij->ij", w, np.array([s.shape for s in sightings])) / w.sum()
+    return View(y, C, K, float(y @ np.linalg.solve(P0 + C + K, y)))
 
 
 def bias_test(views: list[View], P0: np.ndarray) -> BiasTest:
     """The views of one vehicle that states the error ``P0`` together (module doc): b^ = P^ sum C^-1 y,
-    P^ = (sum C^-1)^-1, q = b^T (P0 + P^)^-1 b^, r = sum (y - b^)^T C^-1 (y - b^)."""
+    P^ = (sum C^-1)^-1, q = b^T (P0 + K + P^)^-1 b^ (K: the views' mean shared part), r = sum (y - b^)^T C^-1
+    (y - b^)."""
     y = np.array([v.y for v in views])
     G = np.linalg.inv(np.array([v.C for v in views]))
     P = np.linalg.inv(G.sum(axis=0))
     b = P @ np.einsum("kij,kj->i", G, y)
     e = y - b
-    return BiasTest(b, P, float(b @ np.linalg.solve(P0 + P, b)), float(np.einsum("ki,kij,kj->", e, G, e)), len(views))
+    K = np.mean([v.K for v in views], axis=0)
+    q = float(b @ np.linalg.solve(P0 + K + P, b))
+    return BiasTest(b, P, q, float(np.einsum("ki,kij,kj->", e, G, e)), len(views))
 
 
 def chi2_sf_quantile(alpha: float, dof: int) -> float:
@@ -204,15 +219,18 @@ class MisbehaviourMonitor:
         self.tests: dict[str, BiasTest] = {}  # vehicle -> its bias test at the last update (if it was disputed)
         self.flagged_total = 0  # flags raised (a vehicle flagged, cleared and flagged again counts twice)
 
-    def errors(self, pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray]:
-        """The map covariances (N, 3, 3) of the two parts of the error of detections ``p_body`` (N, 3) (body-frame
-        covariances ``cov_body``) by an observer at ``pose``: what averages out over its frames (the detector's
-        noise but its persistent share over the window), and what it repeats frame after frame (its pose error
-        ``pose_cov`` (6, 6), what it reports and what every frame of it repeats, through the detections' lever
-        arms, and the detector's persistent share)."""
+    def errors(self, pose, pose_cov, p_body, cov_body) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The map covariances (N, 3, 3) of the three parts of the error of detections ``p_body`` (N, 3)
+        (body-frame covariances ``cov_body``) by an observer at ``pose``: what averages out over its frames (the
+        detector's noise but its persistent share over the window), what it repeats frame after frame (its pose
+        error ``pose_cov`` (6, 6), what it reports and what every frame of it repeats, through the detections'
+        lever arms), and the detector's persistent share (the object's shape and size prior, which every
+        observer's detections of it share)."""
         cov_body = np.asarray(cov_body, dtype=float)
-        white = observations_to_map(pose, np.zeros((6, 6)), p_body, (1.0 - self._share) * cov_body)[1]
-        return white, observations_to_map(pose, pose_cov, p_body, self._share * cov_body)[1]
+        zero = np.zeros((6, 6))
+        white = observations_to_map(pose, zero, p_body, (1.0 - self._share) * cov_body)[1]
+        shape = observations_to_map(pose, zero, p_body, self._share * cov_body)[1]
+        return white, observations_to_map(pose, pose_cov, p_body, 0.0 * cov_body)[1], shape
 
     def observe(
         self,
@@ -222,7 +240,7 @@ class MisbehaviourMonitor:
         cov_map: np.ndarray,
         cls: np.ndarray,
         reported: tuple[np.ndarray, np.ndarray, np.ndarray],
-        errors: tuple[np.ndarray, np.ndarray] | None = None,
+        errors: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         matches: list[tuple[str, float] | None] | None = None,
         prior: dict[str, np.ndarray] | None = None,
     ):
@@ -230,10 +248,11 @@ class MisbehaviourMonitor:
         classes ``cls``) by ``observer`` at ``t``, against the connected vehicles' reported positions and
         their covariances at ``t``: ``reported`` = (ids (V,), positions (V, 3), covariances (V, 3, 3)).
         ``errors``: the (N, 3, 3) covariances of the parts of the detections' error that average out over the
-        observer's frames and that it repeats (:meth:`errors`; None: ``cov_map`` split by the detector's
-        persistent share); ``matches``: the host's association of each detection
-        (:attr:`~.association.Tracker.vehicle_matches`; None: none known); ``prior``: vehicle -> the (2, 2)
-        covariance of its position error as it states it (P0; a vehicle not in it: its reported covariance).
+        observer's frames, that it repeats and that the object's every detection repeats (:meth:`errors`; None:
+        ``cov_map`` split by the detector's persistent share into the first and the last); ``matches``: the
+        host's association of each detection (:attr:`~.association.Tracker.vehicle_matches`; None: none known);
+        ``prior``: vehicle -> the (2, 2) covariance of its position error as it states it (P0; a vehicle not in
+        it: its reported covariance).
         Only vehicle-like detections count; each other vehicle's nearest one within the radius is a sighting
         of it."""
         r = self.params.misbehaviour_radius_m
@@ -242,9 +261,9 @@ class MisbehaviourMonitor:
         p = np.asarray(p_map, dtype=float).reshape(-1, 3)[vehicle_like, :2]
         S = np.asarray(cov_map, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2]
         if errors is None:
-            A, B = (1.0 - self._share) * S, self._share * S
+            A, B, D = (1.0 - self._share) * S, np.zeros_like(S), self._share * S
         else:
-            A, B = (np.asarray(e, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2] for e in errors)
+            A, B, D = (np.asarray(e, dtype=float).reshape(-1, 3, 3)[vehicle_like, :2, :2] for e in errors)
         match = [None] * len(cls) if matches is None else list(matches)
         match = [m for m, keep in zip(match, vehicle_like, strict=True) if keep]
         if len(p):
@@ -268,7 +287,7 @@ class MisbehaviourMonitor:
             if w <= 0.0:
                 continue
             # the observer's error; the observed vehicle's own is the offset under test (its P0)
-            sighting = Sighting(float(t), observer, d[i, j], A[j], B[j], w, p[j], S[j])
+            sighting = Sighting(float(t), observer, d[i, j], A[j], B[j], D[j], w, p[j], S[j])
             self._sightings.setdefault(vid, deque()).append(sighting)
 
     def message(self, sender: str, t_meas: float, t_recv: float, refused: str | None) -> None:
@@ -466,6 +485,9 @@ class MisbehaviourMonitor:
         def corroborated(x: str, other: str) -> bool:
             return any(x in pair and other not in pair for pair in agreed_now)
 
+        def disputed_elsewhere(x: str, other: str) -> bool:
+            return any(x in pair and other not in pair for pair in self.disputed)
+
         self.tests = {}
         for v in sorted({v for _, v in views}):
             mine = {o: view for (o, vv), view in views.items() if vv == v}
@@ -482,7 +504,9 @@ class MisbehaviourMonitor:
             consistent = r <= chi2_sf_quantile(self.alpha, 2 * (len(fair) - 1)) if len(fair) > 1 else True
             by_many = len(fair) >= pp.misbehaviour_min_observers and consistent and off
             accusers = [o for o in fair if disputes[(o, v)]]
-            by_trusted = [o for o in accusers if corroborated(o, v) and not corroborated(v, o)]
+            by_trusted = [
+                o for o in accusers if corroborated(o, v) and not corroborated(v, o) and disputed_elsewhere(v, o)
+            ]
             if by_many or by_trusted:
                 who = sorted(fair) if by_many else by_trusted
                 c = b if by_many else fair[by_trusted[0]].y

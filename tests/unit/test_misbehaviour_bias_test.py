@@ -15,9 +15,10 @@ from mapcontainer.fusion.misbehaviour import MisbehaviourMonitor, Sighting, View
 I2 = np.eye(2)
 
 
-def sighting(offset, white, persistent, weight=1.0, observer="cv0") -> Sighting:
+def sighting(offset, white, persistent, weight=1.0, observer="cv0", shape=None) -> Sighting:
     z = np.zeros(2)
-    return Sighting(0.0, observer, np.asarray(offset, float), white, persistent, weight, z, I2)
+    shape = np.zeros((2, 2)) if shape is None else shape
+    return Sighting(0.0, observer, np.asarray(offset, float), white, persistent, shape, weight, z, I2)
 
 
 def test_the_threshold_follows_from_the_stated_false_alarm_rate() -> None:
@@ -37,14 +38,16 @@ def test_a_view_is_the_weighted_least_squares_mean_with_the_repeated_error_added
     d = rng.normal(0.0, 0.5, (5, 2))
     w = np.array([1.0, 0.5, 0.9, 1.0, 0.2])
     P0 = np.diag([0.04, 0.09])
-    v = view_of([sighting(d[k], A[k], B[k], w[k]) for k in range(5)], P0)
+    D = [np.diag(rng.uniform(0.01, 0.1, 2)) for _ in range(5)]
+    v = view_of([sighting(d[k], A[k], B[k], w[k], shape=D[k]) for k in range(5)], P0)
     # dense weighted least squares of a constant from the five offsets
     W = [w[k] * np.linalg.inv(A[k]) for k in range(5)]
     cov = np.linalg.inv(sum(W))
     y = cov @ sum(W[k] @ d[k] for k in range(5))
     C = cov + sum(w[k] * B[k] for k in range(5)) / w.sum()
-    assert v.y == pytest.approx(y) and v.C == pytest.approx(C)
-    assert v.q == pytest.approx(y @ np.linalg.solve(P0 + C, y))
+    K = sum(w[k] * D[k] for k in range(5)) / w.sum()
+    assert v.y == pytest.approx(y) and v.C == pytest.approx(C) and v.K == pytest.approx(K)
+    assert v.q == pytest.approx(y @ np.linalg.solve(P0 + C + K, y))
     one = view_of([sighting(d[0], A[0], B[0])], P0)  # a single sighting: its offset, A + B
     assert one.y == pytest.approx(d[0]) and one.C == pytest.approx(A[0] + B[0])
 
@@ -54,7 +57,7 @@ def test_the_bias_test_is_the_generalised_least_squares_of_the_views() -> None:
     views = []
     for _ in range(3):
         L = rng.normal(0.0, 0.3, (2, 2))
-        views.append(View(rng.normal(0.0, 1.0, 2), L @ L.T + 0.05 * I2, 0.0))
+        views.append(View(rng.normal(0.0, 1.0, 2), L @ L.T + 0.05 * I2, rng.uniform(0.0, 0.05) * I2, 0.0))
     P0 = np.array([[0.05, 0.01], [0.01, 0.03]])
     test = bias_test(views, P0)
     # stacked: y_k = b + e_k, e_k ~ N(0, C_k): b^ = (H^T W H)^-1 H^T W Y with H = [I; I; I]
@@ -66,7 +69,8 @@ def test_the_bias_test_is_the_generalised_least_squares_of_the_views() -> None:
     P = np.linalg.inv(H.T @ W @ H)
     b = P @ H.T @ W @ Y
     assert test.b == pytest.approx(b) and test.P == pytest.approx(P) and test.n == 3
-    assert test.q == pytest.approx(b @ np.linalg.solve(P0 + P, b))
+    K = np.mean([v.K for v in views], axis=0)  # what every view shares does not average over them
+    assert test.q == pytest.approx(b @ np.linalg.solve(P0 + K + P, b))
     assert test.r == pytest.approx((Y - H @ b) @ W @ (Y - H @ b))
 
 
@@ -128,7 +132,7 @@ def test_a_constant_bias_is_flagged_at_the_frame_the_closed_form_says() -> None:
                 np.tile(p0 * np.eye(3), (2, 1, 1)),
             )
             p = np.array([[*b, 0.0]])
-            errors = ((a * np.eye(3))[None], (beta * np.eye(3))[None])
+            errors = ((a * np.eye(3))[None], (beta * np.eye(3))[None], np.zeros((1, 3, 3)))
             mon.observe(o, t, p, ((a + beta) * np.eye(3))[None], np.array([2]), rep, errors)
         if "cv9" in mon.update(t) and first is None:
             first = K

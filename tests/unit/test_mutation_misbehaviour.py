@@ -29,7 +29,8 @@ def test_a_sighting_is_the_nearest_vehicle_like_detection_within_the_radius() ->
     assert (s1.t, s1.observer, s1.weight) == (1.0, "cv0", 1.0)
     assert s1.offset == pytest.approx(np.array([0.5, 0.2]))
     f = mon._share  # no split given: the detection's covariance by the detector's persistent share
-    assert s1.white == pytest.approx((1 - f) * 0.1 * np.eye(2)) and s1.persistent == pytest.approx(f * 0.1 * np.eye(2))
+    assert s1.white == pytest.approx((1 - f) * 0.1 * np.eye(2)) and s1.shape == pytest.approx(f * 0.1 * np.eye(2))
+    assert s1.persistent == pytest.approx(np.zeros((2, 2)))  # the observer's pose error: none known
     assert 0.2 < f < 0.5  # 0.5 persistent, its mean over 2 s of a 2 s Gauss-Markov process: 0.5 * 2 / e
     assert mon._prior["cv1"] == pytest.approx(0.01 * np.eye(2))  # no stated error given: its reported covariance
     (s2,) = mon._sightings["cv2"]
@@ -71,7 +72,7 @@ def _views(offsets_by_observer: dict[str, tuple[float, float]], n: int = 4, var:
     """cv9 reported at the origin with variance ``var`` per axis; each observer sees it at ``offset`` n times
     (0.1 s apart), each sighting's error WHITE + REPEATED."""
     mon = MisbehaviourMonitor(params or FusionParams())
-    errors = ((WHITE * I3)[None], (REPEATED * I3)[None])
+    errors = ((WHITE * I3)[None], (REPEATED * I3)[None], np.zeros((1, 3, 3)))
     for k in range(n):
         for o, off in offsets_by_observer.items():
             rep = _reported([o, "cv9"], [(50, 50), (0, 0)], var=var)
@@ -155,29 +156,27 @@ def test_one_accuser_is_not_enough_without_corroboration() -> None:
     }
 
 
-def test_a_single_observer_corroborated_now_flags_one_that_is_not() -> None:
-    mon = MisbehaviourMonitor(FusionParams())
+def test_a_single_observer_corroborated_now_flags_one_that_is_not_if_it_sees_a_third_one_off() -> None:
+    def frame(mon, t: float, cv9_off: float, cv9_sees: bool) -> None:
+        # cv1 sees cv2 where it says (corroborating cv1) and cv9 cv9_off metres off; cv9 sees cv3, as off
+        rep = _reported(["cv1", "cv2", "cv3", "cv9"], [(50, 50), (20, 0), (-20, 0), (0, 0)])
+        cov = np.tile(0.01 * I3, (2, 1, 1))
+        mon.observe("cv1", t, np.array([[20.0, 0.0, 0.0], [cv9_off, 0.0, 0.0]]), cov, np.array([2, 2]), rep)
+        if cv9_sees:
+            mon.observe("cv9", t, np.array([[-20.0 - cv9_off, 0.0, 0.0]]), cov[:1], np.array([2]), rep)
 
-    def frame(t: float, cv9_off: float) -> None:
-        # cv1 sees cv2 where it says (corroborating cv1) and cv9 cv9_off metres off
-        rep = _reported(["cv1", "cv2", "cv9"], [(50, 50), (20, 0), (0, 0)])
-        mon.observe(
-            "cv1",
-            t,
-            np.array([[20.0, 0.0, 0.0], [cv9_off, 0.0, 0.0]]),
-            np.tile(0.01 * I3, (2, 1, 1)),
-            np.array([2, 2]),
-            rep,
-        )
-
-    for k in range(4):
-        frame(0.1 * k, 0.0)
-    mon.update(0.3)
-    assert mon.flagged == {}
-    for k in range(4, 30):
-        frame(0.1 * k, 3.0)
-    flags = mon.update(2.9)
-    assert flags["cv9"].startswith("seen 3.0 m from its reported position (+3.0, +0.0) by cv1 in the last 2 s")
+    for cv9_sees, flagged in ((True, ["cv9"]), (False, [])):
+        mon = MisbehaviourMonitor(FusionParams())
+        for k in range(4):
+            frame(mon, 0.1 * k, 0.0, cv9_sees)
+        mon.update(0.3)
+        assert mon.flagged == {}
+        for k in range(4, 30):
+            frame(mon, 0.1 * k, 3.0, cv9_sees)
+        flags = mon.update(2.9)
+        assert list(flags) == flagged
+        if flagged:
+            assert flags["cv9"].startswith("seen 3.0 m from its reported position (+3.0, +0.0) by cv1 in the last 2 s")
 
 
 def test_message_repeats() -> None:
