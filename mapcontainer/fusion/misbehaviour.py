@@ -13,49 +13,43 @@ or out of view). On development seed 1001 (paper-urban, every error source) an h
 alone, which at 45 m saw the car 3.5 m beside cv3 and not cv3. A vehicle that is not where it says it is
 reports the objects about it shifted by its own error, so none of them where others see it.
 
-*The bias state and its test.* V's offset ``b_V`` (true minus reported position, map x, y) is estimated
-from the sightings of the last ``misbehaviour_window_s`` seconds. A sighting's error has a part that
-averages out over O's frames (``A``: the detector's noise), one that O's every frame repeats (``B``: O's
-pose error, with its repeated calibration and map error) and one that every detection of V repeats,
-whoever makes it (``D``: the persistent share of the detector's error, :func:`~.hostcore.persistent_share`
-over the window: the object's shape and size prior and box fit), so O's *view* of V is
+*The offsets and their test.* Every vehicle X's offset ``b_X`` (true minus reported position, map x, y)
+is estimated from the sightings of the last ``misbehaviour_window_s`` seconds. A sighting's error has a
+part that averages out over O's frames (``A``: the detector's noise), one that O's every frame repeats
+through the detection's lever arm (``B``: O's attitude error, with its repeated calibration error; O's
+position error is O's own offset ``b_O``) and one that every detection of V repeats, whoever makes it
+(``D``: the persistent share of the detector's error, :func:`~.hostcore.persistent_share` over the
+window: the object's shape and size prior and box fit). O's *view* of V is
 
-    y_O = (sum_k w_k A_k^-1)^-1 sum_k w_k A_k^-1 d_k,     C_O = (sum_k w_k A_k^-1)^-1 + mean_w B_k,
+    y_OV = (sum_k w_k A_k^-1)^-1 sum_k w_k A_k^-1 d_k,     C_OV = (sum_k w_k A_k^-1)^-1 + mean_w B_k,
 
-with y_O ~ N(b_V + s_V, C_O), independent between observers given b_V and the shared error s_V ~ N(0, K),
-K = mean_w D_k. Every unflagged observer's view together (a Kalman update of b_V + s_V with no prior, the
-generalised least squares of the views):
+    y_OV = b_V + s_V - b_O + e_OV,     e_OV ~ N(0, C_OV),     s_V ~ N(0, K_V),  K_V = mean_w D_k,
 
-    b^ = P^ sum_O C_O^-1 y_O,    P^ = (sum_O C_O^-1)^-1,    r = sum_O (y_O - b^)^T C_O^-1 (y_O - b^).
+since O's detections sit where O's pose puts them: a vehicle off by ``b`` is seen off by ``b`` and sees
+every other vehicle off by ``-b``. An honest X's offset is drawn from the error it states, ``P0_X``: its
+reported position covariance plus the error its every frame repeats (VehiclePrior.pose_bias_sigma); where
+it claims integrity, its protection levels, as the covariance whose 1-sigmas are the levels over their
+integrity risk's Gaussian quantile. V is tested against every view at once (:func:`network_test`), every
+other vehicle honest (b_X ~ N(0, P0_X)) and V's offset free: the joint least squares (an information
+filter over the window) gives b^_V with covariance P^_V, independent of b_V, so for an honest V
 
-An honest V's offset is drawn from the error it states, ``P0``: its reported position covariance plus the
-error its every frame repeats (VehiclePrior.pose_bias_sigma); where it claims integrity, its protection
-levels, as the covariance whose 1-sigmas are the levels over their integrity risk's Gaussian quantile.
-Then b^ ~ N(0, P0 + K + P^), and
+    q_V = b^_V^T (P0_V + P^_V)^-1 b^_V ~ chi2(2),
 
-    q = b^T (P0 + K + P^)^-1 b^ ~ chi2(2)   (honest V),       r ~ chi2(2 (n - 1))   (any V, n observers).
-
-The test's false-alarm probability ``alpha`` follows from the rate one states:
+and r_V, the chi-square of the n views that involve V about the joint estimate, is about chi2(2 (n - 1))
+whatever b_V is. The test's false-alarm probability ``alpha`` follows from the rate one states:
 ``misbehaviour_false_alarms_per_hour`` per vehicle over 3600 / ``misbehaviour_test_period_s`` tests an hour
-(a union bound: the tests of consecutive frames share their evidence, so the rate is at most that), and V
-fails when q exceeds the chi-square(2) quantile 1 - alpha. A single view is tested the same way,
-``y_O^T (P0 + K_O + C_O)^-1 y_O`` (O and V *dispute*: O sees V elsewhere than either's stated errors allow, and
-while they do, neither cross-localizes the other: one lying vehicle must not pull its honest neighbours).
-V is *flagged*
-
-* when at least ``misbehaviour_min_observers`` unflagged observers have a view of it, q fails, and their
-  views agree with each other (r within its chi-square quantile 1 - alpha): they independently see V
-  somewhere else; or
-* when a single observer O disputes it, O is *corroborated* while V is not, and V disputes with a third
-  vehicle too: O has a view of some third vehicle, or is seen by it, that does not dispute (O sees it, or
-  is seen by it, where it says it is); V has none, and V sees a third vehicle, or is seen by it, off. A
-  vehicle whose pose is off sees the others off by as much. One observer's view alone is no proof: on
-  development seed 1001 cv3 saw the car beside an honest cv1 (hidden) 4.3 m from it, and cv2 saw one
-  4.3 m beside an honest cv3, each flagging it with nothing else against it. Only current views vouch,
-  for the accuser as for the accused: on development seed 1000 a cv1 1 m off, vouched for by its
-  agreements from before its fault, flagged the honest cv0 it saw 1.1 m off.
-
-The flag stays until no current view of V disputes it.
+(a union bound: the tests of consecutive frames share their evidence, so the rate is at most that); V
+fails when q_V exceeds the chi-square(2) quantile 1 - alpha. V is *flagged* when it fails on views that
+involve it (others' views of it, its views of others) with at least ``misbehaviour_min_observers`` other
+vehicles (two vehicles alone cannot tell which of them is off) and that agree with each other (r_V within
+its quantile 1 - alpha), and stays flagged until it passes again. Both
+directions count: a vehicle 1 m off that one other vehicle sees, and that sees one other vehicle, is seen
+off and sees off, and the two agree about whose offset it is. One view alone is no proof: on development
+seed 1001 cv3 saw the car beside an honest cv1 (hidden) 4.3 m from it, and cv2 one beside an honest cv3,
+each flagging it with nothing else against it; on development seed 1000 a cv1 1 m off flagged the honest
+cv0 it saw 1.1 m off. A single view is tested against both vehicles' stated errors,
+``y_OV^T (P0_V + P0_O + C_OV + K_V)^-1 y_OV``: O and V *dispute* when it fails, and while they do, neither
+cross-localizes the other (one lying vehicle must not pull its honest neighbours).
 
 Two more kinds of misbehaviour are flagged:
 
@@ -104,7 +98,7 @@ from .association import observations_to_map
 from .hostcore import persistent_share
 from .params import FusionParams
 
-__all__ = ["BiasTest", "MisbehaviourMonitor", "Sighting", "View", "bias_test", "chi2_sf_quantile", "view_of"]
+__all__ = ["BiasTest", "MisbehaviourMonitor", "Sighting", "View", "chi2_sf_quantile", "network_test", "view_of"]
 
 _SAME_INSTANT_S = 0.05  # detections this near in time are of one instant (frames are 0.1 s apart)
 
@@ -148,9 +142,10 @@ class View:
 
 @dataclass(frozen=True)
 class BiasTest:
-    """A vehicle's offset b^ (covariance P^) from ``n`` views, its chi-square q against the error it states and
-    the views' consistency r (module doc)."""
+    """Vehicle ``vid``'s offset b^ (covariance P^) from every view, its chi-square q against the error it states,
+    and r, the chi-square of the ``n`` views that involve it about the joint estimate (module doc)."""
 
+    vid: str
     b: np.ndarray
     P: np.ndarray
     q: float
@@ -159,8 +154,8 @@ class BiasTest:
 
 
 def view_of(sightings: list[Sighting], P0: np.ndarray) -> View:
-    """One observer's view from its sightings of a vehicle that states the error ``P0`` (2, 2) (module doc):
-    y = (sum w A^-1)^-1 sum w A^-1 d,  C = (sum w A^-1)^-1 + sum w B / sum w,  K = sum w D / sum w,
+    """One observer's view from its sightings of a vehicle, the two stating the errors ``P0`` (2, 2) together
+    (module doc): y = (sum w A^-1)^-1 sum w A^-1 d,  C = (sum w A^-1)^-1 + sum w B / sum w,  K = sum w D / sum w,
     q = y^T (P0 + C + K)^-1 y."""
     w = np.array([s.weight for s in sightings])
     Ainv = np.linalg.inv(np.array([s.white for s in sightings]))  # (K, 2, 2)
@@ -171,18 +166,45 @@ def view_of(sightings: list[Sighting], P0: np.ndarray) -> View:
     return View(y, C, K, float(y @ np.linalg.solve(P0 + C + K, y)))
 
 
-def bias_test(views: list[View], P0: np.ndarray) -> BiasTest:
-    """The views of one vehicle that states the error ``P0`` together (module doc): b^ = P^ sum C^-1 y,
-    P^ = (sum C^-1)^-1, q = b^T (P0 + K + P^)^-1 b^ (K: the views' mean shared part), r = sum (y - b^)^T C^-1
-    (y - b^)."""
-    y = np.array([v.y for v in views])
-    G = np.linalg.inv(np.array([v.C for v in views]))
-    P = np.linalg.inv(G.sum(axis=0))
-    b = P @ np.einsum("kij,kj->i", G, y)
-    e = y - b
-    K = np.mean([v.K for v in views], axis=0)
-    q = float(b @ np.linalg.solve(P0 + K + P, b))
-    return BiasTest(b, P, q, float(np.einsum("ki,kij,kj->", e, G, e)), len(views))
+def network_test(views: dict[tuple[str, str], View], stated: dict[str, np.ndarray], vid: str) -> BiasTest:
+    """Test ``vid`` against every view (observer, observed) -> View, every other vehicle X honest with its stated
+    error ``stated[X]`` (module doc): the joint estimate of every vehicle's offset b_X and seen-as error s_X,
+
+        y_OV = b_V + s_V - b_O + e,   e ~ N(0, C_OV),   b_X ~ N(0, P0_X) (X != vid),   s_X ~ N(0, K_X),
+
+    b_vid with no prior; q = b^^T (P0 + P^)^-1 b^ of vid's, r = sum over the views involving vid of
+    (y - y^)^T C^-1 (y - y^)."""
+    ids = sorted({x for pair in views for x in pair})
+    at = {x: i for i, x in enumerate(ids)}
+    n = len(ids)
+    info, vec = np.zeros((4 * n, 4 * n)), np.zeros(4 * n)
+    seen_as: dict[str, list[np.ndarray]] = {}
+    for (_, v), view in views.items():
+        seen_as.setdefault(v, []).append(view.K)
+    for x, i in at.items():
+        if x != vid:
+            info[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] += np.linalg.inv(stated[x])
+        K = np.mean(seen_as[x], axis=0) if x in seen_as else np.eye(2)
+        j = 2 * n + 2 * i
+        info[j : j + 2, j : j + 2] += np.linalg.inv(K + 1e-9 * np.eye(2))
+    rows = {}
+    for (o, v), view in views.items():
+        H = np.zeros((2, 4 * n))
+        H[:, 2 * at[v] : 2 * at[v] + 2] += np.eye(2)
+        H[:, 2 * n + 2 * at[v] : 2 * n + 2 * at[v] + 2] += np.eye(2)
+        H[:, 2 * at[o] : 2 * at[o] + 2] -= np.eye(2)
+        G = np.linalg.inv(view.C)
+        info += H.T @ G @ H
+        vec += H.T @ G @ view.y
+        rows[(o, v)] = (H, G)
+    cov = np.linalg.inv(info)
+    mean = cov @ vec
+    i = 2 * at[vid]
+    b, P = mean[i : i + 2], cov[i : i + 2, i : i + 2]
+    mine = [k for k in views if vid in k]
+    e = {k: views[k].y - rows[k][0] @ mean for k in mine}
+    r = sum(float(e[k] @ rows[k][1] @ e[k]) for k in mine)
+    return BiasTest(vid, b, P, float(b @ np.linalg.solve(stated[vid] + P, b)), r, len(mine))
 
 
 def chi2_sf_quantile(alpha: float, dof: int) -> float:
@@ -228,9 +250,11 @@ class MisbehaviourMonitor:
         observer's detections of it share)."""
         cov_body = np.asarray(cov_body, dtype=float)
         zero = np.zeros((6, 6))
+        turn = np.array(pose_cov, dtype=float)  # its position error is its own offset's (b_O): the lever arms'
+        turn[:3, :] = turn[:, :3] = 0.0
         white = observations_to_map(pose, zero, p_body, (1.0 - self._share) * cov_body)[1]
         shape = observations_to_map(pose, zero, p_body, self._share * cov_body)[1]
-        return white, observations_to_map(pose, pose_cov, p_body, 0.0 * cov_body)[1], shape
+        return white, observations_to_map(pose, turn, p_body, 0.0 * cov_body)[1], shape
 
     def observe(
         self,
@@ -476,42 +500,29 @@ class MisbehaviourMonitor:
                     by_observer.setdefault(s.observer, []).append(s)
             for o, ss in by_observer.items():
                 if sum(s.weight for s in ss) >= pp.misbehaviour_min_sightings:
-                    views[(o, vid)] = view_of(ss, self._prior[vid])
+                    views[(o, vid)] = view_of(ss, self._prior[vid] + self._prior[o])
         self.views = views
         disputes = {k: v.q > self.threshold for k, v in views.items()}
         self.disputed = {frozenset(k) for k, off in disputes.items() if off}
-        agreed_now = {frozenset(k) for k, off in disputes.items() if not off}
-
-        def corroborated(x: str, other: str) -> bool:
-            return any(x in pair and other not in pair for pair in agreed_now)
-
-        def disputed_elsewhere(x: str, other: str) -> bool:
-            return any(x in pair and other not in pair for pair in self.disputed)
-
         self.tests = {}
-        for v in sorted({v for _, v in views}):
-            mine = {o: view for (o, vv), view in views.items() if vv == v}
-            fair = {o: view for o, view in mine.items() if o not in self.flagged}
-            test = bias_test(list(fair.values()), self._prior[v]) if fair else None
-            off = test is not None and test.q > self.threshold
-            if not off and not any(disputes[(o, v)] for o in mine):
+        for v in sorted({x for pair in views for x in pair}):
+            usable = {
+                (o, x): view
+                for (o, x), view in views.items()
+                if (o not in self.flagged or o == v) and (x not in self.flagged or x == v)
+            }
+            if not any(v in k for k in usable):
+                continue
+            test = self.tests[v] = network_test(usable, self._prior, v)
+            if test.q <= self.threshold:
                 self._seen_off.pop(v, None)
                 continue
-            if test is None:
-                continue
-            self.tests[v] = test
-            b, q, r = test.b, test.q, test.r
-            consistent = r <= chi2_sf_quantile(self.alpha, 2 * (len(fair) - 1)) if len(fair) > 1 else True
-            by_many = len(fair) >= pp.misbehaviour_min_observers and consistent and off
-            accusers = [o for o in fair if disputes[(o, v)]]
-            by_trusted = [
-                o for o in accusers if corroborated(o, v) and not corroborated(v, o) and disputed_elsewhere(v, o)
-            ]
-            if by_many or by_trusted:
-                who = sorted(fair) if by_many else by_trusted
-                c = b if by_many else fair[by_trusted[0]].y
+            consistent = test.r <= chi2_sf_quantile(self.alpha, 2 * (test.n - 1)) if test.n > 1 else True
+            who = sorted({x for k in usable if v in k for x in k} - {v})
+            if len(who) >= pp.misbehaviour_min_observers and consistent:
+                b = test.b
                 self._seen_off[v] = (
-                    f"seen {float(np.hypot(*c)):.1f} m from its reported position ({c[0]:+.1f}, {c[1]:+.1f}) by "
-                    f"{', '.join(who)} in the last {pp.misbehaviour_window_s:g} s (chi-square "
-                    f"{q if by_many else fair[by_trusted[0]].q:.0f} > {self.threshold:.1f})"
+                    f"seen {float(np.hypot(*b)):.1f} m from its reported position ({b[0]:+.1f}, {b[1]:+.1f}) by "
+                    f"{', '.join(who)} in the last {pp.misbehaviour_window_s:g} s (chi-square {test.q:.0f} > "
+                    f"{self.threshold:.1f})"
                 )

@@ -137,7 +137,10 @@ class FusionParams(BaseModel):
     misbehaviour_window_s: float = Field(2.0, gt=0, description="sightings of the last this many seconds decide")
     misbehaviour_min_sightings: int = Field(4, ge=1, description="an observer with this many sightings has a view")
     misbehaviour_min_observers: int = Field(
-        2, ge=1, description="... by at least this many other vehicles (two vehicles alone cannot tell who lies)"
+        2,
+        ge=1,
+        description="a vehicle is flagged on views with at least this many other vehicles (its of them, theirs of"
+        " it): two vehicles alone cannot tell which of them is off",
     )
     misbehaviour_offset_m: float = Field(
         0.6, gt=0, description="unused (the bias test's covariances replace this floor); kept so older settings load"
