@@ -151,6 +151,7 @@ class BiasTest:
     q: float
     r: float
     n: int
+    residuals: dict[tuple[str, str], float] = field(default_factory=dict)  # each view's (y - y^)^T C^-1 (y - y^)
 
 
 def view_of(sightings: list[Sighting], P0: np.ndarray) -> View:
@@ -203,8 +204,8 @@ def network_test(views: dict[tuple[str, str], View], stated: dict[str, np.ndarra
     b, P = mean[i : i + 2], cov[i : i + 2, i : i + 2]
     mine = [k for k in views if vid in k]
     e = {k: views[k].y - rows[k][0] @ mean for k in mine}
-    r = sum(float(e[k] @ rows[k][1] @ e[k]) for k in mine)
-    return BiasTest(vid, b, P, float(b @ np.linalg.solve(stated[vid] + P, b)), r, len(mine))
+    res = {k: float(e[k] @ rows[k][1] @ e[k]) for k in mine}
+    return BiasTest(vid, b, P, float(b @ np.linalg.solve(stated[vid] + P, b)), sum(res.values()), len(mine), res)
 
 
 def chi2_sf_quantile(alpha: float, dof: int) -> float:
@@ -506,23 +507,22 @@ class MisbehaviourMonitor:
         self.disputed = {frozenset(k) for k, off in disputes.items() if off}
         self.tests = {}
         for v in sorted({x for pair in views for x in pair}):
-            usable = {
-                (o, x): view
-                for (o, x), view in views.items()
-                if (o not in self.flagged or o == v) and (x not in self.flagged or x == v)
-            }
-            if not any(v in k for k in usable):
-                continue
-            test = self.tests[v] = network_test(usable, self._prior, v)
-            if test.q <= self.threshold:
-                self._seen_off.pop(v, None)
-                continue
-            consistent = test.r <= chi2_sf_quantile(self.alpha, 2 * (test.n - 1)) if test.n > 1 else True
-            who = sorted({x for k in usable if v in k for x in k} - {v})
-            if len(who) >= pp.misbehaviour_min_observers and consistent:
-                b = test.b
-                self._seen_off[v] = (
-                    f"seen {float(np.hypot(*b)):.1f} m from its reported position ({b[0]:+.1f}, {b[1]:+.1f}) by "
-                    f"{', '.join(who)} in the last {pp.misbehaviour_window_s:g} s (chi-square {test.q:.0f} > "
-                    f"{self.threshold:.1f})"
-                )
+            # the views that involve v, between vehicles not flagged (but v)
+            star = {k: view for k, view in views.items() if v in k and not (set(k) - {v}) & set(self.flagged)}
+            while star:
+                test = self.tests[v] = network_test(star, self._prior, v)
+                who = sorted({x for k in star for x in k} - {v})
+                if test.q <= self.threshold:
+                    self._seen_off.pop(v, None)
+                    break
+                if test.n == 1 or test.r <= chi2_sf_quantile(self.alpha, 2 * (test.n - 1)):
+                    if len(who) >= pp.misbehaviour_min_observers:
+                        b = test.b
+                        self._seen_off[v] = (
+                            f"seen {float(np.hypot(*b)):.1f} m from its reported position ({b[0]:+.1f}, "
+                            f"{b[1]:+.1f}) by {', '.join(who)} in the last {pp.misbehaviour_window_s:g} s "
+                            f"(chi-square {test.q:.0f} > {self.threshold:.1f})"
+                        )
+                    break
+                # the views disagree about v: leave out the one farthest from the others, test again
+                del star[max(test.residuals, key=test.residuals.get)]
