@@ -173,8 +173,10 @@ def network_test(views: dict[tuple[str, str], View], stated: dict[str, np.ndarra
 
         y_OV = b_V + s_V - b_O + e,   e ~ N(0, C_OV),   b_X ~ N(0, P0_X) (X != vid),   s_X ~ N(0, K_X),
 
-    b_vid with no prior; q = b^^T (P0 + P^)^-1 b^ of vid's, r = sum over the views involving vid of
-    (y - y^)^T C^-1 (y - y^)."""
+    b_vid with no prior; q = b^^T (P0 + P^)^-1 b^ of vid's; r the least squares' chi-square, of the views
+    ((y - y^)^T C^-1 (y - y^)) and of the priors (b^_X^T P0_X^-1 b^_X, s^_X^T K_X^-1 s^_X), with 2 (n - 1)
+    degrees of freedom for n views that all involve vid; ``residuals``: each view's own and its other
+    vehicle's priors'."""
     ids = sorted({x for pair in views for x in pair})
     at = {x: i for i, x in enumerate(ids)}
     n = len(ids)
@@ -182,12 +184,14 @@ def network_test(views: dict[tuple[str, str], View], stated: dict[str, np.ndarra
     seen_as: dict[str, list[np.ndarray]] = {}
     for (_, v), view in views.items():
         seen_as.setdefault(v, []).append(view.K)
+    priors = []  # (state index, information) of the priors: every offset but vid's, every seen-as error
     for x, i in at.items():
         if x != vid:
-            info[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] += np.linalg.inv(stated[x])
+            priors.append((2 * i, np.linalg.inv(stated[x])))
         K = np.mean(seen_as[x], axis=0) if x in seen_as else np.eye(2)
-        j = 2 * n + 2 * i
-        info[j : j + 2, j : j + 2] += np.linalg.inv(K + 1e-9 * np.eye(2))
+        priors.append((2 * n + 2 * i, np.linalg.inv(K + 1e-9 * np.eye(2))))
+    for j, W in priors:
+        info[j : j + 2, j : j + 2] += W
     rows = {}
     for (o, v), view in views.items():
         H = np.zeros((2, 4 * n))
@@ -202,10 +206,14 @@ def network_test(views: dict[tuple[str, str], View], stated: dict[str, np.ndarra
     mean = cov @ vec
     i = 2 * at[vid]
     b, P = mean[i : i + 2], cov[i : i + 2, i : i + 2]
-    mine = [k for k in views if vid in k]
-    e = {k: views[k].y - rows[k][0] @ mean for k in mine}
-    res = {k: float(e[k] @ rows[k][1] @ e[k]) for k in mine}
-    return BiasTest(vid, b, P, float(b @ np.linalg.solve(stated[vid] + P, b)), sum(res.values()), len(mine), res)
+    e = {k: views[k].y - rows[k][0] @ mean for k in views}
+    res = {k: float(e[k] @ rows[k][1] @ e[k]) for k in views}
+    prior_res = {j: float(mean[j : j + 2] @ W @ mean[j : j + 2]) for j, W in priors}
+    for k in views:  # each view's share: its own residual and its other vehicle's priors' (b and s)
+        x = at[k[0] if k[1] == vid else k[1]]
+        res[k] += prior_res.get(2 * x, 0.0) + prior_res[2 * n + 2 * x]
+    r = sum(float(e[k] @ rows[k][1] @ e[k]) for k in views) + sum(prior_res.values())
+    return BiasTest(vid, b, P, float(b @ np.linalg.solve(stated[vid] + P, b)), r, len(views), res)
 
 
 def chi2_sf_quantile(alpha: float, dof: int) -> float:
