@@ -75,8 +75,8 @@ def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting
     """The traced false flag (development seed 1001, paper-urban, every error source): cv2, 45 m off,
     saw the car 3.5 m beside an honest cv3 and not cv3; alone, but corroborated by cv0 and cv1, it flagged
     cv3 "seen 4.1 m from its reported position". cv3 reports that car itself, where cv2 sees it: what cv2
-    saw is not cv3. A biased cv3 reports the car shifted by its bias, and cv1 too, and is flagged (one
-    observer's view alone flags a vehicle only if that vehicle also sees a third one off)."""
+    saw is not cv3. A biased cv3 reports the car shifted by its bias, and cv0 and cv1 too, and is flagged
+    on its views of them (cv2's view of the car, which disagrees with them, left out)."""
     car = np.array([33.5, -1.0])
     truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-20.0, 0.0), "cv3": (30.0, 0.0)}
     for bias, flagged in (((0.0, 0.0), {}), ((0.0, 3.0), {"cv3"})):
@@ -87,7 +87,8 @@ def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting
             see(mon, "cv0", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
             see(mon, "cv1", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
             see(mon, "cv2", t, where, {"cv0": truth["cv0"], "cv1": truth["cv1"], "cv2": truth["cv2"], "car": car})
-            seen = {"cv3": truth["cv3"], "car": tuple(car + bias), "cv1": tuple(np.add(truth["cv1"], bias))}
+            seen = {"cv3": truth["cv3"], "car": tuple(car + bias)}
+            seen |= {v: tuple(np.add(truth[v], bias)) for v in ("cv0", "cv1")}
             see(mon, "cv3", t, where, seen)  # cv3's detections carry its bias
             mon.update(t)
         assert set(mon.flagged) == set(flagged), (bias, mon.flagged)
