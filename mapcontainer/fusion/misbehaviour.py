@@ -42,7 +42,9 @@ whatever b_V is. The test's false-alarm probability ``alpha`` follows from the r
 fails when q_V exceeds the chi-square(2) quantile 1 - alpha. V is *flagged* when it fails on views that
 involve it (others' views of it, its views of others) with at least ``misbehaviour_min_observers`` other
 vehicles (two vehicles alone cannot tell which of them is off) and that agree with each other (r_V within
-its quantile 1 - alpha), and stays flagged until it passes again. Both
+its quantile 1 - alpha), the most evident first: once a vehicle is flagged, its views are no evidence
+about the others (a vehicle 3 m off sees everyone off), and they are tested again without them. Flags are
+decided anew at every update; a vehicle nothing is seen of keeps its flag. Both
 directions count: a vehicle 1 m off that one other vehicle sees, and that sees one other vehicle, is seen
 off and sees off, and the two agree about whose offset it is. One view alone is no proof: on development
 seed 1001 cv3 saw the car beside an honest cv1 (hidden) 4.3 m from it, and cv2 one beside an honest cv3,
@@ -513,24 +515,43 @@ class MisbehaviourMonitor:
         self.views = views
         disputes = {k: v.q > self.threshold for k, v in views.items()}
         self.disputed = {frozenset(k) for k, off in disputes.items() if off}
+        # the most evident offset first: once a vehicle is flagged, its views are no evidence about the others
+        # (a vehicle 3 m off sees everyone off), and the others are tested again without them
+        involved = {x for pair in views for x in pair}
+        not_evidence = {v for v in self.flagged if v not in self._seen_off}  # flagged for ghosts or its clock
+        seen_off = {v: why for v, why in self._seen_off.items() if v not in involved}  # nothing seen of it: kept
         self.tests = {}
-        for v in sorted({x for pair in views for x in pair}):
-            # the views that involve v, between vehicles not flagged (but v)
-            star = {k: view for k, view in views.items() if v in k and not (set(k) - {v}) & set(self.flagged)}
-            while star:
-                test = self.tests[v] = network_test(star, self._prior, v)
+        while True:
+            best = None
+            for v in sorted(involved - set(seen_off)):
+                test, who = self._judge(v, views, not_evidence | set(seen_off))
+                if test is not None:
+                    self.tests[v] = test
+                if who and (best is None or test.q > best[1].q):
+                    best = (v, test, who)
+            if best is None:
+                break
+            v, test, who = best
+            b = test.b
+            seen_off[v] = (
+                f"seen {float(np.hypot(*b)):.1f} m from its reported position ({b[0]:+.1f}, {b[1]:+.1f}) by "
+                f"{', '.join(who)} in the last {pp.misbehaviour_window_s:g} s (chi-square {test.q:.0f} > "
+                f"{self.threshold:.1f})"
+            )
+        self._seen_off = seen_off
+
+    def _judge(self, v: str, views: dict[tuple[str, str], View], excluded: set[str]):
+        """V's test on the views that involve it and no vehicle in ``excluded``, views that disagree about it
+        left out one at a time, the farthest first: (the last test or None, the other vehicles it is flagged
+        on, or [] if it is not)."""
+        star = {k: view for k, view in views.items() if v in k and not (set(k) - {v}) & excluded}
+        test = None
+        while star:
+            test = network_test(star, self._prior, v)
+            if test.q <= self.threshold:
+                return test, []
+            if test.n == 1 or test.r <= chi2_sf_quantile(self.alpha, 2 * (test.n - 1)):
                 who = sorted({x for k in star for x in k} - {v})
-                if test.q <= self.threshold:
-                    self._seen_off.pop(v, None)
-                    break
-                if test.n == 1 or test.r <= chi2_sf_quantile(self.alpha, 2 * (test.n - 1)):
-                    if len(who) >= pp.misbehaviour_min_observers:
-                        b = test.b
-                        self._seen_off[v] = (
-                            f"seen {float(np.hypot(*b)):.1f} m from its reported position ({b[0]:+.1f}, "
-                            f"{b[1]:+.1f}) by {', '.join(who)} in the last {pp.misbehaviour_window_s:g} s "
-                            f"(chi-square {test.q:.0f} > {self.threshold:.1f})"
-                        )
-                    break
-                # the views disagree about v: leave out the one farthest from the others, test again
-                del star[max(test.residuals, key=test.residuals.get)]
+                return test, who if len(who) >= self.params.misbehaviour_min_observers else []
+            del star[max(test.residuals, key=test.residuals.get)]
+        return test, []
