@@ -213,9 +213,9 @@ def summarize_first(
     to; None if there are none) plus the constant-velocity model s1 = F s0 + w, w ~ N(0, Q), with s0
     marginalised out (Schur complement); then the persistent errors age by dt: b_v(t0) = rho_v b_v(t1) + w,
     rho_v = exp(-dt / tau_v), w ~ N(0, a_v (1 - rho_v^2) I), b(t0) marginalised out (``persist``: vid ->
-    (a_v, tau_v), the graph's ``FusionGraph.persistence``), so that old detections do not stay tied to a vehicle's current
-    error. The
-    result is information over [s1, b(t1)...], the prior's vehicles and then those of its detections.
+    (a_v, tau_v), the graph's ``FusionGraph.persistence``), so that old detections do not stay tied to a
+    vehicle's current error. The result is information over [s1, b(t1)...], the prior's vehicles and then
+    those of its detections.
     Vectorised in batches (:func:`batches`): a prior padded with zero information over vehicles it does
     not hold stays zero and uncoupled there through every step, and the leading block of a Cholesky
     factor is the factor of the leading block, so each prior's slice of its batch is its own result.

@@ -616,7 +616,8 @@ class StartupMachine:
         cv0), and the tracker then took the pole's correction as a wheel-speed scale error (4 %) and drifted
         1.5 m with an along-road sigma of 0.19 m. As for *elsewhere* (:mod:`.hypotheses`), a baseline of
         travel is worth one view. Rule 'posterior' only: under rule 'landmarks' (main's decisions, kept as they
-        were) every view weighs 1; weighted there too, its suburban NEES on evaluation seeds was 8.8 (5.9 unweighted)."""
+        were) every view weighs 1; weighted there too, its suburban NEES on evaluation seeds was 8.8 (5.9
+        unweighted)."""
         if not self.posterior:  # rule 'landmarks' keeps main's decisions: every frame at full weight
             return 1.0
         w = float(np.clip((self.odometer - h.odo) / self.params.search.view_baseline_m, 0.0, 1.0))

@@ -508,8 +508,15 @@ def test_the_host_downlink_reaches_each_vehicle_through_the_channel(
     downlink_rx key, through the channel relay (link host -> vehicle). Signed, each vehicle's own stream
     carries the host's certificate: a vehicle reads only its own key, so one Signer shared by the fused state
     and every downlink (its certificate once a second, with whichever message came first) left them refused."""
-    from mapcontainer.security import CA_NAME, Signer, Verified, Verifier, load_certificate, load_credentials
-    from mapcontainer.security import write_fleet_keys
+    from mapcontainer.security import (
+        CA_NAME,
+        Signer,
+        Verified,
+        Verifier,
+        load_certificate,
+        load_credentials,
+        write_fleet_keys,
+    )
 
     session, endpoint = rendezvous
     alive = watch_liveliness(session, topic("alive").pattern(fleet=fleet_name))

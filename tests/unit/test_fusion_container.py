@@ -460,7 +460,10 @@ def _vehicle(sender, k, pose, cov, objects=()):
     p = np.array(objects, dtype=float).reshape(-1, 3)
     msg = prior(sender=sender, seq=k, t=0.1 * k, pose=pose, objects=objects)
     return msg.model_copy(
-        update={"pose_cov": upper_from_sym(cov), "objects": ObjectObservations.from_metres(p, _detector_cov(p), [2] * len(p))}
+        update={
+            "pose_cov": upper_from_sym(cov),
+            "objects": ObjectObservations.from_metres(p, _detector_cov(p), [2] * len(p)),
+        }
     )
 
 

@@ -305,7 +305,8 @@ def test_a_filtered_prior_is_used_once_the_newest_frame_keeps_it():
     chain = g.vehicles["cv0"]
     newest = chain.tkeys[-1]
     assert list(chain.pose_prior_fids) == [newest] and chain.bias_key is None  # filtered: no b by default
-    assert chain.persist == (g.params.filtered_pose_error_persistent_fraction, g.params.filtered_pose_error_persistence_s)
+    p = g.params
+    assert chain.persist == (p.filtered_pose_error_persistent_fraction, p.filtered_pose_error_persistence_s)
     g.add_vehicle_prior("cv0", 0.3, [1.5, 0, 0, 0, 0, 0], POSE_COV, [5.0, 0, 0], filtered=True)  # late
     assert list(chain.pose_prior_fids) == [newest] and len(chain.tkeys) == 10 and len(chain.motion) == 9
     g.solve()
@@ -404,7 +405,8 @@ _LANDMARKS = np.array([[15.0, 4.0, 0.5], [25.0, -3.0, 0.5], [35.0, 5.0, 0.5], [4
 
 def _lone_filtered_vehicle(trials: int, **kw) -> tuple[float, float, float, set]:
     """A vehicle alone, sending its filtered estimate (error: first-order Gauss-Markov, tau 5 s, whitened
-    correlation 0.94 at 0.3 s, as a filter's: 0.88 measured on the simulated fleets), detecting five static objects at 10 Hz for 3 s
+    correlation 0.94 at 0.3 s, as a filter's: 0.88 measured on the simulated fleets), detecting five static objects at
+    10 Hz for 3 s
     (window 1 s: the objects' older states are folded into their priors). Returns the fused and the reported
     horizontal RMSE of its newest pose and the fused 2-dof NEES (from 1.5 s), and the vehicles the last
     track priors hold."""

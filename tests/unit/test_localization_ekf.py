@@ -20,6 +20,15 @@ def _spd(rng, n, scale=1.0):
     return scale * (A @ A.T / n + np.eye(n))
 
 
+def _matched(seed: int):
+    """A state, its covariance, and a matcher posterior (x_f, P_f) that adds information Lam on the pose."""
+    rng = np.random.default_rng(seed)
+    y0, P0 = _state(), _spd(rng, 10, 0.2)
+    Lam = _spd(rng, 6, 5.0)
+    P_f = np.linalg.inv(np.linalg.inv(P0[:6, :6]) + Lam)
+    return y0, P0, Lam, y0[:6] + rng.normal(0, 0.05, 6), P_f
+
+
 def _state(yaw=0.3, scale=1.0, gyro_bias=0.0, gnss_bias=(0.5, -0.4)):
     return np.array([10.0, -5.0, 1.2, 0.0, 0.0, yaw, scale, gyro_bias, *gnss_bias])
 
@@ -140,12 +149,8 @@ def test_match_update_is_the_linear_kalman_update_of_the_pose_block():
     """A posterior (x_f, P_f) from the prior (x_pred, P_xx) means information Lambda = P_f^-1 - P_xx^-1 on the pose:
     the update equals the Kalman update with H = [I 0], R = Lambda^-1 and z = R (P_f^-1 x_f - P_xx^-1 x_pred),
     biases included; the pose block is the matcher's posterior exactly."""
-    rng = np.random.default_rng(2)
-    y0, P0 = _state(), _spd(rng, 10, 0.2)
+    y0, P0, Lam, x_f, P_f = _matched(2)
     Pxx = P0[:6, :6]
-    Lam = _spd(rng, 6, 5.0)
-    P_f = np.linalg.inv(np.linalg.inv(Pxx) + Lam)
-    x_f = y0[:6] + rng.normal(0, 0.05, 6)
     match = SimpleNamespace(pose_filtered=x_f, cov_filtered=P_f)
     y, P = ekf.match_update(y0, P0, match)
     np.testing.assert_array_equal(y[:6], x_f)
@@ -161,12 +166,8 @@ def test_match_update_is_the_linear_kalman_update_of_the_pose_block():
 @pytest.mark.parametrize("w", [0.0, 0.3, 1.0])
 def test_a_weighted_match_update_is_the_kalman_update_with_the_noise_over_the_weight(w):
     """weight w: the same pseudo-measurement z with its noise R / w (w = 0: nothing learnt)."""
-    rng = np.random.default_rng(5)
-    y0, P0 = _state(), _spd(rng, 10, 0.2)
+    y0, P0, Lam, x_f, P_f = _matched(5)
     Pxx = P0[:6, :6]
-    Lam = _spd(rng, 6, 5.0)
-    P_f = np.linalg.inv(np.linalg.inv(Pxx) + Lam)
-    x_f = y0[:6] + rng.normal(0, 0.05, 6)
     y, P = ekf.match_update(y0, P0, SimpleNamespace(pose_filtered=x_f, cov_filtered=P_f), w)
     if w == 0.0:
         np.testing.assert_allclose(y, y0, atol=1e-12)
