@@ -230,9 +230,6 @@ class Tracker:
         self._instant: _Instant | None = None  # see _at
         # each sender's recent detections (decayed over window_s of measurement time): (untracked, all, at t)
         self._recent: dict[str, tuple[float, float, float]] = {}
-        # the last associate() call's detections, in order: (connected vehicle, probability it is that vehicle)
-        # where the assignment matched one (also when too ambiguous to use), else None (misbehaviour monitor)
-        self.vehicle_matches: list[tuple[str, float] | None] = []
 
     def observe(self, t_meas: float) -> None:
         """A message measured at ``t_meas`` was fused (with or without detections): the tracker's data clock."""
@@ -294,7 +291,6 @@ class Tracker:
         vehicle or track that no detection of this message took (then it is most likely that object,
         seen with an unlucky error, and a second track for it would be a duplicate).
         """
-        self.vehicle_matches = [None] * len(dets)
         if not dets:
             return [], []
         t = dets[0].t
@@ -341,7 +337,6 @@ class Tracker:
                     self._maybe_confirm(tr, out, born)
                     self.counts["new_tentative"] += 1
             elif j < nv:
-                self.vehicle_matches[i] = (vehicles[j].vid, float(p_match[i, j]))
                 if p_match[i, j] < self.params.vehicle_association_probability:  # another candidate may be it
                     self.counts["vehicle_ambiguous"] += 1
                     continue

@@ -82,7 +82,6 @@ class Container:
         self._last_phases_ms: dict[str, float] = {}
         self._candidates: dict[float, list[VehicleCandidate]] = {}
         self._reported_at: dict[float, tuple] = {}  # _reported, per instant of the cycle
-        self._stated_at: dict[float, dict] = {}  # _stated, per instant of the cycle
         # the confirmed tracks at the cycle's start, for the ghost check (_look): ids, states [p, v], their
         # times, and the one vehicle that reported each in the window ("" if several did)
         self._lookable = (np.zeros(0, dtype=int), np.zeros((0, 6)), np.zeros(0), np.zeros(0, dtype=str))
@@ -129,7 +128,6 @@ class Container:
         self._protection = {k: v for k, v in self._protection.items() if k[1] >= t_min}
         self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
         self._reported_at: dict[float, tuple] = {}
-        self._stated_at: dict[float, dict] = {}
         if self.params.misbehaviour:  # the tracks one vehicle alone reported in the window (ghost check)
             ids, xs, ts, sole = [], [], [], []
             since = t - self.params.misbehaviour_window_s
@@ -203,9 +201,9 @@ class Container:
             return []
         dets, p_map = mapped.dets, mapped.p_map
         if self.params.misbehaviour:
+            self.monitor.observe(m.sender, t, p_map, mapped.S_map, mapped.cls, self._reported(t))
             self._look(m, t, pose, p_map)
             if m.sender in self.monitor.flagged:  # its detections would carry its error into everyone's picture
-                self._observed(m.sender, t, pose, pose_cov, mapped, None)
                 self._counts["detections_of_flagged"] += len(p_map)
                 return []
         mb = self.monitor
@@ -219,8 +217,6 @@ class Container:
             if v.vid != m.sender and v.vid not in mb.flagged and not mb.disputes(m.sender, v.vid)
         ]
         assignments, _ = self.tracker.associate(dets, vehicles)
-        if self.params.misbehaviour:
-            self._observed(m.sender, t, pose, pose_cov, mapped, self.tracker.vehicle_matches)
         batch = []
         observers: dict[tuple[str, float], object] = {}
         for a in assignments:
@@ -256,44 +252,6 @@ class Container:
                     cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
                 batch.append((obs.key, state, z, cov, weight))
         return batch
-
-    def _observed(self, sender: str, t: float, pose, pose_cov, mapped, matches) -> None:
-        """The misbehaviour monitor's sightings of one message: its detections, the part of their error the
-        sender repeats (its pose error and the error its every frame repeats), the host's association of them
-        (``matches``: :attr:`Tracker.vehicle_matches`, None: not associated) and the errors the vehicles state."""
-        cov = pose_cov
-        if sender in self._bias_sigma:
-            cov = pose_cov + bias_cov(self._bias_sigma[sender], float(pose[5]))
-        errors = self.monitor.errors(
-            pose, cov, np.array([d.p_body for d in mapped.dets]), np.array([d.cov_body for d in mapped.dets])
-        )
-        self.monitor.observe(
-            sender, t, mapped.p_map, mapped.S_map, mapped.cls, self._reported(t), errors, matches, self._stated(t)
-        )
-
-    def _stated(self, t: float) -> dict[str, np.ndarray]:
-        """Each connected vehicle's position error at t as it states it (map x, y; the misbehaviour monitor's
-        P0): where it claims integrity, the covariance whose 1-sigmas are its protection levels over their
-        quantile k; else its reported covariance plus the error its every frame repeats. Cached per instant."""
-        out = self._stated_at.get(t)
-        if out is not None:
-            return out
-        out = {}
-        for v in self._vehicle_candidates(t):
-            if v.protection is not None:
-                yaw, pl_lat, pl_long, k = v.protection
-                c, s = np.cos(yaw), np.sin(yaw)
-                R = np.array([[c, -s], [s, c]])
-                out[v.vid] = R @ np.diag([(pl_long / k) ** 2, (pl_lat / k) ** 2]) @ R.T
-                continue
-            P = v.cov[:2, :2]
-            chain = self.graph.vehicles.get(v.vid)
-            st = None if chain is None else chain.nearest(t, self.params.vehicle_gate_max_dt_s)
-            if v.vid in self._bias_sigma and st is not None:
-                P = P + bias_cov(self._bias_sigma[v.vid], float(st.pose[5]))[:2, :2]
-            out[v.vid] = P
-        self._stated_at[t] = out
-        return out
 
     def _look(self, m: VehiclePrior, t: float, pose: np.ndarray, p_map: np.ndarray) -> None:
         """What ``m``'s sender should see of the tracks that one other vehicle alone reports (ghost check),

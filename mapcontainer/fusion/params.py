@@ -148,37 +148,19 @@ class FusionParams(BaseModel):
     misbehaviour_window_s: float = Field(2.0, gt=0, description="sightings of the last this many seconds decide")
     misbehaviour_min_sightings: int = Field(4, ge=1, description="an observer with this many sightings has a view")
     misbehaviour_min_observers: int = Field(
-        2,
-        ge=1,
-        description="a vehicle is flagged on views with at least this many other vehicles (its of them, theirs of"
-        " it): two vehicles alone cannot tell which of them is off",
+        2, ge=1, description="... by at least this many other vehicles (two vehicles alone cannot tell who lies)"
     )
     misbehaviour_offset_m: float = Field(
-        0.6, gt=0, description="unused (the bias test's covariances replace this floor); kept so older settings load"
+        0.6, gt=0, description="a view farther off than this, and than its covariance allows, disagrees (m)"
     )
     misbehaviour_probability: float = Field(
-        0.999,
-        gt=0,
-        lt=1,
-        description="a sighting is of an object the observed vehicle reports itself within this chi-square quantile"
-        " (2 dof) of the two detections' covariances",
+        0.999, gt=0, lt=1, description="... allows: its Mahalanobis distance within this chi-square quantile (2 dof)"
     )
     misbehaviour_trust_s: float = Field(
         10.0, gt=0, description="unused (only current views corroborate a vehicle); kept so older settings load"
     )
     misbehaviour_spread_m: float = Field(
-        1.0, gt=0, description="unused (the observers' consistency is a chi-square test); kept so older settings load"
-    )
-    misbehaviour_false_alarms_per_hour: float = Field(
-        0.1,
-        gt=0,
-        description=(
-            "honest vehicles the bias test may flag per vehicle and hour, at most (their errors as they state"
-            " them): each test's false-alarm probability is this times misbehaviour_test_period_s / 3600"
-        ),
-    )
-    misbehaviour_test_period_s: float = Field(
-        0.1, gt=0, description="how often the bias test runs: the host's fuse period (s)"
+        1.0, gt=0, description="... consistently: the sightings' median distance from their median below this"
     )
     ghost_range_m: float = Field(
         40.0, gt=0, description="an object this near a vehicle, in its view and not hidden, is one it should see (m)"

@@ -125,8 +125,8 @@ def test_the_cached_report_test_decides_what_the_test_of_every_report_at_every_u
         assert new.disputed == ref.disputed
         assert _counted(new) == _counted(ref)
         assert new.views.keys() == ref.views.keys()
-        for key, view in new.views.items():
-            assert np.array_equal(view.y, ref.views[key].y) and np.array_equal(view.C, ref.views[key].C), key
+        for key, (m, C) in new.views.items():
+            assert np.array_equal(m, ref.views[key][0]) and np.array_equal(C, ref.views[key][1]), key
         flagged_any |= bool(new.flagged)
     assert flagged_any  # the biased cv2 was flagged: the scene exercises the decisions
 

@@ -75,8 +75,7 @@ def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting
     """The traced false flag (development seed 1001, paper-urban, every error source): cv2, 45 m off,
     saw the car 3.5 m beside an honest cv3 and not cv3; alone, but corroborated by cv0 and cv1, it flagged
     cv3 "seen 4.1 m from its reported position". cv3 reports that car itself, where cv2 sees it: what cv2
-    saw is not cv3. A biased cv3 reports the car shifted by its bias, and cv0 and cv1 too, and is flagged
-    on its views of them (cv2's view of the car, which disagrees with them, left out)."""
+    saw is not cv3. A biased cv3 reports the car shifted by its bias, and is flagged."""
     car = np.array([33.5, -1.0])
     truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-20.0, 0.0), "cv3": (30.0, 0.0)}
     for bias, flagged in (((0.0, 0.0), {}), ((0.0, 3.0), {"cv3"})):
@@ -87,17 +86,15 @@ def test_a_vehicle_beside_an_honest_one_that_it_reports_itself_is_not_a_sighting
             see(mon, "cv0", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
             see(mon, "cv1", t, where, {v: truth[v] for v in ("cv0", "cv1", "cv2")})
             see(mon, "cv2", t, where, {"cv0": truth["cv0"], "cv1": truth["cv1"], "cv2": truth["cv2"], "car": car})
-            seen = {"cv3": truth["cv3"], "car": tuple(car + bias)}
-            seen |= {v: tuple(np.add(truth[v], bias)) for v in ("cv0", "cv1")}
-            see(mon, "cv3", t, where, seen)  # cv3's detections carry its bias
+            see(mon, "cv3", t, where, {"cv3": truth["cv3"], "car": tuple(car + bias)})  # cv3's carry its bias
             mon.update(t)
         assert set(mon.flagged) == set(flagged), (bias, mon.flagged)
 
 
 def test_a_vehicle_is_not_vouched_for_by_what_it_agreed_on_before_its_pose_went_wrong() -> None:
     """cv3 saw cv1 where it said it was until 1 s, then lost sight of it; from 1 s on cv1 is 3 m off and only
-    cv0 (corroborated by cv2) sees it; cv1 sees cv2 off by as much. cv1's agreement with cv3 from before is no
-    defence: flagged within 2 s, not when that agreement would have expired."""
+    cv0 (corroborated by cv2) sees it. cv1's agreement with cv3 from before is no defence: flagged within 2 s,
+    not when that agreement would have expired."""
     truth = {"cv0": (0.0, 0.0), "cv1": (10.0, 0.0), "cv2": (-10.0, 0.0), "cv3": (20.0, 0.0)}
     mon = MisbehaviourMonitor(FusionParams())
     first = None
@@ -108,8 +105,6 @@ def test_a_vehicle_is_not_vouched_for_by_what_it_agreed_on_before_its_pose_went_
         see(mon, "cv2", t, where, {v: truth[v] for v in ("cv0", "cv2")})
         if t < 1.0:
             see(mon, "cv3", t, where, {v: truth[v] for v in ("cv1", "cv3")})
-        off = np.subtract(where["cv1"], truth["cv1"])
-        see(mon, "cv1", t, where, {"cv1": truth["cv1"], "cv2": tuple(np.add(truth["cv2"], off))})
         if "cv1" in mon.update(t) and first is None:
             first = t
     assert first is not None and first <= 3.0, first
