@@ -160,6 +160,11 @@ class Track:
     def confirmed(self) -> bool:
         return self.id is not None
 
+    def seen_by_other(self, vid: str) -> bool:
+        """Whether a sender other than ``vid`` has detected it (a track only ``vid`` saw is its own earlier view,
+        placed with its own pose error)."""
+        return any(sender != vid for sender, _ in self.frames)
+
     cls: int = int(ObjectClass.UNKNOWN)  # majority of cls_votes (see vote)
 
     def vote(self, cls: int) -> None:
@@ -355,7 +360,7 @@ class Tracker:
                     self._maybe_confirm(tr, out, born)
         self._update(inst, kf)
         shared = sum(
-            a.det.t == t and (a.kind == "vehicle" or any(o != sender for o, _ in self.by_id(a.target).frames))
+            a.det.t == t and (a.kind == "vehicle" or self.by_id(a.target).seen_by_other(sender))
             for a in out
         )
         self._count_recent(sender, t, len(dets), len(dets) - shared)

@@ -484,8 +484,7 @@ class JointHost:
         and objects not yet tracked: ``Tracker.untracked_density``), and another vehicle saw the track (one
         the observer alone saw is its own earlier view, placed with its own pose error)."""
         tr = self.tracker.by_id(a.target)
-        others = tr is not None and any(o != observer for o, _ in tr.frames)
-        return others and a.p >= self.params.vehicle_association_probability
+        return tr is not None and tr.seen_by_other(observer) and a.p >= self.params.vehicle_association_probability
 
     def _ekf_update(self, obs_key, rows: list, free=None) -> None:
         """One stacked EKF update of detections z_k = R_v^T (c_k - c_v) + n_k, n_k ~ N(0, cov_k), made by
