@@ -100,7 +100,9 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
     in 29-45 % of the fused states: the junk spent cv1's budget. Junk now fails verification and is charged
     to its own budget: a prior of each of cv0 and cv1 went into at least 95 % of the fused states of the
     flood (the ``inputs`` of the fused state's attachment: what the host ingested since its previous one;
-    before, cv1's were in 58 % and cv0's in 88 %, the frames waiting for cv1)."""
+    before, cv1's were in 58 % and cv0's in 88 %, the frames waiting for cv1), and every genuine prior sent
+    during the flood was ingested. How many fused states the host makes in 5 s depends on the machine (32 to
+    55 seen), so it is not asserted beyond enough states for the shares to mean something."""
     vehicles = ["cv0", "cv1"]
     session, signers = _signed_host(tmp_path, rendezvous, fleet_name, spawn, watch_liveliness, vehicles)
     pubs = {v: session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src=v)) for v in vehicles}
@@ -108,8 +110,11 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
     fused: list = []
     sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
 
+    sent: list[int] = []
+
     def tick(k: int) -> None:
         t = round((time.time_ns() - epoch) * 1e-9, 1)
+        sent.append(k)
         for i, v in enumerate(vehicles):
             prior = moving_prior(fleet_name, v, k, t, y=3.0 * i, epoch=epoch)
             pubs[v].put(signers[v].sign(encode(prior), time.time()))
@@ -119,7 +124,7 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
         tick(k := k + 1)
         time.sleep(0.1)
     wait_for(lambda: fused, timeout=20, what="fused output")
-    n_before = len(fused)
+    n_before, first_flood_seq = len(fused), k + 1
     t_end = time.monotonic() + 5.0
     junk = 0
     next_tick = time.monotonic()
@@ -131,14 +136,21 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
             pubs["cv1"].put(b"\x92junk" + junk.to_bytes(4, "big"))
             junk += 1
         time.sleep(0.01)
-    time.sleep(0.5)
+
+    def ingested() -> set[tuple[str, int]]:
+        return {(i[0], i[1]) for x in list(fused[n_before:]) for i in read_attachment(x).get("inputs", [])}
+
+    flood_seqs = [s for s in sent if s >= first_flood_seq]
+    wait_for(lambda: all((v, k) in ingested() for v in vehicles), timeout=20, what="the last genuine priors fused")
     sub.undeclare()
     states = [f for f in (decode(inner_payload(x.payload.to_bytes()), FusedState) for x in fused[n_before:]) if f]
     inputs = [{i[0] for i in read_attachment(x).get("inputs", [])} for x in fused[n_before:]]
     host = _status(session, fleet_name, "host")
     assert junk >= 3000 and host.rejects.get("unsigned", 0) >= junk * 0.9, (junk, host.rejects)
     assert host.rejects.get("flood", 0) == 0, host.rejects  # no genuine message lost its budget
-    assert len(states) >= 40 and len(inputs) == len(states), len(states)
+    missing = {(v, s) for v in vehicles for s in flood_seqs} - ingested()
+    assert not missing and len(flood_seqs) >= 40, (sorted(missing), len(flood_seqs))
+    assert len(states) >= 20 and len(inputs) == len(states), len(states)
     for v in vehicles:
         share = sum(v in i for i in inputs) / len(inputs)
         assert share >= 0.95, (v, share, len(inputs))
