@@ -15,7 +15,7 @@ import numpy as np
 from ..geometry import wrap_angle
 
 if TYPE_CHECKING:
-    from .matcher_types import MatchResult
+    from .matcher_types import MatchLinearization, MatchResult
     from .params import GnssMeasurement, LocalizerParams, OdometryMeasurement
 
 __all__ = [
@@ -23,6 +23,8 @@ __all__ = [
     "GYRO",
     "N",
     "SCALE",
+    "consider_carry",
+    "consider_match_update",
     "gnss_update",
     "gnss_white_var",
     "ground_update",
@@ -160,6 +162,105 @@ def match_update(
         y += dy
         y[5] = wrap_angle(y[5])
     return y, 0.5 * (P_new + P_new.T)
+
+
+def consider_match_update(
+    y: np.ndarray,
+    P: np.ndarray,
+    C: dict[tuple[str, int], np.ndarray],
+    lin: MatchLinearization,
+    x_f: np.ndarray,
+    sigma_landmark: float,
+    sigma_camera: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[tuple[str, int], np.ndarray]]:
+    """Fold a match into the state with the errors every view of it repeats as consider (Schmidt) states.
+
+    * each landmark's own map error m_k (key ('point' | 'pole', map index); 3-D, map frame, ``sigma_landmark``
+      per axis: the map's stated landmark error): the same in every view of it, so repeated views of one pole
+      say little more than the first about the pose along the road;
+    * with ``sigma_camera`` (roll, pitch, yaw 1-sigmas), the camera's rotation error c (key ('camera', 0)): the
+      calibration the camera renders with differs from the one the vehicle believes, the same in every frame;
+      it moves every landmark's and lane sample's projection as rotating the body by c would.
+
+    A consider state is never estimated (its mean stays 0, its variance sigma^2 I, independent of the others);
+    the filter keeps C_k = Cov(y, m_k) (``C``: key -> (N, 3)), from 0 when it is first seen. The match's rows,
+    linearised at its solution x_f (``lin``), are the pseudo-measurements::
+
+        landmark k:  J_k x - J_k[:, :3] m_k + J_k[:, 3:6] c = J_k x_f - e_k + n_k,   n_k ~ N(0, I)
+        lanes:       H_l x + H_l[:, 3:6] c = H_l x_f - S^-1/2 U^T g_l + n_l,   H_l = S^1/2 U^T, info_lanes = U S U^T
+        the rest:    H_r x = H_r x_f - S^-1/2 U^T g_r + n_r   (ground, GNSS, anchor: no consider state)
+
+    (n_k: the detector's noise alone, whitened). With the augmented prior P_a = [[P, C], [C^T, diag(sigma^2)]],
+    H_a = [H_x, H_c] and r = z - H_x y::
+
+        S = H_a P_a H_a^T + I,   K_y = (P_a H_a^T)[y] S^-1,   y += K_y r,
+        P -= (P_a H_a^T)[y] S^-1 (P_a H_a^T)[y]^T,   C_k -= (P_a H_a^T)[y] S^-1 (P_a H_a^T)[k]^T
+
+    (every key of ``C`` is in P_a: an unseen landmark's cross-covariance changes through the pose's update).
+    With every C_k = 0 and no camera term this is the matcher's own frame model up to its isotropic pixel
+    approximation of the map error. Returns (y, P, C) with C holding the keys of ``C`` and of this match.
+    """
+    cam = ("camera", 0)
+    keys = list(dict.fromkeys([*C.keys(), *lin.keys, *([cam] if sigma_camera is not None else [])]))
+    col = {k: N + 3 * i for i, k in enumerate(keys)}
+    dim = N + 3 * len(keys)
+    Pa = np.zeros((dim, dim))
+    Pa[:N, :N] = P
+    for k, c0 in col.items():
+        Ck = C.get(k)
+        if Ck is not None:
+            Pa[:N, c0 : c0 + 3] = Ck
+            Pa[c0 : c0 + 3, :N] = Ck.T
+        sd = np.asarray(sigma_camera, float) if k == cam else np.full(3, sigma_landmark)
+        Pa[c0 : c0 + 3, c0 : c0 + 3] = np.diag(sd**2)
+    d = np.asarray(x_f, float) - y[:6]
+    d[5] = wrap_angle(d[5])
+    rows, res = [], []
+
+    def block(Hx: np.ndarray, r: np.ndarray, key=None, camera: bool = False) -> None:
+        H = np.zeros((len(r), dim))
+        H[:, :6] = Hx
+        if key is not None:
+            H[:, col[key] : col[key] + 3] = -Hx[:, :3]
+        if camera and cam in col:
+            H[:, col[cam] : col[cam] + 3] = Hx[:, 3:6]
+        rows.append(H)
+        res.append(r)
+
+    for info, grad, camera in ((lin.info_lanes, lin.grad_lanes, True), (lin.info_rest, lin.grad_rest, False)):
+        s, U = np.linalg.eigh(0.5 * (info + info.T))
+        keep = s > 1e-12 * max(float(s[-1]), 1.0)
+        if keep.any():
+            sq, Uk = np.sqrt(s[keep]), U[:, keep]
+            Hx = sq[:, None] * Uk.T
+            block(Hx, Hx @ d - (Uk.T @ grad) / sq, camera=camera)
+    for k, Jk, ek in zip(lin.keys, lin.J, lin.e, strict=True):
+        block(Jk, Jk @ d - ek, key=k, camera=True)
+    if not rows:
+        return y.copy(), P.copy(), dict(C)
+    H, r = np.vstack(rows), np.concatenate(res)
+    PH = Pa @ H.T
+    S = H @ PH + np.eye(len(r))
+    G = np.linalg.solve(S, PH.T)  # S^-1 (P_a H^T)^T
+    y = y + PH[:N] @ np.linalg.solve(S, r)
+    y[5] = wrap_angle(y[5])
+    P = P - PH[:N] @ G[:, :N]
+    C = {k: Pa[:N, c0 : c0 + 3] - PH[:N] @ G[:, c0 : c0 + 3] for k, c0 in col.items()}
+    return y, 0.5 * (P + P.T), C
+
+
+def consider_carry(
+    C: dict[tuple[str, int], np.ndarray], P_before: np.ndarray, P_after: np.ndarray
+) -> dict[tuple[str, int], np.ndarray]:
+    """The consider states' cross-covariances after an update of the state alone (GNSS, ground, a match folded
+    in without them, a fusion elsewhere): for a Kalman update with the optimal gain (I - K H) = P_after
+    P_before^-1, so C_k <- P_after P_before^-1 C_k."""
+    if not C:
+        return {}
+    keys = list(C)
+    M = np.linalg.solve(P_before, np.hstack([C[k] for k in keys]))
+    M = P_after @ M
+    return {k: M[:, 3 * i : 3 * i + 3] for i, k in enumerate(keys)}
 
 
 def gnss_white_var(gnss: GnssMeasurement | None, params: LocalizerParams) -> float:
