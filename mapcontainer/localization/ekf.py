@@ -170,38 +170,39 @@ def consider_match_update(
     C: dict[tuple[str, int], np.ndarray],
     lin: MatchLinearization,
     x_f: np.ndarray,
-    sigma_landmark: float,
-    sigma_camera: np.ndarray | None = None,
+    sigma_m: float,
 ) -> tuple[np.ndarray, np.ndarray, dict[tuple[str, int], np.ndarray]]:
-    """Fold a match into the state with the errors every view of it repeats as consider (Schmidt) states.
+    """Fold a match into the state with each landmark's own map error as a consider (Schmidt) state.
 
-    * each landmark's own map error m_k (key ('point' | 'pole', map index); 3-D, map frame, ``sigma_landmark``
-      per axis: the map's stated landmark error): the same in every view of it, so repeated views of one pole
-      say little more than the first about the pose along the road;
-    * with ``sigma_camera`` (roll, pitch, yaw 1-sigmas), the camera's rotation error c (key ('camera', 0)): the
-      calibration the camera renders with differs from the one the vehicle believes, the same in every frame;
-      it moves every landmark's and lane sample's projection as rotating the body by c would.
+    A landmark's map error m_k (3-D, map frame, ``sigma_m`` per axis: the map's stated landmark error,
+    ``MatcherParams.landmark_map_sigma_m``) is the same in every view of it, so repeated views of one pole say
+    little more than the first about the pose along the road. m_k ~ N(0, sigma_m^2 I) is never estimated (its
+    mean stays 0 and its variance sigma_m^2, independent of the other landmarks'); the filter keeps
+    C_k = Cov(y, m_k) (``C``: key ('point' | 'pole', map index) -> (N, 3)), from 0 when the landmark is first
+    seen. The match's rows, linearised at its solution x_f (``lin``), are the pseudo-measurements::
 
-    A consider state is never estimated (its mean stays 0, its variance sigma^2 I, independent of the others);
-    the filter keeps C_k = Cov(y, m_k) (``C``: key -> (N, 3)), from 0 when it is first seen. The match's rows,
-    linearised at its solution x_f (``lin``), are the pseudo-measurements::
+        landmark k:  J_k x - J_k[:, :3] m_k = J_k x_f - e_k + n_k,   n_k ~ N(0, I)  (the detector's noise alone)
+        lanes, rest: H x = H x_f - S^-1/2 U^T g + n,   H = S^1/2 U^T  with the rows' information U S U^T
 
-        landmark k:  J_k x - J_k[:, :3] m_k + J_k[:, 3:6] c = J_k x_f - e_k + n_k,   n_k ~ N(0, I)
-        lanes:       H_l x + H_l[:, 3:6] c = H_l x_f - S^-1/2 U^T g_l + n_l,   H_l = S^1/2 U^T, info_lanes = U S U^T
-        the rest:    H_r x = H_r x_f - S^-1/2 U^T g_r + n_r   (ground, GNSS, anchor: no consider state)
-
-    (n_k: the detector's noise alone, whitened). With the augmented prior P_a = [[P, C], [C^T, diag(sigma^2)]],
-    H_a = [H_x, H_c] and r = z - H_x y::
+    (moving a landmark by m moves its projection as moving the vehicle by -m would). With the augmented prior
+    P_a = [[P, C], [C^T, sigma_m^2 I]], rows H_a = [H_x, H_m] and r = z - H_x y::
 
         S = H_a P_a H_a^T + I,   K_y = (P_a H_a^T)[y] S^-1,   y += K_y r,
         P -= (P_a H_a^T)[y] S^-1 (P_a H_a^T)[y]^T,   C_k -= (P_a H_a^T)[y] S^-1 (P_a H_a^T)[k]^T
 
-    (every key of ``C`` is in P_a: an unseen landmark's cross-covariance changes through the pose's update).
-    With every C_k = 0 and no camera term this is the matcher's own frame model up to its isotropic pixel
-    approximation of the map error. Returns (y, P, C) with C holding the keys of ``C`` and of this match.
+    P is the true error covariance of this estimate (Schmidt-Kalman: the consider states are not updated, so
+    an error the model leaves out cannot make them confident). Every landmark of ``C`` is in P_a: an unseen
+    one's cross-covariance changes through the pose's update. With every C_k = 0 this is the matcher's own
+    frame model up to its isotropic pixel approximation of the map error; n views of one landmark from a
+    standing vehicle leave sigma_m^2 + s^2 / n, not (sigma_m^2 + s^2) / n. Returns (y, P, C) with C holding the
+    landmarks of ``C`` and of this match.
+
+    The pose's mean is this linear update's, not the solve's x_f (as :func:`match_update` takes at weight 1):
+    x_f also holds the lanes' pull along the road, which their information leaves out
+    (``MatcherParams.lane_along_track``), so a mean taken from x_f would move where the covariance says nothing
+    is known.
     """
-    cam = ("camera", 0)
-    keys = list(dict.fromkeys([*C.keys(), *lin.keys, *([cam] if sigma_camera is not None else [])]))
+    keys = list(dict.fromkeys([*C.keys(), *lin.keys]))
     col = {k: N + 3 * i for i, k in enumerate(keys)}
     dim = N + 3 * len(keys)
     Pa = np.zeros((dim, dim))
@@ -211,31 +212,25 @@ def consider_match_update(
         if Ck is not None:
             Pa[:N, c0 : c0 + 3] = Ck
             Pa[c0 : c0 + 3, :N] = Ck.T
-        sd = np.asarray(sigma_camera, float) if k == cam else np.full(3, sigma_landmark)
-        Pa[c0 : c0 + 3, c0 : c0 + 3] = np.diag(sd**2)
+        Pa[c0 : c0 + 3, c0 : c0 + 3] = sigma_m**2 * np.eye(3)
     d = np.asarray(x_f, float) - y[:6]
     d[5] = wrap_angle(d[5])
     rows, res = [], []
-
-    def block(Hx: np.ndarray, r: np.ndarray, key=None, camera: bool = False) -> None:
-        H = np.zeros((len(r), dim))
-        H[:, :6] = Hx
-        if key is not None:
-            H[:, col[key] : col[key] + 3] = -Hx[:, :3]
-        if camera and cam in col:
-            H[:, col[cam] : col[cam] + 3] = Hx[:, 3:6]
-        rows.append(H)
-        res.append(r)
-
-    for info, grad, camera in ((lin.info_lanes, lin.grad_lanes, True), (lin.info_rest, lin.grad_rest, False)):
+    for info, grad in ((lin.info_lanes, lin.grad_lanes), (lin.info_rest, lin.grad_rest)):
         s, U = np.linalg.eigh(0.5 * (info + info.T))
         keep = s > 1e-12 * max(float(s[-1]), 1.0)
         if keep.any():
             sq, Uk = np.sqrt(s[keep]), U[:, keep]
-            Hx = sq[:, None] * Uk.T
-            block(Hx, Hx @ d - (Uk.T @ grad) / sq, camera=camera)
+            H = np.zeros((len(sq), dim))
+            H[:, :6] = sq[:, None] * Uk.T
+            rows.append(H)
+            res.append(H[:, :6] @ d - (Uk.T @ grad) / sq)
     for k, Jk, ek in zip(lin.keys, lin.J, lin.e, strict=True):
-        block(Jk, Jk @ d - ek, key=k, camera=True)
+        H = np.zeros((2, dim))
+        H[:, :6] = Jk
+        H[:, col[k] : col[k] + 3] = -Jk[:, :3]
+        rows.append(H)
+        res.append(Jk @ d - ek)
     if not rows:
         return y.copy(), P.copy(), dict(C)
     H, r = np.vstack(rows), np.concatenate(res)
