@@ -279,11 +279,12 @@ class Localizer:
         return self._last
 
     def _match_update(self, y_pred: np.ndarray, P_pred: np.ndarray, match: MatchResult):
-        """Fold the match in: with the landmarks' map errors as consider states (:func:`.ekf.consider_match_update`)
-        when it is a full view from this state's own prediction; a start-up hypothesis' view (its information
-        weight below 1, see :mod:`.basins`) through :func:`.ekf.match_update`, the consider states forgotten."""
+        """Fold the match in: under ``map_errors='consider'`` with the landmarks' map errors as consider states
+        (:func:`.ekf.consider_match_update`) when it is a full view; otherwise, and for a start-up hypothesis' view
+        (its information weight below 1, see :mod:`.basins`), through :func:`.ekf.match_update`, the consider
+        states forgotten."""
         w = self.startup.weight
-        if w < 1.0 or match.linearization is None:
+        if self.params.map_errors == "independent" or w < 1.0 or match.linearization is None:
             self.consider = {}
             return ekf.match_update(y_pred, P_pred, match, w)
         sigma_m = self.params.matcher.landmark_map_sigma_m

@@ -343,3 +343,22 @@ def test_consider_carry_follows_a_state_update():
     C1 = ekf.consider_carry(C0, P0, P1)
     np.testing.assert_allclose(C1[("pole", 2)], (np.eye(10) - K @ H) @ C0[("pole", 2)], atol=1e-12)
     assert ekf.consider_carry({}, P0, P1) == {}
+
+
+def test_the_tracker_with_consider_states_tracks_and_states_wider_along_the_road():
+    """LocalizerParams.map_errors='consider' on the synthetic drive (an exact map, the map error stated 5 cm):
+    it tracks as the default does (map matched, RMSE), keeps the landmarks in view as consider states, and its
+    along-road sigma is no tighter than the default's, which counts every view's map error as new."""
+    from .test_localization import _drive
+
+    runs = {}
+    for mode in ("independent", "consider"):
+        loc, out = _drive(60, seed=1, params=LocalizerParams(map_errors=mode))
+        modes = [r.mode for _, r in out]
+        assert modes.count("map_matching") >= 0.9 * len(modes), (mode, modes)
+        err = np.array([np.hypot(*(r.pose_filtered[:2] - truth[:2])) for truth, r in out[10:]])
+        assert np.sqrt(np.mean(err**2)) < 0.15, (mode, err)
+        h = np.array([np.cos(out[-1][1].pose_filtered[5]), np.sin(out[-1][1].pose_filtered[5])])
+        runs[mode] = (loc, float(h @ loc.P[:2, :2] @ h))
+    assert runs["independent"][0].consider == {} and runs["consider"][0].consider
+    assert runs["consider"][1] >= runs["independent"][1]
