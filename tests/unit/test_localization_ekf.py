@@ -184,7 +184,8 @@ def test_a_weighted_match_update_is_the_kalman_update_with_the_noise_over_the_we
         ekf.match_update(y0, P0, SimpleNamespace(pose_filtered=x_f, cov_filtered=P_f), 1.5)
 
 
-def test_match_update_reproduces_the_matchers_posterior():
+def _real_match():
+    """A synthetic frame 0.2 m, 0.3 deg off the prediction, matched: (state, its covariance, the match)."""
     truth = pose_on(170.0)
     frame, _ = synth_frame(truth, np.random.default_rng(4))
     x_pred = truth + np.array([0.2, -0.15, 0.02, 0.002, -0.002, np.radians(0.3)])
@@ -194,7 +195,11 @@ def test_match_update_reproduces_the_matchers_posterior():
     P0[0, 8] = P0[8, 0] = P0[1, 9] = P0[9, 1] = 0.05  # the pose correlated with the GNSS bias
     match = MapMatcher(HDMAP).match(frame, x_pred, P_TRACK, None)
     assert match.converged
-    y0 = np.r_[x_pred, 1.0, 0.0, 0.3, -0.2]
+    return np.r_[x_pred, 1.0, 0.0, 0.3, -0.2], P0, match
+
+
+def test_match_update_reproduces_the_matchers_posterior():
+    y0, P0, match = _real_match()
     y, P = ekf.match_update(y0, P0, match)
     np.testing.assert_array_equal(y[:6], match.pose_filtered)
     np.testing.assert_allclose(P[:6, :6], match.cov_filtered, rtol=1e-8, atol=1e-14)
@@ -310,15 +315,8 @@ def test_consider_update_of_a_first_view_is_the_matchers_frame_model():
     """A real frame, every landmark seen for the first time (C empty): the matcher solved with the map error in
     each detection's noise (isotropic in the image), the consider update with it as each landmark's 3-D offset.
     The two posteriors agree to the pixel approximation's few per cent, and the state moves to the solution."""
-    truth = pose_on(170.0)
-    frame, _ = synth_frame(truth, np.random.default_rng(4))
-    x_pred = truth + np.array([0.2, -0.15, 0.02, 0.002, -0.002, np.radians(0.3)])
-    P0 = np.zeros((10, 10))
-    P0[:6, :6] = P_TRACK
-    P0[6:, 6:] = np.diag([0.02**2, 0.005**2, 1.5**2, 1.5**2])
-    match = MapMatcher(HDMAP).match(frame, x_pred, P_TRACK, None)
-    assert match.converged and match.linearization is not None and len(match.linearization.keys) >= 3
-    y0 = np.r_[x_pred, 1.0, 0.0, 0.3, -0.2]
+    y0, P0, match = _real_match()
+    assert match.linearization is not None and len(match.linearization.keys) >= 3
     sigma = PARAMS.matcher.landmark_map_sigma_m
     y, P, C = ekf.consider_match_update(y0, P0, {}, match.linearization, match.pose_filtered, sigma)
     assert set(C) == set(match.linearization.keys)
