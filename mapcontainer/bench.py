@@ -36,6 +36,7 @@ def bench_localization(
     startup_accept: Literal["landmarks", "posterior"] = "landmarks",
     search_budget: int | None = PoseSearchParams().solves_per_frame,
     yardstick_every: int = 200,
+    map_errors: Literal["independent", "consider"] = "independent",
 ) -> dict:
     """Map-matching self-localization of every connected vehicle over ``seeds`` seeded episodes (seeds
     ``seed0`` ... ``seed0 + seeds - 1``; development seeds are below :data:`~mapcontainer.seeds.EVAL_SEED0`).
@@ -71,13 +72,16 @@ def bench_localization(
     time to localize, gross errors after it, those the vehicle did not announce). ``integrity``: see
     :func:`integrity_summary`; ``stanford_png``: draw its Stanford diagram there. ``startup_accept``: the
     localizer's start-up acceptance rule (``PoseSearchParams.accept``: 'landmarks', the default, or 'posterior').
+    ``map_errors``: how its tracker folds a match in (``LocalizerParams.map_errors``).
     """
     from .experiments.paper.figures import startup_summary
 
     if seeds < 1 or not duration_s > warmup_s:
         raise ValueError(f"need seeds >= 1 and duration_s > warmup_s, got {seeds}, {duration_s}, {warmup_s}")
     acc: dict[str, list] = {k: [] for k in _ACC}
-    params = LocalizerParams(search=PoseSearchParams(accept=startup_accept, solves_per_frame=search_budget))
+    params = LocalizerParams(
+        search=PoseSearchParams(accept=startup_accept, solves_per_frame=search_budget), map_errors=map_errors
+    )
     sc = load_scenario(scenario)
     if ideal:
         sc = with_error_sources(sc, ())
@@ -97,6 +101,7 @@ def bench_localization(
         "seed_kind": seed_kind(seed0),
         "startup_accept": startup_accept,
         "search_budget": search_budget,
+        "map_errors": map_errors,
         "duration_s": duration_s,
         "warmup_s": warmup_s,
         "frames": len(matched),

@@ -119,6 +119,7 @@ def _cmd_bench_localization(args: argparse.Namespace) -> int:
                 seed0=args.seed0,
                 stanford_png=args.stanford,
                 startup_accept=args.startup_accept,
+                map_errors=args.map_errors,
                 **({} if args.search_budget is None else {"search_budget": args.search_budget or None}),
             )
         )
@@ -499,6 +500,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="the start-up search's matcher solves per frame (LocalizerParams.search.solves_per_frame; the starts "
         "left carry to the next frames); 0: no budget (default: the localizer's)",
+    )
+    bl.add_argument(
+        "--map-errors",
+        choices=("independent", "consider"),
+        default="independent",
+        help="how the tracker folds a match in (LocalizerParams.map_errors): 'independent' (default) or "
+        "'consider' (opt-in: each landmark's map error shared by its views; see docs/localization.md)",
     )
     bl.set_defaults(func=_cmd_bench_localization)
     bf = bench.add_parser("fusion", help="host container speed and accuracy on a synthetic scene")

@@ -8,7 +8,9 @@ odometry fallback. Pure core: no I/O, deterministic.
   residual), :mod:`.association`, :mod:`.residuals` and :mod:`.lm` (association rounds and LM).
 * :mod:`.localizer` -- tracking over frames: odometry prediction, failure detection, fallback, recovery.
 * :mod:`.ekf` -- the localizer's filter: prediction, match, GNSS and ground updates, as plain functions.
-* :mod:`.startup` -- the localizer's phases (uninitialised, verifying, searching, tracking) as a state machine.
+* :mod:`.startup` -- the localizer's phases (uninitialised, verifying, searching, tracking) as a state machine;
+  :mod:`.basins` -- its candidate basins tracked as hypotheses (spawned, weighed, merged, their rivals), with
+  :mod:`.hypotheses` -- their posterior masses and moments.
 """
 
 from .lanes import lane_distance_transform

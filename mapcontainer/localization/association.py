@@ -120,6 +120,7 @@ class Association:
                 dM = fd.pole_M2[c] - rd.pole_M1
                 rd.pole_n = np.stack([-dM[:, 1], dM[:, 0]], axis=1) / np.linalg.norm(dM, axis=1)[:, None]
                 rd.pole_W = self.pole_whitening(m1[r], m2[r], rd.pole_M1, fd.pole_M2[c], map_sd[r])
+                rd.pole_W_det = self.pole_whitening(m1[r], m2[r], rd.pole_M1, fd.pole_M2[c])
 
         # Lanes (EDT): once within the basin of the cap; dashes once the longitudinal error cannot alias.
         if anchor is not None and (len(rd.pt_map) + len(rd.pole_map)) and sig_lon > p.lane_dashed_sigma_m:

@@ -15,7 +15,7 @@ import numpy as np
 from ..geometry import wrap_angle
 
 if TYPE_CHECKING:
-    from .matcher_types import MatchResult
+    from .matcher_types import MatchLinearization, MatchResult
     from .params import GnssMeasurement, LocalizerParams, OdometryMeasurement
 
 __all__ = [
@@ -23,6 +23,8 @@ __all__ = [
     "GYRO",
     "N",
     "SCALE",
+    "consider_carry",
+    "consider_match_update",
     "gnss_update",
     "gnss_white_var",
     "ground_update",
@@ -160,6 +162,100 @@ def match_update(
         y += dy
         y[5] = wrap_angle(y[5])
     return y, 0.5 * (P_new + P_new.T)
+
+
+def consider_match_update(
+    y: np.ndarray,
+    P: np.ndarray,
+    C: dict[tuple[str, int], np.ndarray],
+    lin: MatchLinearization,
+    x_f: np.ndarray,
+    sigma_m: float,
+) -> tuple[np.ndarray, np.ndarray, dict[tuple[str, int], np.ndarray]]:
+    """Fold a match into the state with each landmark's own map error as a consider (Schmidt) state.
+
+    A landmark's map error m_k (3-D, map frame, ``sigma_m`` per axis: the map's stated landmark error,
+    ``MatcherParams.landmark_map_sigma_m``) is the same in every view of it, so repeated views of one pole say
+    little more than the first about the pose along the road. m_k ~ N(0, sigma_m^2 I) is never estimated (its
+    mean stays 0 and its variance sigma_m^2, independent of the other landmarks'); the filter keeps
+    C_k = Cov(y, m_k) (``C``: key ('point' | 'pole', map index) -> (N, 3)), from 0 when the landmark is first
+    seen. The match's rows, linearised at its solution x_f (``lin``), are the pseudo-measurements::
+
+        landmark k:  J_k x - J_k[:, :3] m_k = J_k x_f - e_k + n_k,   n_k ~ N(0, I)  (the detector's noise alone)
+        lanes, rest: H x = H x_f - S^-1/2 U^T g + n,   H = S^1/2 U^T  with the rows' information U S U^T
+
+    (moving a landmark by m moves its projection as moving the vehicle by -m would). With the augmented prior
+    P_a = [[P, C], [C^T, sigma_m^2 I]], rows H_a = [H_x, H_m] and r = z - H_x y::
+
+        S = H_a P_a H_a^T + I,   K_y = (P_a H_a^T)[y] S^-1,   y += K_y r,
+        P -= (P_a H_a^T)[y] S^-1 (P_a H_a^T)[y]^T,   C_k -= (P_a H_a^T)[y] S^-1 (P_a H_a^T)[k]^T
+
+    P is the true error covariance of this estimate (Schmidt-Kalman: the consider states are not updated, so
+    an error the model leaves out cannot make them confident). Every landmark of ``C`` is in P_a: an unseen
+    one's cross-covariance changes through the pose's update. With every C_k = 0 this is the matcher's own
+    frame model up to its isotropic pixel approximation of the map error; n views of one landmark from a
+    standing vehicle leave sigma_m^2 + s^2 / n, not (sigma_m^2 + s^2) / n. Returns (y, P, C) with C holding the
+    landmarks of ``C`` and of this match.
+
+    The pose's mean is this linear update's, not the solve's x_f (as :func:`match_update` takes at weight 1):
+    x_f also holds the lanes' pull along the road, which their information leaves out
+    (``MatcherParams.lane_along_track``), so a mean taken from x_f would move where the covariance says nothing
+    is known.
+    """
+    keys = list(dict.fromkeys([*C.keys(), *lin.keys]))
+    col = {k: N + 3 * i for i, k in enumerate(keys)}
+    dim = N + 3 * len(keys)
+    Pa = np.zeros((dim, dim))
+    Pa[:N, :N] = P
+    for k, c0 in col.items():
+        Ck = C.get(k)
+        if Ck is not None:
+            Pa[:N, c0 : c0 + 3] = Ck
+            Pa[c0 : c0 + 3, :N] = Ck.T
+        Pa[c0 : c0 + 3, c0 : c0 + 3] = sigma_m**2 * np.eye(3)
+    d = np.asarray(x_f, float) - y[:6]
+    d[5] = wrap_angle(d[5])
+    rows, res = [], []
+    for info, grad in ((lin.info_lanes, lin.grad_lanes), (lin.info_rest, lin.grad_rest)):
+        s, U = np.linalg.eigh(0.5 * (info + info.T))
+        keep = s > 1e-12 * max(float(s[-1]), 1.0)
+        if keep.any():
+            sq, Uk = np.sqrt(s[keep]), U[:, keep]
+            H = np.zeros((len(sq), dim))
+            H[:, :6] = sq[:, None] * Uk.T
+            rows.append(H)
+            res.append(H[:, :6] @ d - (Uk.T @ grad) / sq)
+    for k, Jk, ek in zip(lin.keys, lin.J, lin.e, strict=True):
+        H = np.zeros((2, dim))
+        H[:, :6] = Jk
+        H[:, col[k] : col[k] + 3] = -Jk[:, :3]
+        rows.append(H)
+        res.append(Jk @ d - ek)
+    if not rows:
+        return y.copy(), P.copy(), dict(C)
+    H, r = np.vstack(rows), np.concatenate(res)
+    PH = Pa @ H.T
+    S = H @ PH + np.eye(len(r))
+    G = np.linalg.solve(S, PH.T)  # S^-1 (P_a H^T)^T
+    y = y + PH[:N] @ np.linalg.solve(S, r)
+    y[5] = wrap_angle(y[5])
+    P = P - PH[:N] @ G[:, :N]
+    C = {k: Pa[:N, c0 : c0 + 3] - PH[:N] @ G[:, c0 : c0 + 3] for k, c0 in col.items()}
+    return y, 0.5 * (P + P.T), C
+
+
+def consider_carry(
+    C: dict[tuple[str, int], np.ndarray], P_before: np.ndarray, P_after: np.ndarray
+) -> dict[tuple[str, int], np.ndarray]:
+    """The consider states' cross-covariances after an update of the state alone (GNSS, ground, a match folded
+    in without them, a fusion elsewhere): for a Kalman update with the optimal gain (I - K H) = P_after
+    P_before^-1, so C_k <- P_after P_before^-1 C_k."""
+    if not C:
+        return {}
+    keys = list(C)
+    M = np.linalg.solve(P_before, np.hstack([C[k] for k in keys]))
+    M = P_after @ M
+    return {k: M[:, 3 * i : 3 * i + 3] for i, k in enumerate(keys)}
 
 
 def gnss_white_var(gnss: GnssMeasurement | None, params: LocalizerParams) -> float:

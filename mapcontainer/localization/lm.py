@@ -7,7 +7,7 @@ import numpy as np
 
 from ..geometry import wrap_angle
 from . import hypotheses as hyp
-from .matcher_types import FrameData, MatchResult, RoundData
+from .matcher_types import FrameData, MatchLinearization, MatchResult, RoundData
 from .residuals import _Eval
 
 __all__ = ["LevenbergMarquardt"]
@@ -131,7 +131,34 @@ class LevenbergMarquardt:
             prior_chi2=float(ev.e[-6:] @ ev.e[-6:]),
             pair_chi2=np.concatenate([ev.pt_chi2, ev.pole_chi2]),
             evidence=self.evidence(x, ev, rd, fd, landmarks),
+            linearization=self._linearization(ev, rd),
         )
+
+    def _linearization(self, ev: _Eval, rd: RoundData) -> MatchLinearization:
+        """The measurement rows at the solution (see :class:`.MatchLinearization`): each landmark's rows
+        re-whitened by the detector's noise alone (points: by sigma_total / point_sigma_px; poles: by
+        W_det W^-1), the rest as information and gradient."""
+        m = len(ev.e) - 6
+        sw = np.sqrt(ev.w[:m])
+        Jw, ew = ev.J_info[:m] * sw[:, None], ev.e[:m] * sw
+        n_pt, n_pl = len(rd.pt_map), len(rd.pole_map)
+        n_lm = n_pt + n_pl
+        J, e = Jw[: 2 * n_lm].reshape(n_lm, 2, 6).copy(), ew[: 2 * n_lm].reshape(n_lm, 2).copy()
+        k = rd.pt_sigma / self.params.point_sigma_px
+        J[:n_pt] *= k[:, None, None]
+        e[:n_pt] *= k[:, None]
+        if n_pl:
+            T = rd.pole_W_det @ np.linalg.inv(rd.pole_W)
+            J[n_pt:] = T @ J[n_pt:]
+            e[n_pt:] = np.einsum("kij,kj->ki", T, e[n_pt:])
+        keys = tuple(("point", int(i)) for i in rd.pt_map) + tuple(("pole", int(i)) for i in rd.pole_map)
+        lanes = np.zeros(m, bool)
+        lanes[ev.lane_rows] = True
+        Jl, el = Jw[lanes], ew[lanes]
+        rest = ~lanes
+        rest[: 2 * n_lm] = False
+        Jr, er = Jw[rest], ew[rest]
+        return MatchLinearization(keys, J, e, Jl.T @ Jl, Jl.T @ el, Jr.T @ Jr, Jr.T @ er)
 
     def evidence(self, x, ev: _Eval, rd: RoundData, fd: FrameData, landmarks: int) -> float:
         """The camera's -2 log marginal likelihood of the frame at the solution x (Laplace), without the prediction

@@ -179,6 +179,10 @@ class Localizer:
         # after a reset, or a start-up hypothesis brought its own prediction): a joint estimator holding
         # this state can condition on it.
         self.conditioned: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # Cov(y, m_k) of the map error m_k of each landmark seen (consider states, see ekf.consider_match_update),
+        # and the P they are relative to (a holder that replaces P, a joint estimator, is followed by consider_carry)
+        self.consider: dict[tuple[str, int], np.ndarray] = {}
+        self._P_consider: np.ndarray | None = None
         self.startup.reset(initial_yaw, initial_pose)
 
     @property
@@ -228,21 +232,30 @@ class Localizer:
                 return self.step(t, frame, odometry, gnss)
         odo_prev = self._odo_prev
         y_prior = self.y
+        if fresh:
+            self.consider = {}
+        elif self.consider and self.P is not self._P_consider:  # P replaced by its holder since the last step
+            self.consider = ekf.consider_carry(self.consider, self._P_consider, self.P)
         y_pred, P_pred = ekf.predict(self.y, self.P, dt, odo_prev, odometry, p)
+        F = ekf.transition(y_prior, dt, odo_prev, odometry, p)[1]
+        if F is not None:
+            self.consider = {k: F @ c for k, c in self.consider.items()}
         self.t_prev, self._odo_prev = t, odometry
 
         predicted = y_pred
         match, reason, y_pred, P_pred = self.startup.match(frame, y_pred, P_pred, dt, odo_prev, odometry, gnss)
-        if y_pred is predicted and not fresh:  # the updates apply to the prediction from the previous state
-            F = ekf.transition(y_prior, dt, odo_prev, odometry, p)[1]
+        if y_pred is not predicted:  # a start-up hypothesis' own prediction: no cross-covariances with this state
+            self.consider = {}
+        elif not fresh:  # the updates apply to the prediction from the previous state
             self.conditioned = (np.eye(ekf.N) if F is None else F, y_pred, P_pred)
         if match is not None:
-            y, P = ekf.match_update(y_pred, P_pred, match, self.startup.weight)
+            y, P = self._match_update(y_pred, P_pred, match)
             mode = "map_matching"
         else:
             self._count("fallback")
             y, P = y_pred, P_pred
             mode = "fallback"
+        P_before = P
         y, P, gnss_outcome = ekf.gnss_update(y, P, gnss, p)
         if gnss_outcome == "rejected":
             self._count("gnss rejected")
@@ -253,7 +266,9 @@ class Localizer:
             return self.step(t, frame, odometry, gnss)
         if mode == "fallback":
             y, P = ekf.ground_update(y, P, self._ground_height(y), p)
+        self.consider = self._in_range(ekf.consider_carry(self.consider, P_before, P), y)
         self.y, self.P = y, P
+        self._P_consider = P
         self._last = self._result(t, mode, odometry, match, self.startup.attempt, reason, gnss_outcome == "used")
         if mode == "map_matching":
             if gnss_outcome == "rejected":  # the fix and the map-matched state disagree beyond the gate: a fault
@@ -262,6 +277,32 @@ class Localizer:
             else:
                 self._last = replace(self._last, protection_level=self.protection_level(self._last))
         return self._last
+
+    def _match_update(self, y_pred: np.ndarray, P_pred: np.ndarray, match: MatchResult):
+        """Fold the match in: under ``map_errors='consider'`` with the landmarks' map errors as consider states
+        (:func:`.ekf.consider_match_update`) when it is a full view; otherwise, and for a start-up hypothesis' view
+        (its information weight below 1, see :mod:`.basins`), through :func:`.ekf.match_update`, the consider
+        states forgotten."""
+        w = self.startup.weight
+        if self.params.map_errors == "independent" or w < 1.0 or match.linearization is None:
+            self.consider = {}
+            return ekf.match_update(y_pred, P_pred, match, w)
+        sigma_m = self.params.matcher.landmark_map_sigma_m
+        y, P, self.consider = ekf.consider_match_update(
+            y_pred, P_pred, self.consider, match.linearization, match.pose_filtered, sigma_m
+        )
+        return y, P
+
+    def _in_range(self, C: dict[tuple[str, int], np.ndarray], y: np.ndarray) -> dict[tuple[str, int], np.ndarray]:
+        """The consider states of the landmarks within the matcher's range of the vehicle (the others cannot be
+        seen from here; one seen again later starts anew)."""
+        if not C:
+            return C
+        where = {"point": self.matcher._pt_xyz, "pole": self.matcher._pole_base}
+        r2 = self.params.matcher.range_m**2
+        return {
+            k: c for k, c in C.items() if k[0] not in where or float(np.sum((where[k[0]][k[1], :2] - y[:2]) ** 2)) <= r2
+        }
 
     def protection_level(self, res: LocalizationResult) -> np.ndarray:
         """(lateral, longitudinal) protection levels (m) of a result: K sigma of its filtered covariance in the

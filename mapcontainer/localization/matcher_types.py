@@ -198,6 +198,29 @@ class CameraFrame:
 
 
 @dataclass(frozen=True)
+class MatchLinearization:
+    """A match's camera rows linearised at its solution x_f, for a filter that keeps each landmark's own map
+    error as a consider state (:func:`.ekf.consider_match_update`).
+
+    Landmark k (``keys[k]``: 'point' or 'pole', map index) has 2 rows: ``J[k]`` (2, 6) and ``e[k]`` (2,),
+    whitened by the detector's noise alone (without ``landmark_map_sigma_m``, which the solve adds to every
+    frame as if it were new) and times the square root of their IRLS weight. Moving the landmark by m (map
+    frame, m) moves its projection as moving the vehicle by -m would, so its map error's Jacobian is
+    ``-J[k][:, :3]``. The lane rows are given by their information ``info_lanes`` = J^T W J (6, 6) and gradient
+    ``grad_lanes`` = J^T W e (6,) at x_f, the other measurement rows (ground, GNSS, anchor; not the prediction
+    prior) likewise by ``info_rest``, ``grad_rest``.
+    """
+
+    keys: tuple[tuple[str, int], ...]
+    J: np.ndarray
+    e: np.ndarray
+    info_lanes: np.ndarray
+    grad_lanes: np.ndarray
+    info_rest: np.ndarray
+    grad_rest: np.ndarray
+
+
+@dataclass(frozen=True)
 class MatchResult:
     """The outcome of one :meth:`MapMatcher.match` (see the module doc for the two estimates).
 
@@ -228,6 +251,7 @@ class MatchResult:
     prior_chi2: float = 0.0  # the prediction prior's part of ``score``
     pair_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))  # chi^2 of point_pairs, then pole_pairs
     evidence: float = 0.0
+    linearization: MatchLinearization | None = None  # the camera rows at pose_filtered (see MatchLinearization)
 
     def inliers(self, inlier_chi2: float) -> list[tuple[tuple[str, int], float]]:
         """((kind 'point' or 'pole', map index), chi^2) of every landmark inlier."""
@@ -269,6 +293,7 @@ class RoundData:
     pole_M1: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # detected endpoints
     pole_n: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # unit normal of M1 -> M2
     pole_W: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    pole_W_det: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))  # ... without the map's error
     pt_sigma: np.ndarray = field(default_factory=lambda: np.ones(0))  # per point landmark, px
     lane_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     lane_sigma: np.ndarray = field(default_factory=lambda: np.ones(0))  # per sample, mask px

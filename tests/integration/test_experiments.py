@@ -132,6 +132,7 @@ def test_bench_localization_prints_accuracy_consistency_and_speed():
     assert set(result["nees_axes_mean"]) == {"x", "y", "z", "roll", "pitch", "yaw"}
     assert result["error_sources"] == list(ERROR_SOURCES)  # the scenario's realistic errors, all on
     assert result["startup_accept"] == "landmarks"  # the default start-up rule
+    assert result["map_errors"] == "independent"  # the default tracker (opt-in: --map-errors consider)
     # the start-up search's anytime budget (the default) bounds the matcher's solves in every frame: the budget and
     # one start's solves (its lane search and polish) at most
     budget = result["search_budget"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from mapcontainer.localization import GnssMeasurement, LocalizerParams, MapMatcher, OdometryMeasurement, ekf
+from mapcontainer.localization.matcher_types import MatchLinearization
 
 from .test_localization import HDMAP, P_TRACK, pose_on, synth_frame
 
@@ -183,7 +184,8 @@ def test_a_weighted_match_update_is_the_kalman_update_with_the_noise_over_the_we
         ekf.match_update(y0, P0, SimpleNamespace(pose_filtered=x_f, cov_filtered=P_f), 1.5)
 
 
-def test_match_update_reproduces_the_matchers_posterior():
+def _real_match():
+    """A synthetic frame 0.2 m, 0.3 deg off the prediction, matched: (state, its covariance, the match)."""
     truth = pose_on(170.0)
     frame, _ = synth_frame(truth, np.random.default_rng(4))
     x_pred = truth + np.array([0.2, -0.15, 0.02, 0.002, -0.002, np.radians(0.3)])
@@ -193,7 +195,11 @@ def test_match_update_reproduces_the_matchers_posterior():
     P0[0, 8] = P0[8, 0] = P0[1, 9] = P0[9, 1] = 0.05  # the pose correlated with the GNSS bias
     match = MapMatcher(HDMAP).match(frame, x_pred, P_TRACK, None)
     assert match.converged
-    y0 = np.r_[x_pred, 1.0, 0.0, 0.3, -0.2]
+    return np.r_[x_pred, 1.0, 0.0, 0.3, -0.2], P0, match
+
+
+def test_match_update_reproduces_the_matchers_posterior():
+    y0, P0, match = _real_match()
     y, P = ekf.match_update(y0, P0, match)
     np.testing.assert_array_equal(y[:6], match.pose_filtered)
     np.testing.assert_allclose(P[:6, :6], match.cov_filtered, rtol=1e-8, atol=1e-14)
@@ -235,3 +241,122 @@ def test_ground_update_and_initial_state():
     Pw = ekf.widen(P, gnss, p)
     assert Pw[0, 0] - P[0, 0] == pytest.approx(P[0, 0]) and Pw[5, 5] - P[5, 5] == pytest.approx(p.init_yaw_sigma_rad**2)
     assert ekf.sigma_h(np.diag([4.0, 1.0])) == 2.0
+
+
+# --------------------------------------------------------------------------- consider states
+
+
+def _one_landmark(s: float) -> MatchLinearization:
+    """One landmark whose 2 rows measure the vehicle's x, y (m) directly with detector noise s, residual 0."""
+    J = np.zeros((1, 2, 6))
+    J[0, 0, 0] = J[0, 1, 1] = 1.0 / s
+    zero6 = np.zeros((6, 6))
+    return MatchLinearization((("pole", 7),), J, np.zeros((1, 2)), zero6, np.zeros(6), zero6, np.zeros(6))
+
+
+@pytest.mark.parametrize("n", [1, 2, 10, 50])
+def test_repeated_views_of_one_landmark_are_limited_by_its_map_error(n):
+    """A standing vehicle seen n times through one landmark with detector noise s and map error sigma (the same in
+    every view): the estimate is the views' mean, its error m + mean(noise), so its variance is sigma^2 + s^2 / n
+    (closed form, a flat prior), never below the map's sigma^2; folded in as independent, (sigma^2 + s^2) / n."""
+    sigma, s = 0.05, 0.02
+    y, P = _state(), np.diag([1e4, 1e4, 1e-2, 1e-4, 1e-4, 1e-4, 1e-4, 1e-6, 1.0, 1.0])
+    rng = np.random.default_rng(n)
+    C: dict = {}
+    lin = _one_landmark(s)
+    for _ in range(n):
+        x_f = y[:6] + np.r_[rng.normal(0, 0.1, 2), np.zeros(4)]
+        y, P, C = ekf.consider_match_update(y, P, C, lin, x_f, sigma)
+    assert P[0, 0] == pytest.approx(sigma**2 + s**2 / n, rel=1e-3)
+    assert P[1, 1] == pytest.approx(sigma**2 + s**2 / n, rel=1e-3)
+    np.testing.assert_allclose(C[("pole", 7)][:2, :2], sigma**2 * np.eye(2), rtol=1e-3)  # Cov(x, m): x = z + m
+
+
+def test_consider_update_is_the_schmidt_kalman_update_of_the_augmented_state():
+    """Against the augmented state written out: [y; m] with Cov(y, m) = C, rows H_a = [J, -J_xyz]: the update of y
+    and of C is the Kalman update of the augmented state (its m block left as it was: a consider state), and the
+    covariance is the true error covariance of that (suboptimal) estimate, P - K_y S K_y^T."""
+    rng = np.random.default_rng(5)
+    y0, P0 = _state(), _spd(rng, 10, 0.2)
+    sigma = 0.05
+    C0 = {("point", 3): 0.01 * rng.normal(size=(10, 3))}
+    J = rng.normal(size=(2, 2, 6))
+    e = rng.normal(size=(2, 2))
+    info_l = _spd(rng, 6, 2.0)
+    grad_l = rng.normal(size=6)
+    lin = MatchLinearization((("point", 3), ("pole", 1)), J, e, info_l, grad_l, np.zeros((6, 6)), np.zeros(6))
+    x_f = y0[:6] + rng.normal(0, 0.05, 6)
+    y, P, C = ekf.consider_match_update(y0, P0, C0, lin, x_f, sigma)
+    # the augmented state and its rows, written out
+    Pa = np.zeros((16, 16))
+    Pa[:10, :10] = P0
+    Pa[:10, 10:13], Pa[10:13, :10] = C0[("point", 3)], C0[("point", 3)].T
+    Pa[10:, 10:] = sigma**2 * np.eye(6)
+    d = x_f - y0[:6]
+    L = np.linalg.cholesky(info_l)  # any square root of the lanes' information gives the same update
+    H = np.zeros((10, 16))
+    H[:6, :6] = L.T
+    r = [L.T @ d - np.linalg.solve(L, grad_l)]
+    for k, c0 in enumerate((10, 13)):
+        H[6 + 2 * k : 8 + 2 * k, :6] = J[k]
+        H[6 + 2 * k : 8 + 2 * k, c0 : c0 + 3] = -J[k][:, :3]
+        r.append(J[k] @ d - e[k])
+    r = np.concatenate(r)
+    S = H @ Pa @ H.T + np.eye(10)
+    K = Pa @ H.T @ np.linalg.inv(S)
+    Pa_new = Pa - K @ S @ K.T
+    np.testing.assert_allclose(y, y0 + K[:10] @ r, atol=1e-10)
+    np.testing.assert_allclose(P, Pa_new[:10, :10], atol=1e-10)
+    np.testing.assert_allclose(C[("point", 3)], Pa_new[:10, 10:13], atol=1e-10)
+    np.testing.assert_allclose(C[("pole", 1)], Pa_new[:10, 13:16], atol=1e-10)
+
+
+def test_consider_update_of_a_first_view_is_the_matchers_frame_model():
+    """A real frame, every landmark seen for the first time (C empty): the matcher solved with the map error in
+    each detection's noise (isotropic in the image), the consider update with it as each landmark's 3-D offset.
+    The two posteriors agree to the pixel approximation's few per cent, and the state moves to the solution."""
+    y0, P0, match = _real_match()
+    assert match.linearization is not None and len(match.linearization.keys) >= 3
+    sigma = PARAMS.matcher.landmark_map_sigma_m
+    y, P, C = ekf.consider_match_update(y0, P0, {}, match.linearization, match.pose_filtered, sigma)
+    assert set(C) == set(match.linearization.keys)
+    sd, sd_matcher = np.sqrt(np.diag(P[:6, :6])), np.sqrt(np.diag(match.cov_filtered))
+    np.testing.assert_allclose(sd, sd_matcher, rtol=0.25)
+    assert np.all(np.abs(y[:6] - match.pose_filtered) < 0.5 * sd_matcher + 1e-3)
+    # no map error: the detector rows alone, so at least as tight as the matcher's
+    y0_, P_, _ = ekf.consider_match_update(y0, P0, {}, match.linearization, match.pose_filtered, 0.0)
+    assert np.all(np.diag(P_)[:6] <= np.diag(P)[:6] + 1e-12)
+
+
+def test_consider_carry_follows_a_state_update():
+    """An update of the state alone (a GNSS fix) changes Cov(y, m) by (I - K H) = P_after P_before^-1."""
+    rng = np.random.default_rng(6)
+    y0, P0 = _state(), _spd(rng, 10, 0.2)
+    C0 = {("pole", 2): 0.01 * rng.normal(size=(10, 3))}
+    H = np.zeros((2, 10))
+    H[:, :2] = np.eye(2)
+    R = 0.3 * np.eye(2)
+    _, P1 = ekf.kf_update(y0, P0, H, np.zeros(2), R)
+    K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + R)
+    C1 = ekf.consider_carry(C0, P0, P1)
+    np.testing.assert_allclose(C1[("pole", 2)], (np.eye(10) - K @ H) @ C0[("pole", 2)], atol=1e-12)
+    assert ekf.consider_carry({}, P0, P1) == {}
+
+
+def test_the_tracker_with_consider_states_tracks_and_states_wider_along_the_road():
+    """LocalizerParams.map_errors='consider' on the synthetic drive (an exact map, the map error stated 5 cm):
+    it tracks as the default does (map matched, RMSE), keeps the landmarks in view as consider states, and its
+    along-road sigma is no tighter than the default's, which counts every view's map error as new."""
+    from .test_localization import _drive
+
+    runs = {}
+    for mode in ("independent", "consider"):
+        loc, out = _drive(60, seed=1, params=LocalizerParams(map_errors=mode))
+        modes = [r.mode for _, r in out]
+        assert modes.count("map_matching") >= 0.9 * len(modes), (mode, modes)
+        err = np.array([np.hypot(*(r.pose_filtered[:2] - truth[:2])) for truth, r in out[10:]])
+        assert np.sqrt(np.mean(err**2)) < 0.15, (mode, err)
+        h = np.array([np.cos(out[-1][1].pose_filtered[5]), np.sin(out[-1][1].pose_filtered[5])])
+        runs[mode] = (loc, float(h @ loc.P[:2, :2] @ h))
+    assert runs["independent"][0].consider == {} and runs["consider"][0].consider
+    assert runs["consider"][1] >= runs["independent"][1]

@@ -290,15 +290,16 @@ def test_the_traced_urban_start_locks_on_a_lone_pole_and_the_lanes(rule, budget)
     assert all(err < 0.3 for t, _, err, _ in rows if t >= first + 0.3), rows  # the pole's bearing, over travel
 
 
-def _suburban_seed10_cv0(seconds: float) -> np.ndarray:
-    """Development seed 10 of paper-suburban, every error source on, cv0 from a cold start under rule 'posterior':
-    rows [t, |lateral error|, |along-road error|, lateral PL, longitudinal PL, along-road sigma, wheel-speed scale]
-    of the frames it claims integrity (map matched, a protection level stated)."""
+def _suburban_seed10_cv0(seconds: float, map_errors: str = "independent") -> np.ndarray:
+    """Development seed 10 of paper-suburban, every error source on, cv0 from a cold start under rule 'posterior'
+    (and the tracker's ``map_errors``): rows [t, |lateral error|, |along-road error|, lateral PL, longitudinal PL,
+    along-road sigma, wheel-speed scale] of the frames it claims integrity (map matched, a protection level stated)."""
     from mapcontainer.sim import World, load_scenario
     from mapcontainer.vehicle import VehicleAgent
 
     with World(load_scenario("paper-suburban"), seed=10) as world:
-        agent = VehicleAgent(world.hdmap, "cv0", world.fleet, params=LocalizerParams(**POSTERIOR))
+        params = LocalizerParams(**POSTERIOR, map_errors=map_errors)
+        agent = VehicleAgent(world.hdmap, "cv0", world.fleet, params=params)
         rows = []
         for tick in world.run(seconds):
             agent.handle(tick.t, tick.frames["cv0"])
@@ -328,14 +329,18 @@ def test_a_one_pole_basin_is_accepted_with_an_honest_along_road_sigma():
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="known limitation: once tracking, the same pole's views are folded in as independent at 10 frames a "
-    "second; its along-road sigma falls to 0.34 m within 0.8 s while the error is still 1.4 m (HMI), and the "
-    "correction turns into a 4 % wheel-speed scale error (docs/localization.md)",
+    reason="known limitation: with the landmarks' map errors as consider states (map_errors='consider'; with the "
+    "default 'independent' 18 HMI frames, the scale at 1.043) the lock's along-road error no "
+    "longer outruns its sigma (1 frame of HMI in the first 1.6 s, 10 before), but the pole's correction still turns "
+    "into a wheel-speed scale error (1.032 at 6.4 s, truth 0.999) and the pose drifts 0.5-0.7 m along the road at "
+    "a longitudinal PL of 0.52-0.62 m (12 frames of HMI, 13 of 78 in all, 18 before). With the camera's rotation "
+    "calibration error off the same start has none (|k - 1| <= 1.4 %; docs/localization.md, Along-road rivals)",
 )
 def test_a_basin_accepted_off_along_the_road_tracks_honestly():
-    """The same start after the lock: every frame the vehicle claims integrity, its errors are inside its protection
-    levels, and the wheel-speed scale estimate stays within 3 % of 1."""
-    a = _suburban_seed10_cv0(12.0)
+    """The same start after the lock, the tracker keeping the landmarks' map errors as consider states: every frame
+    the vehicle claims integrity, its errors are inside its protection levels, and the wheel-speed scale estimate
+    stays within 3 % of 1."""
+    a = _suburban_seed10_cv0(12.0, "consider")
     assert np.all(a[:, 1] <= a[:, 3]) and np.all(a[:, 2] <= a[:, 4]), a
     assert np.all(np.abs(a[:, 6] - 1.0) < 0.03), a
 
