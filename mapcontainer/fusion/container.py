@@ -17,6 +17,7 @@ import numpy as np
 from schemas import FusedState, VehiclePrior, bias_cov
 from schemas.models import MAX_OBJECTS
 
+from ..hdmap.model import HDMap
 from .association import Tracker, VehicleCandidate
 from .graph import FusionGraph
 from .hostcore import (
@@ -33,6 +34,7 @@ from .hostcore import (
     vehicle_candidate,
 )
 from .laps import Laps
+from .mapframe import RoadArea
 from .misbehaviour import MisbehaviourMonitor
 from .motion import accel_psd, cv_predict
 from .params import FusionParams
@@ -63,13 +65,16 @@ class Container:
         fleet: str,
         host_id: str,
         known_senders: set[str] | None = None,
+        hdmap: HDMap | None = None,
     ):
+        """``hdmap``: the host's map, where road users can be (association: ``Tracker.untracked_density``);
+        without one, anywhere."""
         self.params = params
         self.fleet = fleet
         self.host_id = host_id
         self.intake = Intake(VehiclePrior, params, fleet, known_senders, self._buffered)
         self.graph = FusionGraph(params)
-        self.tracker = Tracker(params)
+        self.tracker = Tracker(params, None if hdmap is None else RoadArea(hdmap))
         self._counts: Counter[str] = Counter()
         self._cross: list = []  # (observed vehicle id, Detection) waiting for that vehicle's frame
         # vid -> body-frame 1-sigmas of the error its every frame repeats (VehiclePrior.pose_bias_sigma)

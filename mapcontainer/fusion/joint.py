@@ -97,6 +97,7 @@ from .hostcore import (
     vehicle_at,
     vehicle_candidate,
 )
+from .mapframe import RoadArea
 from .motion import accel_psd, cv_model, cv_predict
 from .params import FusionParams
 from .symupdate import sym_rank_update
@@ -139,7 +140,7 @@ class JointHost:
         self.loc_params = localizer_params or LocalizerParams()
         self.idle_s = idle_s
         self.intake = Intake(RawObservations, params, fleet, known_senders)
-        self.tracker = Tracker(params)
+        self.tracker = Tracker(params, RoadArea(hdmap))
         self.localizers: dict[str, Localizer] = {}
         self._results: dict = {}  # vid -> its localizer's last LocalizationResult
         self.mu = np.zeros(0)
