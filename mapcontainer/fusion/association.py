@@ -14,8 +14,9 @@ connected vehicle becomes a cross-localization constraint on that vehicle's pose
 confirmed track becomes an observation of it; one matched to a tentative track is held by it; the
 rest start tentative tracks. Each assignment carries the probability that the detection is of its target
 (JPDA's single-detection marginal against every other gated candidate and against "none of them": false
-alarms and objects not yet tracked, :meth:`Tracker.untracked_density`, the density of objects around the
-sender that no connected vehicle or shared track explains). A detection of a connected vehicle constrains
+alarms and objects not yet tracked, :meth:`Tracker.untracked_density`, the density of road users around the
+sender that no connected vehicle or shared track explains, on the lanes and sidewalks of the host's map
+(:class:`~.mapframe.RoadArea`) and nowhere else). A detection of a connected vehicle constrains
 that vehicle's pose only if the probability is at least ``vehicle_association_probability``; the
 centralized host applies the same test before a detection corrects the pose of an observer that is not map
 matching. A tentative track is confirmed (and gets the next stable global id)
