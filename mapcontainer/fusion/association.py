@@ -47,6 +47,7 @@ from schemas import ObjectClass
 
 from ..metrics import chi2_quantile
 from .buffer import time_key
+from .jpda import frame_match_probability, match_probability
 from .mapframe import RoadArea, mahalanobis_logdet, mahalanobis_matrix
 from .motion import accel_psd, cv_predict, speed_prior
 from .params import FusionParams
@@ -63,22 +64,6 @@ __all__ = [
 ]
 
 _INFEASIBLE = 1e12
-
-
-def _match_probability(nll: np.ndarray, gated: np.ndarray, density) -> np.ndarray:
-    """P[i, j]: the probability that detection i is of candidate j, given the gated candidates of its row and
-    the hypothesis that it is of none of them (an object not yet tracked, a false alarm) with spatial density
-    ``density`` (per m^3: one for every row, or (N,) by row), as in JPDA's single-detection marginals:
-
-        P[i, j] = N_ij / (lambda_i + sum_k N_ik),   N_ij = (2 pi)^-3/2 exp(-nll_ij / 2),   nll = d2 + ln det S.
-    """
-    if nll.size == 0:
-        return np.zeros_like(nll)
-    log_lam = np.broadcast_to(np.log(np.asarray(density, dtype=float)), nll.shape[:1])[:, None]
-    log_n = np.where(gated, -0.5 * nll - 1.5 * np.log(2.0 * np.pi), -np.inf)
-    top = np.maximum(log_n.max(axis=1, keepdims=True, initial=-np.inf), log_lam)
-    n = np.exp(log_n - top)
-    return n / (np.exp(log_lam - top) + n.sum(axis=1, keepdims=True))
 
 
 def classes_compatible(a: int, b: int) -> bool:
@@ -298,8 +283,16 @@ class Tracker:
         return inst
 
     # ---------------------------------------------------------------- association
-    def associate(self, dets: list[Detection], vehicles: list[VehicleCandidate]) -> tuple[list[Assignment], list[int]]:
+    def associate(
+        self, dets: list[Detection], vehicles: list[VehicleCandidate], observer: tuple | None = None
+    ) -> tuple[list[Assignment], list[int]]:
         """Assign one message's detections. Returns (assignments for the graph, ids of newly confirmed tracks).
+
+        ``observer``: the sender's pose (6,) and its covariance (6, 6) that placed the detections in the map.
+        With it, where another candidate is in a detection's gate, the assignments' probabilities are the
+        frame's (:func:`~.jpda.frame_match_probability`: the detections share the observer's position error, and
+        a frame that a shift onto the neighbouring objects explains as well is not sure of any of them);
+        without it, each detection's alone (:func:`~.jpda.match_probability`).
 
         Assignments to a newly confirmed track include its held detections (oldest first). A detection
         left unassigned starts a tentative track unless it lies within the birth-exclusion gate of a
@@ -334,7 +327,14 @@ class Tracker:
         ok = gated[rows, cols]
         matched: dict[int, int] = dict(zip(rows[ok].tolist(), cols[ok].tolist(), strict=True))
         sender = dets[0].sender
-        p_match = _match_probability(nll, gated, self.untracked_density(sender, m, S_m))
+        density = self.untracked_density(sender, m, S_m)
+        p_match = match_probability(nll, gated, density)
+        alternative = gated.copy()
+        alternative[list(matched), list(matched.values())] = False
+        if observer is not None and alternative.any() and np.linalg.eigvalsh(observer[1][:2, :2])[0] > 1e-8:
+            p_body, cov_body = np.array([d.p_body for d in dets]), np.array([d.cov_body for d in dets])
+            p_match = frame_match_probability(p_body, cov_body, *observer, c, S_c, gated, density)
+            self.counts["frame_probability"] += 1
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
         excluded = (d2_all[:, ~taken] <= self.exclusion_gate).any(axis=1)  # for the unmatched rows

@@ -221,7 +221,7 @@ class Container:
             for v in (cands[i] for i in close)
             if v.vid != m.sender and v.vid not in mb.flagged and not mb.disputes(m.sender, v.vid)
         ]
-        assignments, _ = self.tracker.associate(dets, vehicles)
+        assignments, _ = self.tracker.associate(dets, vehicles, (pose, pose_cov))
         batch = []
         observers: dict[tuple[str, float], object] = {}
         for a in assignments:

@@ -404,7 +404,7 @@ class JointHost:
         self._lap("predict", t0)
         t0 = time.process_time()
         dets = mapped.dets
-        assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid))
+        assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid), (pose, pose_cov))
         self._lap("associate", t0)
         t0 = time.process_time()
         for tid in born:
