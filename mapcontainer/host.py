@@ -17,8 +17,7 @@ that decides when a frame is solved, time an argument everywhere. The drivers on
 
 The host's map arrives as a map: a file in any format :func:`~mapcontainer.hdmap.formats.read_any_map`
 reads (``HostSetup.map_file``), or an :class:`~mapcontainer.hdmap.model.HDMap` handed to :func:`build_host`.
-The centralized host localizes the vehicles against it; both hosts take from it where road users can be
-(the association's density of objects not yet tracked). Nothing here needs the simulator.
+Only the centralized host uses it (it localizes the vehicles); nothing here needs the simulator.
 
 This module imports neither GTSAM nor the estimators until :func:`build_host` runs, so a process that only
 configures a host (the host service's main process) stays light.
@@ -73,9 +72,7 @@ class HostSetup(BaseModel):
     )
     max_wait_s: float = Field(MAX_WAIT_S, ge=0, description="how long a frame waits for its late senders")
     params: FusionParams = Field(default_factory=FusionParams)
-    map_file: str | None = Field(
-        None, description="the HD map (any supported format); the centralized host needs one, the distributed uses one"
-    )
+    map_file: str | None = Field(None, description="the HD map (any supported format); the centralized host needs one")
     downlink: bool = Field(
         False, description="after each solve, send every vehicle what the others know about it (HostLoop.downlink)"
     )
@@ -94,20 +91,19 @@ def load_host_map(path: str | Path) -> HDMap:
 
 
 def build_host(setup: HostSetup, hdmap: HDMap | None = None) -> HostLoop:
-    """The host of ``setup``: its core and its frame gate. ``hdmap``: the map, else read from ``setup.map_file``;
-    the centralized host localizes against it (ValueError when it has neither), the distributed one takes from it
-    where road users can be (association against objects not yet tracked) and does without."""
-    if hdmap is None and setup.map_file is not None:
-        hdmap = load_host_map(setup.map_file)
+    """The host of ``setup``: its core and its frame gate. ``hdmap`` (centralized mode): the map, else read from
+    ``setup.map_file``; ValueError when the centralized host has neither."""
     if setup.mode == "distributed":
         from .fusion.container import Container
 
-        core: HostCore = Container(setup.params, setup.fleet, setup.host_id, _known(setup), hdmap)
+        core: HostCore = Container(setup.params, setup.fleet, setup.host_id, _known(setup))
     else:
         from .fusion.joint import JointHost
 
         if hdmap is None:
-            raise ValueError("the centralized host localizes the vehicles against an HD map: give one (map_file)")
+            if setup.map_file is None:
+                raise ValueError("the centralized host localizes the vehicles against an HD map: give one (map_file)")
+            hdmap = load_host_map(setup.map_file)
         core = JointHost(hdmap, setup.params, setup.fleet, setup.host_id, _known(setup))
     return HostLoop(core, FrameGate(_known(setup), setup.max_wait_s, reference=setup.reference))
 
@@ -224,12 +220,7 @@ class HostLoop:
 def add_host_args(p: argparse.ArgumentParser) -> None:
     """The host's own flags (the service adds its transport flags; a recording's host command line is read
     back with these)."""
-    p.add_argument(
-        "--map",
-        default=None,
-        help="the HD map file (GeoJSON, SUMO .net.xml, Lanelet2 .osm): the centralized host localizes against it,"
-        " both take from it where road users can be",
-    )
+    p.add_argument("--map", default=None, help="the HD map file (GeoJSON, SUMO .net.xml, Lanelet2 .osm); centralized")
     p.add_argument("--mode", choices=["distributed", "centralized"], default="distributed")
     p.add_argument("--max-wait", type=float, default=MAX_WAIT_S, help="seconds a frame waits for all senders")
     p.add_argument("--known-senders", default=None, help="comma-separated vehicle ids (default: anyone)")

@@ -374,7 +374,9 @@ def add_recording_commands(sub) -> None:
         "--params", default=None, help="--refuse: a YAML file of FusionParams fields (default: the recorded)"
     )
     rp.add_argument("--mode", choices=["distributed", "centralized"], default=None, help="--refuse: the host's mode")
-    rp.add_argument("--map", default=None, help="--refuse: the host's HD map file (default: the recorded --map)")
+    rp.add_argument(
+        "--map", default=None, help="--refuse: the centralized host's HD map file (default: the recorded --map)"
+    )
     rp.add_argument(
         "--schedule",
         choices=["host", "arrival"],

@@ -14,9 +14,8 @@ connected vehicle becomes a cross-localization constraint on that vehicle's pose
 confirmed track becomes an observation of it; one matched to a tentative track is held by it; the
 rest start tentative tracks. Each assignment carries the probability that the detection is of its target
 (JPDA's single-detection marginal against every other gated candidate and against "none of them": false
-alarms and objects not yet tracked, :meth:`Tracker.untracked_density`, the density of road users around the
-sender that no connected vehicle or shared track explains, on the lanes and sidewalks of the host's map
-(:class:`~.mapframe.RoadArea`) and nowhere else). A detection of a connected vehicle constrains
+alarms and objects not yet tracked, :meth:`Tracker.untracked_density`, the density of objects around the
+sender that no connected vehicle or shared track explains). A detection of a connected vehicle constrains
 that vehicle's pose only if the probability is at least ``vehicle_association_probability``; the
 centralized host applies the same test before a detection corrects the pose of an observer that is not map
 matching. A tentative track is confirmed (and gets the next stable global id)
@@ -47,8 +46,7 @@ from schemas import ObjectClass
 
 from ..metrics import chi2_quantile
 from .buffer import time_key
-from .jpda import frame_match_probability, match_probability
-from .mapframe import RoadArea, mahalanobis_logdet, mahalanobis_matrix
+from .mapframe import mahalanobis_logdet, mahalanobis_matrix
 from .motion import accel_psd, cv_predict, speed_prior
 from .params import FusionParams
 
@@ -64,6 +62,21 @@ __all__ = [
 ]
 
 _INFEASIBLE = 1e12
+
+
+def _match_probability(nll: np.ndarray, gated: np.ndarray, density: float) -> np.ndarray:
+    """P[i, j]: the probability that detection i is of candidate j, given the gated candidates of its row and
+    the hypothesis that it is of none of them (an object not yet tracked, a false alarm) with spatial density
+    ``density`` (per m^3), as in JPDA's single-detection marginals:
+
+        P[i, j] = N_ij / (lambda + sum_k N_ik),   N_ij = (2 pi)^-3/2 exp(-nll_ij / 2),   nll = d2 + ln det S.
+    """
+    if nll.size == 0:
+        return np.zeros_like(nll)
+    log_n = np.where(gated, -0.5 * nll - 1.5 * np.log(2.0 * np.pi), -np.inf)
+    top = np.maximum(log_n.max(axis=1, keepdims=True, initial=np.log(density)), np.log(density))
+    n = np.exp(log_n - top)
+    return n / (np.exp(np.log(density) - top) + n.sum(axis=1, keepdims=True))
 
 
 def classes_compatible(a: int, b: int) -> bool:
@@ -205,10 +218,8 @@ class Tracker:
     messages of one instant share one prediction of every track (``_at``), which their Kalman updates
     change; anything else that changes the tracks (sync, merge, expire) drops it."""
 
-    def __init__(self, params: FusionParams, roads: RoadArea | None = None):
-        """``roads``: where road users can be, from the host's map (None: anywhere, a host without a map)."""
+    def __init__(self, params: FusionParams):
         self.params = params
-        self.roads = roads
         self.gate = params.gate_chi2
         self.vehicle_gate = float(chi2_quantile(params.vehicle_gate_probability, 3))
         self.exclusion_gate = float(chi2_quantile(params.birth_exclusion_probability, 3))
@@ -229,24 +240,18 @@ class Tracker:
         """A message measured at ``t_meas`` was fused (with or without detections): the tracker's data clock."""
         self.t_data = max(self.t_data, float(t_meas))
 
-    def untracked_density(self, sender: str, m: np.ndarray | None = None, S: np.ndarray | None = None):
+    def untracked_density(self, sender: str) -> float:
         """Spatial density (per m^3) of what a detection of ``sender`` may be of besides the candidates in its
-        gate: false alarms (``clutter_density_m3``, anywhere in the field of view) and objects not yet tracked.
-        Those are road users, on the lanes and sidewalks of the map and nowhere else: ``object_density_m3`` (per
-        m^3 of the layer over road and sidewalk where their centres are) times the share f of the detection's
-        horizontal uncertainty that lies on road or sidewalk (:meth:`~.mapframe.RoadArea.fraction` of its map
-        position ``m`` (N, 3) and covariance ``S`` (N, 3, 3): the new-object density seen through the detection's
-        error, the integral of lambda(x) N(m; x, S) over x), times the share of the sender's recent detections
-        (window_s, measurement time) that no connected vehicle and no confirmed track another sender saw took
-        (all of them before it has detected anything). The new-target density of JPDA's likelihood ratio,
-        observed around that observer: where it sees objects the others do not track (a cold start; a vehicle
-        ahead of the rest), a lone track in a wide gate is not evidence that its detection is of it; a track it
-        alone saw is its own earlier view, placed with its own pose error. Without ``m`` (or without a map): f = 1,
-        a scalar."""
+        gate: false alarms (``clutter_density_m3``) and objects not yet tracked, ``object_density_m3`` times
+        the share of the sender's recent detections (window_s, measurement time) that no connected vehicle
+        and no confirmed track another sender saw took (all of them before it has detected anything). The
+        new-target density of JPDA's likelihood ratio, observed around that observer: where it sees objects
+        the others do not track (a cold start; a vehicle ahead of the rest), a lone track in a wide gate is
+        not evidence that its detection is of it; a track it alone saw is its own earlier view, placed with
+        its own pose error."""
         untracked, seen, _ = self._recent.get(sender, (0.0, 0.0, float("-inf")))
         share = untracked / seen if seen > 0 else 1.0
-        on_road = 1.0 if m is None or self.roads is None else self.roads.fraction(m, S)
-        return self.params.clutter_density_m3 + self.params.object_density_m3 * share * on_road
+        return self.params.clutter_density_m3 + self.params.object_density_m3 * share
 
     def _count_recent(self, sender: str, t: float, n: int, untracked: int) -> None:
         """Add one message's detections (``untracked``: see untracked_density) to its sender's recent counts,
@@ -283,16 +288,8 @@ class Tracker:
         return inst
 
     # ---------------------------------------------------------------- association
-    def associate(
-        self, dets: list[Detection], vehicles: list[VehicleCandidate], observer: tuple | None = None
-    ) -> tuple[list[Assignment], list[int]]:
+    def associate(self, dets: list[Detection], vehicles: list[VehicleCandidate]) -> tuple[list[Assignment], list[int]]:
         """Assign one message's detections. Returns (assignments for the graph, ids of newly confirmed tracks).
-
-        ``observer``: the sender's pose (6,) and its covariance (6, 6) that placed the detections in the map.
-        With it, where another candidate is in a detection's gate, the assignments' probabilities are the
-        frame's (:func:`~.jpda.frame_match_probability`: the detections share the observer's position error, and
-        a frame that a shift onto the neighbouring objects explains as well is not sure of any of them);
-        without it, each detection's alone (:func:`~.jpda.match_probability`).
 
         Assignments to a newly confirmed track include its held detections (oldest first). A detection
         left unassigned starts a tentative track unless it lies within the birth-exclusion gate of a
@@ -305,7 +302,6 @@ class Tracker:
         self.observe(t)
         inst = self._at(t)
         m = np.array([d.p_map for d in dets])
-        S_m = np.array([d.cov_map for d in dets])
         # only tracks that could be near a detection (a cheap Euclidean pre-gate)
         near = inst.near(m, self.params.pregate_m) if len(inst.tracks) else np.zeros(0, dtype=int)
         live = [inst.tracks[k] for k in near]
@@ -313,28 +309,21 @@ class Tracker:
         # one Mahalanobis matrix against the vehicles' reported positions and the tracks' predictions
         c = np.concatenate([np.array([v.p_map for v in vehicles]).reshape(-1, 3), inst.x[near, :3]])
         S_c = np.concatenate([np.array([v.cov for v in vehicles]).reshape(-1, 3, 3), inst.P[near, :3, :3]])
-        d2, logdet = mahalanobis_logdet(m, S_m, c, S_c)
+        d2, logdet = mahalanobis_logdet(m, np.array([d.cov_map for d in dets]), c, S_c)
         dc = np.array([d.cls for d in dets])[:, None]
         tc = np.array([int(ObjectClass.VEHICLE)] * nv + [tr.cls for tr in live])[None, :]
         compat = (dc == tc) | (dc == ObjectClass.UNKNOWN) | (tc == ObjectClass.UNKNOWN)
         d2_all = np.where(compat, d2, np.inf)
         gate = np.r_[np.full(nv, self.vehicle_gate), np.full(nt, self.gate)]
         gated = d2_all <= gate
-        gated[:, :nv] &= protection_gate(m, S_m, vehicles)
+        gated[:, :nv] &= protection_gate(m, np.array([d.cov_map for d in dets]), vehicles)
         nll = d2 + logdet  # -2 ln N(m; c, S) - 3 ln 2 pi: a wide candidate pays for its width
         cost = np.where(gated, nll, _INFEASIBLE)
         rows, cols = linear_sum_assignment(cost)
         ok = gated[rows, cols]
         matched: dict[int, int] = dict(zip(rows[ok].tolist(), cols[ok].tolist(), strict=True))
         sender = dets[0].sender
-        density = self.untracked_density(sender, m, S_m)
-        p_match = match_probability(nll, gated, density)
-        alternative = gated.copy()
-        alternative[list(matched), list(matched.values())] = False
-        if observer is not None and alternative.any() and np.linalg.eigvalsh(observer[1][:2, :2])[0] > 1e-8:
-            p_body, cov_body = np.array([d.p_body for d in dets]), np.array([d.cov_body for d in dets])
-            p_match = frame_match_probability(p_body, cov_body, *observer, c, S_c, gated, density)
-            self.counts["frame_probability"] += 1
+        p_match = _match_probability(nll, gated, self.untracked_density(sender))
         taken = np.zeros(nv + nt, dtype=bool)
         taken[list(matched.values())] = True
         excluded = (d2_all[:, ~taken] <= self.exclusion_gate).any(axis=1)  # for the unmatched rows
@@ -370,7 +359,10 @@ class Tracker:
                     self.counts["matched_tentative"] += 1
                     self._maybe_confirm(tr, out, born)
         self._update(inst, kf)
-        shared = sum(a.det.t == t and (a.kind == "vehicle" or self.by_id(a.target).seen_by_other(sender)) for a in out)
+        shared = sum(
+            a.det.t == t and (a.kind == "vehicle" or self.by_id(a.target).seen_by_other(sender))
+            for a in out
+        )
         self._count_recent(sender, t, len(dets), len(dets) - shared)
         return out, born
 

@@ -17,7 +17,6 @@ import numpy as np
 from schemas import FusedState, VehiclePrior, bias_cov
 from schemas.models import MAX_OBJECTS
 
-from ..hdmap.model import HDMap
 from .association import Tracker, VehicleCandidate
 from .graph import FusionGraph
 from .hostcore import (
@@ -34,7 +33,6 @@ from .hostcore import (
     vehicle_candidate,
 )
 from .laps import Laps
-from .mapframe import RoadArea
 from .misbehaviour import MisbehaviourMonitor
 from .motion import accel_psd, cv_predict
 from .params import FusionParams
@@ -65,16 +63,13 @@ class Container:
         fleet: str,
         host_id: str,
         known_senders: set[str] | None = None,
-        hdmap: HDMap | None = None,
     ):
-        """``hdmap``: the host's map, where road users can be (association: ``Tracker.untracked_density``);
-        without one, anywhere."""
         self.params = params
         self.fleet = fleet
         self.host_id = host_id
         self.intake = Intake(VehiclePrior, params, fleet, known_senders, self._buffered)
         self.graph = FusionGraph(params)
-        self.tracker = Tracker(params, None if hdmap is None else RoadArea(hdmap))
+        self.tracker = Tracker(params)
         self._counts: Counter[str] = Counter()
         self._cross: list = []  # (observed vehicle id, Detection) waiting for that vehicle's frame
         # vid -> body-frame 1-sigmas of the error its every frame repeats (VehiclePrior.pose_bias_sigma)
@@ -221,7 +216,7 @@ class Container:
             for v in (cands[i] for i in close)
             if v.vid != m.sender and v.vid not in mb.flagged and not mb.disputes(m.sender, v.vid)
         ]
-        assignments, _ = self.tracker.associate(dets, vehicles, (pose, pose_cov))
+        assignments, _ = self.tracker.associate(dets, vehicles)
         batch = []
         observers: dict[tuple[str, float], object] = {}
         for a in assignments:

@@ -97,7 +97,6 @@ from .hostcore import (
     vehicle_at,
     vehicle_candidate,
 )
-from .mapframe import RoadArea
 from .motion import accel_psd, cv_model, cv_predict
 from .params import FusionParams
 from .symupdate import sym_rank_update
@@ -140,7 +139,7 @@ class JointHost:
         self.loc_params = localizer_params or LocalizerParams()
         self.idle_s = idle_s
         self.intake = Intake(RawObservations, params, fleet, known_senders)
-        self.tracker = Tracker(params, RoadArea(hdmap))
+        self.tracker = Tracker(params)
         self.localizers: dict[str, Localizer] = {}
         self._results: dict = {}  # vid -> its localizer's last LocalizationResult
         self.mu = np.zeros(0)
@@ -404,7 +403,7 @@ class JointHost:
         self._lap("predict", t0)
         t0 = time.process_time()
         dets = mapped.dets
-        assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid), (pose, pose_cov))
+        assignments, born = self.tracker.associate(dets, self._vehicle_candidates(t, vid))
         self._lap("associate", t0)
         t0 = time.process_time()
         for tid in born:

@@ -68,16 +68,13 @@ class FusionParams(BaseModel):
         ),
     )
     object_density_m3: float = Field(
-        0.004,
+        0.01,
         gt=0,
         description=(
-            "spatial density (per m^3) of road users where they can be, on the map's lanes and sidewalks, before any"
-            " is tracked: 0.004 per m^2 of road and sidewalk (the paper scenarios as listed, at the start: the other"
-            " road users within 60 m of a connected vehicle per m^2 of road and sidewalk there, mean 0.0039 urban and"
-            " 0.0034 suburban, within 30 m 0.0046 and 0.0041), their centres within about 1 m of height. Off the road"
-            " it is zero (Tracker.untracked_density weighs it by the share of a detection's uncertainty on road or"
-            " sidewalk); times the share of recent detections no track explained, it is the density of objects not"
-            " yet tracked"
+            "spatial density (per m^3) of road users around the connected vehicles, before any is tracked: one"
+            " per 100 m^2 of road and sidewalk (the paper scenarios' traffic near the fleet: about 12 road users"
+            " on 60 m of a 20 m wide road), their centres within about 1 m of height. Times the share of recent"
+            " detections no track explained, it is the density of objects not yet tracked"
         ),
     )
     vehicle_association_probability: float = Field(

@@ -364,7 +364,7 @@ def refuse(
 ) -> RefuseResult:
     """Re-fuse a recording's vehicle messages with the host's loop (module docstring); ``params``
     (FusionParams fields) replace the recorded host's, ``mode`` must be the recorded one. ``hdmap`` (an
-    HDMap or a map file): the host's map, else the recorded ``--map``."""
+    HDMap or a map file): the centralized host's map, else the recorded ``--map``."""
     from ..fusion.blas import limit_blas_threads
     from ..fusion.params import FusionParams
     from ..security import fused_signers, unwrap
@@ -383,12 +383,10 @@ def refuse(
         setup = setup.model_copy(update={"params": FusionParams(**params)})
     if isinstance(hdmap, str | Path):
         setup, hdmap = setup.model_copy(update={"map_file": str(hdmap)}), None
-    missing = hdmap is None and (setup.map_file is None or not Path(setup.map_file).is_file())
-    if missing and (setup.mode == "centralized" or setup.map_file is not None):
+    if setup.mode == "centralized" and hdmap is None and (setup.map_file is None or not Path(setup.map_file).is_file()):
         raise RecordingError(
-            f"{path}: the {setup.mode} host needs its HD map (the centralized one localizes against it; both take"
-            f" from it where road users can be): the recorded --map {setup.map_file} is not here; give the map file"
-            " (--map)"
+            f"{path}: the centralized host needs its HD map: the recorded --map {setup.map_file} is not here; "
+            "give the map file (--map)"
         )
     host = build_host(setup, hdmap)
     kind = "prior" if setup.mode == "distributed" else "raw"
@@ -534,3 +532,5 @@ def refuse(
         scores=scores,
         notes=notes,
     )
+
+

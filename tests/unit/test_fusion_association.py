@@ -2,13 +2,11 @@
 
 import numpy as np
 import pytest
-from scipy.stats import norm
 
 from mapcontainer import geometry as geo
 from mapcontainer.fusion import FusionParams
 from mapcontainer.fusion.association import Detection, Tracker, VehicleCandidate, cv_predict, protection_gate
-from mapcontainer.fusion.mapframe import RoadArea, mahalanobis_logdet, mahalanobis_matrix, observations_to_map
-from mapcontainer.hdmap.model import HDMap, LaneCenterline, WalkableArea
+from mapcontainer.fusion.mapframe import mahalanobis_logdet, mahalanobis_matrix, observations_to_map
 from schemas import ObjectClass
 
 PED, VEH = int(ObjectClass.PEDESTRIAN), int(ObjectClass.VEHICLE)
@@ -184,59 +182,6 @@ def test_a_lone_track_in_a_wide_gate_is_not_sure_where_the_observer_sees_untrack
     assert tr.untracked_density("cv0") < 0.01 * p.object_density_m3
     (a,), _ = tr.associate([_det([1.5, 1.0, 0.0], 1.1, cov=wide)], [])
     assert a.target == 1 and a.p > 0.95
-
-
-def _street() -> HDMap:
-    """A 4 m lane along x (0-100 m, y = 0) and a 2 m sidewalk beside it (3 <= y <= 5)."""
-    lane = LaneCenterline(1, np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0]]), width_m=4.0)
-    walk = np.array([[0.0, 3.0], [100.0, 3.0], [100.0, 5.0], [0.0, 5.0]])
-    return HDMap("street", centerlines=[lane], walkable=[WalkableArea(2, "sidewalk", walk, np.zeros((2, 3)))])
-
-
-def test_the_road_area_is_the_lanes_and_sidewalks_and_a_wide_detection_is_partly_on_it():
-    roads = RoadArea(_street())
-    inside = roads.contains(np.array([[50.0, 0.0], [50.0, 1.8], [50.0, 2.5], [50.0, 4.0], [50.0, 8.0], [-20.0, 0.0]]))
-    assert inside.tolist() == [True, True, False, True, False, False]
-    m = np.array([[50.0, 0.0, 0.0], [50.0, 9.0, 0.0], [50.0, 0.0, 0.0]])
-    S_ = np.array([np.eye(3) * 0.05**2, np.eye(3) * 0.05**2, np.diag([3.0, 3.0, 0.3]) ** 2])
-    f = roads.fraction(m, S_)
-    # a wide one: P[|y| < 2] + P[3 < y < 5] for y ~ N(0, 3^2), to the rule's strata and cells
-    wide = norm.cdf(2 / 3) - norm.cdf(-2 / 3) + norm.cdf(5 / 3) - norm.cdf(1.0)
-    assert f[0] == 1.0 and f[1] == 0.0 and f[2] == pytest.approx(wide, abs=0.04)
-    assert RoadArea(HDMap("nothing")).fraction(m, S_).tolist() == [1.0, 1.0, 1.0]  # no map: anywhere
-
-
-def test_objects_not_yet_tracked_are_on_the_road_not_anywhere():
-    """Traced on urban development seed 1003 (centralized): cv1 in GNSS fallback saw, 22.8 m away with a 9.7 m
-    map-frame sigma, a track another vehicle saw, the right one (truth); against 0.01 per m^3 of objects not yet
-    tracked everywhere its probability was 0.41, and its frame corrected nothing. Road users are on the lanes
-    and sidewalks: the density is the road's on the road, the false alarms' alone off it, and a wide detection's
-    is weighed by the share of its uncertainty on the road, so the same lone track is more probable with the map
-    than without (urban 1003: 0.41 -> 0.81; 1004, cv2 29 m away with 13.6 m: 0.19 -> 0.63)."""
-    p = FusionParams(birth_hits=1)
-    wide = np.diag([6.0, 6.0, 0.5]) ** 2
-
-    def tracker_with_track(roads):
-        tr = Tracker(p, roads)
-        tr.associate([_det([50.0, 0.0, 0.0], 0.0, sender="cv1")], [])  # confirmed at once (birth_hits 1)
-        tr.sync(1, 0.0, np.array([50.0, 0, 0, 0, 0, 0]), np.diag([0.3, 0.3, 0.1, 0.5, 0.5, 0.1]) ** 2)
-        return tr
-
-    roads = RoadArea(_street())
-    tr = tracker_with_track(roads)
-    tight = np.eye(3)[None] * 0.05**2
-    on, off = (tr.untracked_density("cv0", np.array([[50.0, y, 0.0]]), tight)[0] for y in (0.0, 9.0))
-    assert on == pytest.approx(p.clutter_density_m3 + p.object_density_m3) and off == pytest.approx(
-        p.clutter_density_m3
-    )
-    (with_map,), _ = tr.associate([_det([52.0, 1.0, 0.0], 0.1, cov=wide)], [])
-    (without,), _ = tracker_with_track(None).associate([_det([52.0, 1.0, 0.0], 0.1, cov=wide)], [])
-    assert with_map.target == without.target == 1
-    f = roads.fraction(np.array([[52.0, 1.0, 0.0]]), wide[None])[0]
-    assert 0.2 < f < 0.6
-    # p = N / (lambda + N): the odds against "none of them" grow by 1 / f (the false alarms aside)
-    odds = lambda a: a.p / (1 - a.p)  # noqa: E731
-    assert odds(with_map) == pytest.approx(odds(without) / f, rel=0.01)
 
 
 def test_unassigned_detection_close_to_an_untaken_track_starts_no_duplicate():
