@@ -75,7 +75,9 @@ def test_the_centralized_joint_estimator_costs_bytes_and_keeps_its_vehicles(urba
     strict=True,
     reason="issue 34: centralized objects MSE 1.089 x the distributed host's on seeds 1000-1003 (it was <= 1 before "
     "two host changes of 2026-12-05, not measured apart: the distributed host no longer moves a frame of the instant "
-    "by the vehicles' clock gaps; the reference corrects a searching vehicle only through sure associations)",
+    "by the vehicles' clock gaps; the reference corrects a searching vehicle only through sure associations); not the "
+    "uniform density of untracked objects: one that follows the road leaves the urban reference unchanged "
+    "(docs/host.md)",
 )
 def test_the_centralized_joint_estimator_is_the_accuracy_reference(urban):
     """Efficiency = centralized MSE / distributed MSE <= 1 for the objects and the targets. Not claimed for the
