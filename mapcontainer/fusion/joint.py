@@ -231,6 +231,7 @@ class JointHost:
         t1 = time.process_time()
         self._sync_tracker()
         gone = self.tracker.expire(t) + self.tracker.merge_duplicates(t)
+        gone += self.tracker.vehicle_shadows(t, self._vehicle_candidates(t, ""))  # as the distributed host
         self._drop(*(("o", tid) for tid in gone))
         self._counts["fused_cycles"] += 1
         self._lap("upkeep", t1)

@@ -71,10 +71,12 @@ class FusionParams(BaseModel):
         0.01,
         gt=0,
         description=(
-            "spatial density (per m^3) of road users around the connected vehicles, before any is tracked: one"
-            " per 100 m^2 of road and sidewalk (the paper scenarios' traffic near the fleet: about 12 road users"
-            " on 60 m of a 20 m wide road), their centres within about 1 m of height. Times the share of recent"
-            " detections no track explained, it is the density of objects not yet tracked"
+            "spatial density (per m^3) of road users around the connected vehicles, before any is tracked, uniform"
+            " over the map: one per 100 m^2, their centres within about 1 m of height. Times the share of recent"
+            " detections no track explained, it is the density of objects not yet tracked. It overstates the paper"
+            " scenarios' road users (0.0034-0.0039 per m^2 of road and sidewalk within 60 m of a connected vehicle,"
+            " none off it); the centralized host's sure-association rule leans on the excess: at 0.004 on the road,"
+            " suburban development seed 1004's fallback vehicle collapses again (docs/host.md, association)"
         ),
     )
     vehicle_association_probability: float = Field(
