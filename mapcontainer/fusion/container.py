@@ -17,7 +17,7 @@ import numpy as np
 from schemas import FusedState, VehiclePrior, bias_cov
 from schemas.models import MAX_OBJECTS
 
-from .association import Tracker, VehicleCandidate
+from .association import Assignment, Tracker, VehicleCandidate
 from .graph import FusionGraph
 from .hostcore import (
     IngestResult,
@@ -29,6 +29,7 @@ from .hostcore import (
     observer_biases,
     observer_weights,
     persistent_share,
+    sure_of_track,
     vehicle_at,
     vehicle_candidate,
 )
@@ -76,6 +77,8 @@ class Container:
         self._bias_sigma: dict[str, np.ndarray] = {}
         # (vid, t_meas) -> (protection levels, integrity risk) of the frames in the window that claim integrity
         self._protection: dict[tuple[str, float], tuple[np.ndarray, float]] = {}
+        # the frames in the window whose sender was not map matching (GNSS fallback, searching): (vid, t_meas)
+        self._unmatched: set[tuple[str, float]] = set()
         self._seq = 0
         self._last: SolveReport | None = None
         self._last_cycle_ms = float("nan")
@@ -122,10 +125,13 @@ class Container:
                 self._bias_sigma[m.sender] = np.asarray(m.pose_bias_sigma, dtype=float)
             if m.protection_level_m is not None:  # the vehicle claims integrity for this frame
                 self._protection[(m.sender, float(m.t_meas))] = (np.asarray(m.protection_level_m), m.integrity_risk)
+            if m.quality.mode != "map_matching":
+                self._unmatched.add((m.sender, float(m.t_meas)))
             if key is None:
                 self._counts["duplicate_instant"] += 1
             keys.append(key)
         self._protection = {k: v for k, v in self._protection.items() if k[1] >= t_min}
+        self._unmatched = {k for k in self._unmatched if k[1] >= t_min}
         self._candidates: dict[float, list[VehicleCandidate]] = {}  # all poses of the cycle are in
         self._reported_at: dict[float, tuple] = {}
         if self.params.misbehaviour:  # the tracks one vehicle alone reported in the window (ghost check)
@@ -216,7 +222,7 @@ class Container:
             for v in (cands[i] for i in close)
             if v.vid != m.sender and v.vid not in mb.flagged and not mb.disputes(m.sender, v.vid)
         ]
-        assignments, _ = self.tracker.associate(dets, vehicles)
+        assignments, born = self.tracker.associate(dets, vehicles)
         batch = []
         observers: dict[tuple[str, float], object] = {}
         for a in assignments:
@@ -233,6 +239,8 @@ class Container:
                 if self.params.cross_localization:
                     self._cross.append((a.target, det))
                     self._counts["cross_pending"] += 1
+            elif not self._may_place(a, born):
+                self._counts["detections_unsure"] += 1
             else:
                 tr = self.tracker.by_id(a.target)
                 cls = tr.cls if tr is not None else det.cls
@@ -252,6 +260,24 @@ class Container:
                     cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
                 batch.append((obs.key, state, z, cov, weight))
         return batch
+
+    def _may_place(self, a: Assignment, born: list[int]) -> bool:
+        """Whether the detection of a track in ``a`` enters the graph: a detection factor ties its observer's
+        pose to the track, so a wrong association drags the observer. An observer that is not map matching
+        (GNSS fallback, searching: a GNSS-grade pose, its heading possibly unknown) takes only the detections
+        that are surely of a track another vehicle saw (:func:`.hostcore.sure_of_track`, the joint host's
+        rule); a detection held by a track while it was tentative (``born``: confirmed by this message) was
+        never tested against a track another vehicle saw. The others only inform the tracker (gating, births):
+        the graph has no factor that would let them move the track without the observer (the joint host's
+        consider update).
+
+        Traced (paper-urban, seed 0, the default fleet's first run): cv2, searching with a GNSS fix 4 m off
+        and a yaw sigma of 1.8 rad, had its detections placed in the map with sigmas of 25-60 m assigned to
+        whatever track was in the gate; the graph fused it 10-41 m off with sigma 1-2 m (NEES up to 860) for
+        its first 1.8 s, and cv1 12-22 m off for its first 0.3 s."""
+        if (a.det.sender, a.det.t) not in self._unmatched:
+            return True
+        return a.target not in born and sure_of_track(self.tracker, a.det.sender, a, self.params)
 
     def _look(self, m: VehiclePrior, t: float, pose: np.ndarray, p_map: np.ndarray) -> None:
         """What ``m``'s sender should see of the tracks that one other vehicle alone reports (ghost check),
@@ -415,6 +441,7 @@ class Container:
             "factors": self.graph.num_factors,
             "variables": self.graph.num_variables,
             "detections_folded": self._counts["detections_folded"],
+            "detections_unsure": self._counts["detections_unsure"],
             "observer_gone": self._counts["observer_gone"],
             "duplicate_instant": self._counts["duplicate_instant"],
             "flagged": dict.fromkeys(sorted(self.monitor.flagged), 1.0),
