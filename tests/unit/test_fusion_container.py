@@ -519,7 +519,7 @@ def test_a_frame_of_the_instant_is_not_moved_by_a_clock_gap():
     late, c_late = vehicle_at(pose, cov, v, 0.1, p, same_instant_s=0.02)
     np.testing.assert_allclose(late[:3], pose[:3] + v * 0.1)
     assert np.all(np.diag(c_late) > np.diag(cov))
-    moved, _ = vehicle_at(pose, cov, v, -0.004, p)  # no tolerance given: moved, as before
+    moved, _ = vehicle_at(pose, cov, v, -0.004, p, same_instant_s=0.0)  # no tolerance: every gap is latency
     np.testing.assert_allclose(moved[:3], pose[:3] - v * 0.004)
 
 
@@ -552,16 +552,16 @@ def _cold_start(t_end: float, reported, cov, mode: str) -> tuple[np.ndarray, np.
     box = Container(FusionParams(), "f", "host")
     for k in range(int(round(t_end / 0.1)) + 1):
         for vid, true in truth.items():
-            sent = reported if vid == "cv2" else true
-            msg = _vehicle(vid, k, (sent[0], sent[1], 0, 0, 0, sent[2]), cov if vid == "cv2" else POSE_COV, _seen_from(true))
-            if vid == "cv2":
-                msg = msg.model_copy(update={"quality": LocalizationQuality(mode=mode), "v_map": np.zeros(3)})
-            else:
-                msg = msg.model_copy(update={"v_map": np.zeros(3)})
+            ours = vid == "cv2"
+            x, y, yaw = reported if ours else true
+            msg = _vehicle(vid, k, (x, y, 0, 0, 0, yaw), cov if ours else POSE_COV, _seen_from(true))
+            quality = LocalizationQuality(mode=mode if ours else "map_matching")
+            msg = msg.model_copy(update={"quality": quality, "v_map": np.zeros(3)})
             assert box.ingest(encode(msg), 0.1 * k).accepted
         out = box.fuse(0.1 * k)
     i = out.vehicle_ids.index("cv2")
-    return np.asarray(out.vehicle_pose[i], dtype=float), sym_from_upper(np.asarray(out.vehicle_pose_cov[i], dtype=float))
+    cov_out = sym_from_upper(np.asarray(out.vehicle_pose_cov[i], dtype=float))
+    return np.asarray(out.vehicle_pose[i], dtype=float), cov_out
 
 
 def test_a_searching_vehicle_is_not_dragged_by_detections_it_cannot_place():
