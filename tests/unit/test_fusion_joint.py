@@ -233,6 +233,7 @@ def test_a_fallback_frame_corrects_its_pose_only_through_sure_associations_to_sh
         host.tracker._uid_of[tr.id] = tr.uid
     det = Detection("a", 0.1, 0, np.zeros(3), np.eye(3), 0, np.zeros(3), np.eye(3))
     p = host.params.vehicle_association_probability
+
     def sure(a):
         return sure_of_track(host.tracker, "a", a, host.params)
 
