@@ -239,9 +239,9 @@ class Container:
                 if self.params.cross_localization:
                     self._cross.append((a.target, det))
                     self._counts["cross_pending"] += 1
-            elif not self._may_place(a, born):
-                self._counts["detections_unsure"] += 1
             else:
+                consider = not self._corrects_observer(a, born)
+                self._counts["detections_considered"] += consider
                 tr = self.tracker.by_id(a.target)
                 cls = tr.cls if tr is not None else det.cls
                 v0 = tr.x[3:] if tr is not None else np.zeros(3)
@@ -258,18 +258,18 @@ class Container:
                 if delta != 0.0 and tr is not None:
                     z = z - R_obs.T @ tr.x[3:] * delta
                     cov = cov + R_obs.T @ tr.P[3:, 3:] @ R_obs * delta**2
-                batch.append((obs.key, state, z, cov, weight))
+                batch.append((obs.key, state, z, cov, weight, consider))
         return batch
 
-    def _may_place(self, a: Assignment, born: list[int]) -> bool:
-        """Whether the detection of a track in ``a`` enters the graph: a detection factor ties its observer's
-        pose to the track, so a wrong association drags the observer. An observer that is not map matching
-        (GNSS fallback, searching: a GNSS-grade pose, its heading possibly unknown) takes only the detections
-        that are surely of a track another vehicle saw (:func:`.hostcore.sure_of_track`, the joint host's
-        rule); a detection held by a track while it was tentative (``born``: confirmed by this message) was
-        never tested against a track another vehicle saw. The others only inform the tracker (gating, births):
-        the graph has no factor that would let them move the track without the observer (the joint host's
-        consider update).
+    def _corrects_observer(self, a: Assignment, born: list[int]) -> bool:
+        """Whether the detection of a track in ``a`` may correct its observer's pose: a detection factor ties
+        the observer's pose to the track, so a wrong association drags the observer. An observer that is not
+        map matching (GNSS fallback, searching: a GNSS-grade pose, its heading possibly unknown) is corrected
+        only by the detections that are surely of a track another vehicle saw (:func:`.hostcore.sure_of_track`,
+        the joint host's rule); a detection held by a track while it was tentative (``born``: confirmed by this
+        message) was never tested against a track another vehicle saw. Its other detections are *consider*
+        detections (:mod:`.detections`): they move the tracks, with its pose uncertainty in their noise, as the
+        joint host's consider updates do.
 
         Traced (paper-urban, seed 0, the default fleet's first run): cv2, searching with a GNSS fix 4 m off
         and a yaw sigma of 1.8 rad, had its detections placed in the map with sigmas of 25-60 m assigned to
@@ -441,7 +441,7 @@ class Container:
             "factors": self.graph.num_factors,
             "variables": self.graph.num_variables,
             "detections_folded": self._counts["detections_folded"],
-            "detections_unsure": self._counts["detections_unsure"],
+            "detections_considered": self._counts["detections_considered"],
             "observer_gone": self._counts["observer_gone"],
             "duplicate_instant": self._counts["duplicate_instant"],
             "flagged": dict.fromkeys(sorted(self.monitor.flagged), 1.0),

@@ -454,19 +454,25 @@ class FusionGraph:
             self._set_prior(chain, marginalize.forget_bias(prior, vid, a))
 
     # ------------------------------------------------------------------ detections
-    def add_detection(self, pose_key: int, state: TrackState, z_body, cov_body, weight: float = 1.0) -> None:
+    def add_detection(
+        self, pose_key: int, state: TrackState, z_body, cov_body, weight: float = 1.0, consider: bool = False
+    ) -> None:
         """A body-frame detection z_body (cov_body) of the track state by the vehicle at pose_key.
 
         ``weight`` is the first Huber weight (from the association innovation); later ones follow the
-        estimate (IRLS, see :meth:`_reweight`).
+        estimate (IRLS, see :meth:`_reweight`). ``consider``: the observer's pose is a consider state of it
+        (:mod:`.detections`): it moves the track, with the observer's reported pose uncertainty in its
+        noise, never the observer. Folded into the track's prior, every detection is that already.
         """
-        self.add_detections([(pose_key, state, z_body, cov_body, weight)])
+        self.add_detections([(pose_key, state, z_body, cov_body, weight, consider)])
 
     def add_detections(self, items: list) -> None:
-        """Many :meth:`add_detection` calls at once: items of (pose_key, state, z_body, cov_body, weight)."""
-        dets = self._new_detections([(pk, state.key, z, cov) for pk, state, z, cov, _ in items], cross=False)
-        for det, (_, state, _, _, weight) in zip(dets, items, strict=True):
+        """Many :meth:`add_detection` calls at once: items of (pose_key, state, z_body, cov_body, weight, consider)."""
+        dets = self._new_detections([(it[0], it[1].key, it[2], it[3]) for it in items], cross=False)
+        for det, (pose_key, state, _, _, weight, consider) in zip(dets, items, strict=True):
             det.weight = weight
+            if consider:
+                det.pose_cov = self._pose_states[pose_key].cov_xi
             state.dets.append(det)
         self._attach(dets)
 

@@ -83,8 +83,9 @@ class FusionParams(BaseModel):
         lt=1,
         description=(
             "a detection constrains a vehicle's pose (of the connected vehicle it is assigned to; of its observer"
-            " when that is not map matching, centralized) only if its association is right with at least this"
-            " probability against every other gated vehicle and track, clutter and objects not yet tracked"
+            " when that is not map matching, a detection of a track another vehicle saw, in both hosts) only if its"
+            " association is right with at least this probability against every other gated vehicle and track,"
+            " clutter and objects not yet tracked"
         ),
     )
     merge_cycles: int = Field(3, ge=1, description="... for this many consecutive fuse() calls")

@@ -546,7 +546,8 @@ def _seen_from(pose) -> np.ndarray:
 
 def _cold_start(t_end: float, reported, cov, mode: str) -> tuple[np.ndarray, np.ndarray]:
     """cv0 and cv1, map matched, see five parked cars every frame; cv2, truly at (15, -15) heading 1.4 rad, sees
-    them too but reports ``reported`` (x, y, yaw) with ``cov`` in ``mode``. The host's fused pose of cv2 at
+    them too but reports ``reported`` (x, y, yaw) with ``cov`` in ``mode``; each sends its filtered estimate,
+    as the vehicles do. The host's fused pose of cv2 at
     ``t_end`` (pose (6,), covariance (6, 6))."""
     truth = {"cv0": (0.0, 0.0, 0.0), "cv1": (0.0, -6.0, 0.0), "cv2": (15.0, -15.0, 1.4)}
     box = Container(FusionParams(), "f", "host")
@@ -556,7 +557,7 @@ def _cold_start(t_end: float, reported, cov, mode: str) -> tuple[np.ndarray, np.
             x, y, yaw = reported if ours else true
             msg = _vehicle(vid, k, (x, y, 0, 0, 0, yaw), cov if ours else POSE_COV, _seen_from(true))
             quality = LocalizationQuality(mode=mode if ours else "map_matching")
-            msg = msg.model_copy(update={"quality": quality, "v_map": np.zeros(3)})
+            msg = msg.model_copy(update={"quality": quality, "v_map": np.zeros(3), "pose_filtered": True})
             assert box.ingest(encode(msg), 0.1 * k).accepted
         out = box.fuse(0.1 * k)
     i = out.vehicle_ids.index("cv2")
@@ -582,3 +583,27 @@ def test_a_fallback_vehicle_is_corrected_by_sure_detections_of_shared_tracks():
     cov = np.diag([1.0, 1.0, 0.3, *np.radians([0.5, 0.5, 1.0])]) ** 2
     pose, _ = _cold_start(1.0, (15.8, -14.4, 1.4), cov, "fallback")
     assert np.linalg.norm(pose[:2] - [15.0, -15.0]) < 0.1
+
+
+def test_a_lone_vehicle_in_fallback_still_places_its_objects_with_its_pose_uncertainty():
+    """Its detections are of tracks nobody else saw, so they do not correct it, but they are not lost: as consider
+    detections they move the tracks, its pose uncertainty in their noise (an ego-only host of a vehicle in
+    fallback still has its objects, their covariances honest about the pose they were placed from)."""
+    cov = np.diag([1.0, 1.0, 0.3, *np.radians([0.5, 0.5, 1.0])]) ** 2
+    true, sent = (15.0, -15.0, 1.4), (15.8, -14.4, 1.4)
+    box = Container(FusionParams(), "f", "host")
+    for k in range(11):
+        msg = _vehicle("cv2", k, (sent[0], sent[1], 0, 0, 0, sent[2]), cov, _seen_from(true))
+        quality = LocalizationQuality(mode="fallback")
+        msg = msg.model_copy(update={"quality": quality, "v_map": np.zeros(3), "pose_filtered": True})
+        assert box.ingest(encode(msg), 0.1 * k).accepted
+        out = box.fuse(0.1 * k)
+    assert len(out.object_id) == len(_OBJECTS) and box.stats()["detections_considered"] > 0
+    pose = np.asarray(out.vehicle_pose[0], dtype=float)
+    np.testing.assert_allclose(pose[:2], sent[:2], atol=0.01)  # its own objects do not move it
+    p = np.asarray(out.object_p_map, dtype=float)
+    C = sym_from_upper(np.asarray(out.object_cov, dtype=float))
+    for j in range(len(p)):
+        e = p[j] - _OBJECTS[np.argmin(np.linalg.norm(_OBJECTS - p[j], axis=1))]
+        assert 0.5 < np.linalg.norm(e[:2]) < 1.5  # placed from a pose 1 m off
+        assert e @ np.linalg.solve(C[j], e) < 11.3  # chi2_3(0.99): the pose's uncertainty is in the covariance
