@@ -20,8 +20,10 @@ and its IRLS weights.
 * a *consider* detection of a track (``DetectionRecord.pose_cov`` set): the observer's pose is not
   estimated from it but its uncertainty is in the noise (Schmidt's consider update, as the joint host's),
   e = R0^T (p - t0) - z ~ N(0, S_z + A_x C A_x^T), A_x = [[q0]x, -I], C the observer's reported tangent
-  covariance: a factor on the track alone. For a detection that is not surely of its track, made by a
-  vehicle whose pose is GNSS grade (the container decides): it moves the track, never its observer.
+  covariance: a factor on the track alone, for a detection made by a vehicle whose pose is GNSS grade that
+  says nothing about that pose (the container decides): it moves the track, never its observer;
+* a detection's factor carries ``DetectionRecord.share`` of its information (1 but for an observer whose
+  pose is GNSS grade: the association's probability, EM's soft data association).
 
 Why not ``BearingRangeFactor3D`` (one factor, nonlinear): in this GTSAM build its bearing error is in the
 tangent basis of the *predicted* Unit3, which Unit3 picks by the smallest component of the direction.
@@ -60,6 +62,7 @@ class DetectionRecord:
     lin_pose: np.ndarray | None = None  # linearization point (4x4) of the observer
     fresh: bool = True  # not yet through a solve: keep the weight from the association innovation
     pose_cov: np.ndarray | None = None  # a consider detection: its observer's pose covariance (6x6, tangent)
+    share: float = 1.0  # the part of its information its factor carries (the association's probability)
 
 
 def skews(q: np.ndarray) -> np.ndarray:
@@ -91,13 +94,13 @@ def linear_factors(dets: list[DetectionRecord], values: gtsam.Values) -> list[gt
     e = R^T (p - t) - z at the current observer pose x0 = (R0, t0) and target: p is a track state's
     position (state [p, v]) or an observed vehicle's origin (cross). With q0 = R0^T (p0 - t0):
     d e / d xi = [[q0]x, -I]; d e / d s = [R0^T, 0] (track) or d e / d xi_target = [0, R0^T R_target]
-    (cross); e(x0, p0) = q0 - z; whitened by sqrt(weight) W.
+    (cross); e(x0, p0) = q0 - z; whitened by sqrt(weight share) W.
     """
     M, mats, q = observed(dets, values)
     R0t = mats[:, :3, :3].transpose(0, 2, 1)
     cross = np.array([d.cross for d in dets])
     A_x = _pose_jacobians(q)
-    W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * _whiteners(dets, A_x)
+    W = np.sqrt(np.array([d.weight * d.share for d in dets]))[:, None, None] * _whiteners(dets, A_x)
     A_t = np.zeros((len(dets), 3, 6))
     A_t[~cross, :, :3] = R0t[~cross]
     if cross.any():

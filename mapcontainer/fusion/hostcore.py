@@ -14,8 +14,6 @@ alike lives here, once:
 * :func:`vehicle_candidate`: a connected vehicle's reported position at a detection's time, for gating;
 * :func:`cross_observation`: a detection of a connected vehicle corrected to the observed vehicle's
   frame time;
-* :func:`sure_of_track`: whether a detection of a track may correct the pose of an observer that is not
-  map matching;
 * :func:`observer_bias` / :func:`observer_biases`: what the observers' repeated errors add to an object's
   covariance (a consider term), of one object / of many at once;
 * :func:`vehicle_at` and :func:`fused_state`: the output, moved to the fuse time and made wire-valid;
@@ -37,7 +35,7 @@ from scipy.stats import norm
 from schemas import FusedState, Rejection, decode
 
 from .. import geometry as geo
-from .association import Assignment, Detection, Tracker, VehicleCandidate
+from .association import Detection, Tracker, VehicleCandidate
 from .buffer import ReorderBuffer
 from .mapframe import observations_to_map, rotated_to_map
 from .params import FusionParams
@@ -57,7 +55,6 @@ __all__ = [
     "observer_biases",
     "observer_weights",
     "persistent_share",
-    "sure_of_track",
     "vehicle_at",
     "vehicle_candidate",
 ]
@@ -262,19 +259,6 @@ def cross_observation(
     if bias_p is not None:
         cov = cov + R_obs.T @ bias_p @ R_obs
     return z, cov
-
-
-def sure_of_track(tracker: Tracker, observer: str, a: Assignment, params: FusionParams) -> bool:
-    """Whether assignment ``a`` of a detection of ``observer`` to a track may correct the observer's pose when
-    the observer is not map matching (GNSS fallback, searching: a GNSS-grade pose, yaw possibly unknown, is not
-    one to resolve associations with). Only if the detection is of that track with probability at least
-    ``vehicle_association_probability`` (``Assignment.p``: its JPDA marginal against the other gated
-    candidates, clutter and objects not yet tracked, ``Tracker.untracked_density``) and another vehicle saw the
-    track (one the observer alone saw is its own earlier view, placed with its own pose error). Both host
-    cores ask this: the joint host before a frame updates such a vehicle's block, the distributed one before
-    such a vehicle's detection of a track enters the graph."""
-    tr = tracker.by_id(a.target)
-    return tr is not None and tr.seen_by_other(observer) and a.p >= params.vehicle_association_probability
 
 
 def observer_weights(frames: dict, t_min: float) -> dict[str, float]:

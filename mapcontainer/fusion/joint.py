@@ -94,7 +94,6 @@ from .hostcore import (
     observer_bias,
     observer_weights,
     persistent_share,
-    sure_of_track,
     vehicle_at,
     vehicle_candidate,
 )
@@ -418,7 +417,7 @@ class JointHost:
                     cross.append((a.target, a.det))
             elif a.target not in born and ("o", a.target) in self._off:
                 rows.append((("o", a.target), a.det.p_body, a.det.cov_body))
-                sure &= sure_of_track(self.tracker, vid, a, self.params)
+                sure &= self._sure(vid, a)
         self._lap("birth", t0)
         t0 = time.process_time()
         self._counts["detections"] += len(rows)
@@ -477,6 +476,15 @@ class JointHost:
         for observer, rows in by_observer.items():
             self._counts["cross_detections"] += len(rows)
             self._ekf_update(("v", observer), rows)
+
+    def _sure(self, observer: str, a) -> bool:
+        """Whether assignment ``a`` of a detection of ``observer`` to a track may correct the observer's pose
+        when it is not map matching: the detection is of that track with probability at least
+        ``vehicle_association_probability`` (its JPDA marginal against the other gated candidates, clutter
+        and objects not yet tracked: ``Tracker.untracked_density``), and another vehicle saw the track (one
+        the observer alone saw is its own earlier view, placed with its own pose error)."""
+        tr = self.tracker.by_id(a.target)
+        return tr is not None and tr.seen_by_other(observer) and a.p >= self.params.vehicle_association_probability
 
     def _ekf_update(self, obs_key, rows: list, free=None) -> None:
         """One stacked EKF update of detections z_k = R_v^T (c_k - c_v) + n_k, n_k ~ N(0, cov_k), made by

@@ -83,9 +83,8 @@ class FusionParams(BaseModel):
         lt=1,
         description=(
             "a detection constrains a vehicle's pose (of the connected vehicle it is assigned to; of its observer"
-            " when that is not map matching, a detection of a track another vehicle saw, in both hosts) only if its"
-            " association is right with at least this probability against every other gated vehicle and track,"
-            " clutter and objects not yet tracked"
+            " when that is not map matching, centralized) only if its association is right with at least this"
+            " probability against every other gated vehicle and track, clutter and objects not yet tracked"
         ),
     )
     merge_cycles: int = Field(3, ge=1, description="... for this many consecutive fuse() calls")
@@ -139,6 +138,16 @@ class FusionParams(BaseModel):
     )
     min_range_m: float = Field(0.5, gt=0, description="detections closer to the body origin than this are ignored")
     cross_localization: bool = Field(True, description="detections of connected vehicles constrain their poses")
+    observer_yaw_sigma_max_rad: float = Field(
+        0.0523598775598,
+        gt=0,
+        description=(
+            "an observer that is not map matching and reports a yaw 1-sigma above this (rad) cannot place its"
+            " detections within a linear model: they move the tracks, never it (3 deg: the localizer's own bound"
+            " for one local solve, LocalizerParams.search_sigma_yaw_rad; a vehicle searching for its start"
+            " reports pi / sqrt(3))"
+        ),
+    )
 
     # ---- misbehaviour detection (mapcontainer/fusion/misbehaviour.py)
     misbehaviour: bool = Field(

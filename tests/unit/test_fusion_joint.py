@@ -223,7 +223,6 @@ def test_a_fallback_frame_corrects_its_pose_only_through_sure_associations_to_sh
     >= vehicle_association_probability (against objects not yet tracked too) and another vehicle saw the
     track: a track it alone saw is its own earlier view, with its own pose error."""
     from mapcontainer.fusion.association import Assignment, Detection
-    from mapcontainer.fusion.hostcore import sure_of_track
 
     host = JointHost(generate_map(load_scenario("overlap").map), FusionParams(), "f", "host")
     shared = host.tracker._new_track(Detection("b", 0.0, 0, np.zeros(3), np.eye(3), 0, np.zeros(3), np.eye(3)))
@@ -234,12 +233,9 @@ def test_a_fallback_frame_corrects_its_pose_only_through_sure_associations_to_sh
     det = Detection("a", 0.1, 0, np.zeros(3), np.eye(3), 0, np.zeros(3), np.eye(3))
     p = host.params.vehicle_association_probability
 
-    def sure(a):
-        return sure_of_track(host.tracker, "a", a, host.params)
-
-    assert sure(Assignment("track", 1, det, 0.0, p + 0.01))
-    assert not sure(Assignment("track", 1, det, 0.0, p - 0.01))
-    assert not sure(Assignment("track", 2, det, 0.0, 0.999))  # a saw it alone
+    assert host._sure("a", Assignment("track", 1, det, 0.0, p + 0.01))
+    assert not host._sure("a", Assignment("track", 1, det, 0.0, p - 0.01))
+    assert not host._sure("a", Assignment("track", 2, det, 0.0, 0.999))  # a saw it alone
 
 
 def test_the_joint_host_keeps_a_vehicle_of_the_instant_where_it_is():
