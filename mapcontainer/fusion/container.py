@@ -272,12 +272,13 @@ class Container:
         pose, with which the assignment was made), the association's probability ``Assignment.p`` (its JPDA
         marginal against the other gated candidates, clutter and the objects not yet tracked): each detection
         counts for the observer's pose as much as it is of that track, as in EM data association. None where
-        there is no such probability or no evidence: a detection held by the track while it was tentative
-        (``born``: confirmed by this message); of a track no other vehicle saw (its own earlier view, placed
-        with its own pose error); by an observer whose reported heading is too uncertain for the linear
-        model of the factor (yaw 1-sigma above ``observer_yaw_sigma_max_rad``: a vehicle searching for its
-        start does not know its heading; linearized there, even a small share of a detection moves it
-        metres).
+        there is no such probability or no model for it: a detection held by the track while it was tentative
+        (``born``: confirmed by this message, never tested against the track), or by an observer whose
+        reported heading is too uncertain for the linear model of the factor (yaw 1-sigma above
+        ``observer_yaw_sigma_max_rad``: a vehicle searching for its start does not know its heading;
+        linearized there, even a small share of a detection moves it metres). (Detections of a track only the
+        observer saw tie it to its own earlier placements, as for every vehicle: "a vehicle's own echo",
+        docs/host.md.)
 
         Traced (paper-urban, seed 0, the default fleet's first run): cv2, searching with a GNSS fix 4 m off
         and a yaw sigma of 1.8 rad, had its detections placed in the map 25-60 m wide and assigned to
@@ -288,7 +289,7 @@ class Container:
         if heading_known is None:  # map matched
             return 1.0
         tr = self.tracker.by_id(a.target)
-        if not heading_known or a.target in born or tr is None or not tr.seen_by_other(a.det.sender):
+        if not heading_known or a.target in born or tr is None:
             return None
         return a.p
 
