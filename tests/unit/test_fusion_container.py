@@ -586,9 +586,10 @@ def test_a_fallback_vehicle_is_corrected_by_sure_detections_of_shared_tracks():
 
 
 def test_a_lone_vehicle_in_fallback_still_places_its_objects_with_its_pose_uncertainty():
-    """Its detections are of tracks nobody else saw, so they do not correct it, but they are not lost: as consider
-    detections they move the tracks, its pose uncertainty in their noise (an ego-only host of a vehicle in
-    fallback still has its objects, their covariances honest about the pose they were placed from)."""
+    """Alone, it has nothing to be corrected by (its detections tie it to its own placements only), and its
+    objects are not lost: an ego-only host of a vehicle in fallback still has them, their covariances honest
+    about the pose they were placed from (the detections its tracks held while tentative are consider
+    detections)."""
     cov = np.diag([1.0, 1.0, 0.3, *np.radians([0.5, 0.5, 1.0])]) ** 2
     true, sent = (15.0, -15.0, 1.4), (15.8, -14.4, 1.4)
     box = Container(FusionParams(), "f", "host")
