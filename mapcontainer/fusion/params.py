@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -139,7 +140,7 @@ class FusionParams(BaseModel):
     min_range_m: float = Field(0.5, gt=0, description="detections closer to the body origin than this are ignored")
     cross_localization: bool = Field(True, description="detections of connected vehicles constrain their poses")
     observer_yaw_sigma_max_rad: float = Field(
-        0.0523598775598,
+        math.radians(3.0),
         gt=0,
         description=(
             "an observer that is not map matching and reports a yaw 1-sigma above this (rad) cannot place its"
