@@ -16,7 +16,14 @@ and its IRLS weights.
   tests/unit/test_fusion_graph.py) with two factors and a variable per detection instead of one factor;
 * a detection of another connected vehicle (cross-localization): the same model against the observed
   vehicle's body origin, e = R_obs^T (t_target - t_obs) - z (``LinearContainerFactor`` on both poses),
-  robust by dynamic covariance scaling (``cross_dcs_phi``, :func:`robust_weights`).
+  robust by dynamic covariance scaling (``cross_dcs_phi``, :func:`robust_weights`);
+* a *consider* detection of a track (``DetectionRecord.pose_cov`` set): the observer's pose is not
+  estimated from it but its uncertainty is in the noise (Schmidt's consider update, as the joint host's),
+  e = R0^T (p - t0) - z ~ N(0, S_z + A_x C A_x^T), A_x = [[q0]x, -I], C the observer's reported tangent
+  covariance: a factor on the track alone, for a detection made by a vehicle whose pose is GNSS grade that
+  says nothing about that pose (the container decides): it moves the track, never its observer;
+* a detection's factor carries ``DetectionRecord.share`` of its information (1 but for an observer whose
+  pose is GNSS grade: the association's probability, EM's soft data association).
 
 Why not ``BearingRangeFactor3D`` (one factor, nonlinear): in this GTSAM build its bearing error is in the
 tangent basis of the *predicted* Unit3, which Unit3 picks by the smallest component of the direction.
@@ -54,6 +61,8 @@ class DetectionRecord:
     W: np.ndarray | None = None  # W^T W = cov^-1
     lin_pose: np.ndarray | None = None  # linearization point (4x4) of the observer
     fresh: bool = True  # not yet through a solve: keep the weight from the association innovation
+    pose_cov: np.ndarray | None = None  # a consider detection: its observer's pose covariance (6x6, tangent)
+    share: float = 1.0  # the part of its information its factor carries (the association's probability)
 
 
 def skews(q: np.ndarray) -> np.ndarray:
@@ -85,15 +94,13 @@ def linear_factors(dets: list[DetectionRecord], values: gtsam.Values) -> list[gt
     e = R^T (p - t) - z at the current observer pose x0 = (R0, t0) and target: p is a track state's
     position (state [p, v]) or an observed vehicle's origin (cross). With q0 = R0^T (p0 - t0):
     d e / d xi = [[q0]x, -I]; d e / d s = [R0^T, 0] (track) or d e / d xi_target = [0, R0^T R_target]
-    (cross); e(x0, p0) = q0 - z; whitened by sqrt(weight) W.
+    (cross); e(x0, p0) = q0 - z; whitened by sqrt(weight share) W.
     """
     M, mats, q = observed(dets, values)
     R0t = mats[:, :3, :3].transpose(0, 2, 1)
     cross = np.array([d.cross for d in dets])
-    W = np.sqrt(np.array([d.weight for d in dets]))[:, None, None] * np.array([d.W for d in dets])
-    A_x = np.zeros((len(dets), 3, 6))
-    A_x[:, :, :3] = skews(q)
-    A_x[:, :, 3:] = -np.eye(3)
+    A_x = _pose_jacobians(q)
+    W = np.sqrt(np.array([d.weight * d.share for d in dets]))[:, None, None] * _whiteners(dets, A_x)
     A_t = np.zeros((len(dets), 3, 6))
     A_t[~cross, :, :3] = R0t[~cross]
     if cross.any():
@@ -104,9 +111,32 @@ def linear_factors(dets: list[DetectionRecord], values: gtsam.Values) -> list[gt
     out = []
     for n, d in enumerate(dets):
         d.lin_pose = mats[n]
-        jf = gtsam.JacobianFactor(d.pose_key, WA_x[n], d.target_key, WA_t[n], b[n], _UNIT3)
+        if d.pose_cov is None:
+            jf = gtsam.JacobianFactor(d.pose_key, WA_x[n], d.target_key, WA_t[n], b[n], _UNIT3)
+        else:  # consider: on the track alone, the pose's uncertainty in W
+            jf = gtsam.JacobianFactor(d.target_key, WA_t[n], b[n], _UNIT3)
         out.append(gtsam.LinearContainerFactor(jf, values))
     return out
+
+
+def _pose_jacobians(q: np.ndarray) -> np.ndarray:
+    """d e / d xi = [[q0]x, -I] (N, 3, 6) of the detections' residuals at q0 (N, 3)."""
+    A_x = np.zeros((len(q), 3, 6))
+    A_x[:, :, :3] = skews(q)
+    A_x[:, :, 3:] = -np.eye(3)
+    return A_x
+
+
+def _whiteners(dets: list[DetectionRecord], A_x: np.ndarray) -> np.ndarray:
+    """W (N, 3, 3), W^T W = the noise's inverse: the detection's own (``DetectionRecord.W``), or for a consider
+    detection S_z + A_x C A_x^T (its observer's pose covariance C through the pose Jacobian A_x)."""
+    W = np.array([d.W for d in dets])
+    idx = [n for n, d in enumerate(dets) if d.pose_cov is not None]
+    if idx:
+        A = A_x[idx]
+        C = np.array([dets[n].cov for n in idx]) + A @ np.array([dets[n].pose_cov for n in idx]) @ A.transpose(0, 2, 1)
+        W[idx] = np.linalg.inv(np.linalg.cholesky(C))
+    return W
 
 
 def robust_weights(dets: list[DetectionRecord], values: gtsam.Values, k: float, phi: float | None = None) -> np.ndarray:
@@ -115,8 +145,9 @@ def robust_weights(dets: list[DetectionRecord], values: gtsam.Values, k: float, 
     al., "Robust map optimization using dynamic covariance scaling", ICRA 2013): w = s^2,
     s = min(1, 2 phi / (phi + |W e|^2)), whose influence vanishes far out, so a detection of another
     vehicle wrongly associated with this one cannot drag it (Huber's influence stays k)."""
-    e = observed(dets, values)[2] - np.array([d.z for d in dets])
-    we = np.einsum("nij,nj->ni", np.array([d.W for d in dets]), e)
+    q = observed(dets, values)[2]
+    e = q - np.array([d.z for d in dets])
+    we = np.einsum("nij,nj->ni", _whiteners(dets, _pose_jacobians(q)), e)
     dist = np.linalg.norm(we, axis=1)
     w = np.minimum(1.0, k / np.maximum(dist, 1e-12))
     if phi is not None:

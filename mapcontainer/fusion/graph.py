@@ -454,19 +454,28 @@ class FusionGraph:
             self._set_prior(chain, marginalize.forget_bias(prior, vid, a))
 
     # ------------------------------------------------------------------ detections
-    def add_detection(self, pose_key: int, state: TrackState, z_body, cov_body, weight: float = 1.0) -> None:
+    def add_detection(
+        self, pose_key: int, state: TrackState, z_body, cov_body, weight: float = 1.0, share: float | None = 1.0
+    ) -> None:
         """A body-frame detection z_body (cov_body) of the track state by the vehicle at pose_key.
 
         ``weight`` is the first Huber weight (from the association innovation); later ones follow the
-        estimate (IRLS, see :meth:`_reweight`).
+        estimate (IRLS, see :meth:`_reweight`). ``share``: the part of its information the factor carries (the
+        association's probability, for an observer with a GNSS-grade pose), or None: a consider detection
+        (:mod:`.detections`): it moves the track, with the observer's reported pose uncertainty in its noise,
+        never the observer. Folded into the track's prior, every detection is a whole consider detection.
         """
-        self.add_detections([(pose_key, state, z_body, cov_body, weight)])
+        self.add_detections([(pose_key, state, z_body, cov_body, weight, share)])
 
     def add_detections(self, items: list) -> None:
-        """Many :meth:`add_detection` calls at once: items of (pose_key, state, z_body, cov_body, weight)."""
-        dets = self._new_detections([(pk, state.key, z, cov) for pk, state, z, cov, _ in items], cross=False)
-        for det, (_, state, _, _, weight) in zip(dets, items, strict=True):
+        """Many :meth:`add_detection` calls at once: items of (pose_key, state, z_body, cov_body, weight, share)."""
+        dets = self._new_detections([(it[0], it[1].key, it[2], it[3]) for it in items], cross=False)
+        for det, (pose_key, state, _, _, weight, share) in zip(dets, items, strict=True):
             det.weight = weight
+            if share is None:
+                det.pose_cov = self._pose_states[pose_key].cov_xi
+            else:
+                det.share = float(share)
             state.dets.append(det)
         self._attach(dets)
 

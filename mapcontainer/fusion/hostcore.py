@@ -340,10 +340,11 @@ _NO_BIAS = np.zeros((3, 3))
 
 
 def vehicle_at(
-    pose, cov, v_map, dt: float, params: FusionParams, same_instant_s: float = 0.0
+    pose, cov, v_map, dt: float, params: FusionParams, same_instant_s: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """A vehicle's pose and covariance moved dt at constant velocity v_map, with the vehicle motion
-    factor's noise (its newest frame is not at the output time: latency).
+    factor's noise (its newest frame is not at the output time: latency). Both host cores publish their
+    vehicles through it, with the frame gate's tolerance as ``same_instant_s`` (0: every gap is latency).
 
     A frame within ``same_instant_s`` of the output time (the frame gate's tolerance) is of the same
     instant: the fleet samples on one clock, and the stamps differ by the vehicles' clock offsets, which

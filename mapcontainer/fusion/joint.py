@@ -236,7 +236,7 @@ class JointHost:
         self._counts["fused_cycles"] += 1
         self._lap("upkeep", t1)
         t1 = time.process_time()
-        out = self._output(t)
+        out = self._output(t, tolerance_s)
         self._lap("output", t1)
         self._last_cycle_ms = (time.perf_counter() - t_start) * 1e3
         return out
@@ -563,9 +563,11 @@ class JointHost:
                 sync(key[1], self._t[key], mu[o : o + _O], P[o : o + _O, o : o + _O])
 
     # ------------------------------------------------------------------ output
-    def _output(self, t: float) -> FusedState:
+    def _output(self, t: float, tolerance_s: float = 0.0) -> FusedState:
         """Every vehicle and confirmed track at t (constant velocity from its newest state, as the
-        distributed container); a vehicle whose localizer has not initialised: its GNSS-grade estimate."""
+        distributed container); a vehicle whose localizer has not initialised: its GNSS-grade estimate. A
+        vehicle's frame of the instant itself (within ``tolerance_s``: stamped by another clock) is not moved,
+        as in the distributed container (:func:`.hostcore.vehicle_at`)."""
         pp = self.params
         vids, poses, covs = [], [], []
         for vid in sorted(self.localizers):
@@ -581,7 +583,7 @@ class JointHost:
                 pose, cov, ts = np.asarray(res.pose, float).copy(), np.asarray(res.cov, float).copy(), res.t
             if t - ts > pp.window_s:  # silent for longer than the distributed host keeps a vehicle
                 continue
-            pose, cov = vehicle_at(pose, cov, res.velocity_map, t - ts, pp)
+            pose, cov = vehicle_at(pose, cov, res.velocity_map, t - ts, pp, tolerance_s)
             vids.append(vid)
             poses.append(pose)
             covs.append(cov)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -140,6 +141,16 @@ class FusionParams(BaseModel):
     )
     min_range_m: float = Field(0.5, gt=0, description="detections closer to the body origin than this are ignored")
     cross_localization: bool = Field(True, description="detections of connected vehicles constrain their poses")
+    observer_yaw_sigma_max_rad: float = Field(
+        math.radians(3.0),
+        gt=0,
+        description=(
+            "an observer that is not map matching and reports a yaw 1-sigma above this (rad) cannot place its"
+            " detections within a linear model: they move the tracks, never it (3 deg: the localizer's own bound"
+            " for one local solve, LocalizerParams.search_sigma_yaw_rad; a vehicle searching for its start"
+            " reports pi / sqrt(3))"
+        ),
+    )
 
     # ---- misbehaviour detection (mapcontainer/fusion/misbehaviour.py)
     misbehaviour: bool = Field(

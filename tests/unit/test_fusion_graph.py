@@ -428,7 +428,7 @@ def _lone_filtered_vehicle(trials: int, **kw) -> tuple[float, float, float, set]
             for j, p in enumerate(_LANDMARKS):
                 z = geo.transform_points(T_body_map, p) + rng.multivariate_normal(np.zeros(3), Z_COV)
                 state = g.track_state(j, t, geo.transform_points(geo.pose_to_matrix(pose), z), np.zeros(3), 0)
-                items.append((key, state, z, Z_COV, 1.0))
+                items.append((key, state, z, Z_COV, 1.0, 1.0))
             g.add_detections(items)
             g.prune(t - g.params.window_s)
             g.solve()

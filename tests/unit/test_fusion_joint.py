@@ -6,6 +6,7 @@ import pytest
 
 from mapcontainer.fusion import FusionParams
 from mapcontainer.fusion.joint import _MIN_DETECTION_SIGMA_M, JointHost, _floored
+from mapcontainer.fusion.poses import sym_from_upper
 from mapcontainer.hdmap.generator import generate_map
 from mapcontainer.sim import load_scenario
 from schemas import CameraInfo, RawObservations, encode
@@ -231,6 +232,37 @@ def test_a_fallback_frame_corrects_its_pose_only_through_sure_associations_to_sh
         host.tracker._uid_of[tr.id] = tr.uid
     det = Detection("a", 0.1, 0, np.zeros(3), np.eye(3), 0, np.zeros(3), np.eye(3))
     p = host.params.vehicle_association_probability
+
     assert host._sure("a", Assignment("track", 1, det, 0.0, p + 0.01))
     assert not host._sure("a", Assignment("track", 1, det, 0.0, p - 0.01))
     assert not host._sure("a", Assignment("track", 2, det, 0.0, 0.999))  # a saw it alone
+
+
+def test_the_joint_host_keeps_a_vehicle_of_the_instant_where_it_is():
+    """JointHost.fuse(t, tolerance_s) publishes its vehicles by the distributed host's rule
+    (hostcore.vehicle_at): a frame stamped 4 ms after t (another vehicle's clock) is not moved back by v * 4 ms,
+    its covariance takes v v^T dt^2; a frame older than the tolerance is predicted by v dt."""
+    from types import SimpleNamespace
+
+    from schemas import bias_cov
+
+    box = JointHost(generate_map(load_scenario("overlap").map), FusionParams(), "f", "host")
+    pose, v = np.array([10.0, 2.0, 0.0, 0.0, 0.0, 0.3]), np.array([10.0, 0.0, 0.0])
+    for t_frame, t_out in ((1.004, 1.0), (0.9, 1.0)):
+        box.mu, box.P, box._keys, box._t = np.zeros(0), np.zeros((0, 0)), [], {}
+        box._reindex()
+        P = np.diag([0.04, 0.04, 0.01, 1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-2, 1e-2])
+        box._set_block(("v", "a"), np.r_[pose, 1.0, 0.0, 0.0, 0.0], P, t_frame)
+        box.localizers = {"a": None}
+        box._results = {"a": SimpleNamespace(velocity_map=v, t=t_frame)}
+        out = box.fuse(t_out, tolerance_s=0.02)
+        got = np.asarray(out.vehicle_pose[0], dtype=float)
+        C = sym_from_upper(np.asarray(out.vehicle_pose_cov[0], dtype=float))
+        C_frame = P[:6, :6] + bias_cov(box.loc_params.match_bias_sigma, pose[5])
+        dt = t_out - t_frame
+        if abs(dt) <= 0.02:  # the instant: where it is, the gap's motion in its covariance
+            np.testing.assert_allclose(got, pose, atol=1e-5)
+            np.testing.assert_allclose(C[:3, :3] - C_frame[:3, :3], np.outer(v, v) * dt**2, rtol=1e-4, atol=1e-9)
+        else:  # a late frame: predicted
+            np.testing.assert_allclose(got[:3], pose[:3] + v * dt, atol=1e-5)
+            assert np.all(np.diag(C) > np.diag(C_frame) - 1e-9)
