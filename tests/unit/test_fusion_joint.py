@@ -254,7 +254,7 @@ def test_the_joint_host_keeps_a_vehicle_of_the_instant_where_it_is():
         P = np.diag([0.04, 0.04, 0.01, 1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-2, 1e-2])
         box._set_block(("v", "a"), np.r_[pose, 1.0, 0.0, 0.0, 0.0], P, t_frame)
         box.localizers = {"a": None}
-        box._results = {"a": SimpleNamespace(velocity_map=v, t=t_frame)}
+        box._results = {"a": SimpleNamespace(velocity_map=v, t=t_frame, protection_level=None)}
         out = box.fuse(t_out, tolerance_s=0.02)
         got = np.asarray(out.vehicle_pose[0], dtype=float)
         C = sym_from_upper(np.asarray(out.vehicle_pose_cov[0], dtype=float))
