@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 import pytest
+import zenoh
 
 from mapcontainer.security import inner_payload
 from schemas import FusedState, decode, encode
@@ -105,7 +106,15 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
     55 seen), so it is not asserted beyond enough states for the shares to mean something."""
     vehicles = ["cv0", "cv1"]
     session, signers = _signed_host(tmp_path, rendezvous, fleet_name, spawn, watch_liveliness, vehicles)
-    pubs = {v: session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src=v)) for v in vehicles}
+    # the genuine priors are published as the vehicle service publishes data (congestion control BLOCK), so the
+    # junk sent through the same session here cannot make this session's own transport drop them
+    pubs = {
+        v: session.declare_publisher(
+            topic("prior_rx").key(fleet=fleet_name, dst="host", src=v), congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        for v in vehicles
+    }
+    flood = session.declare_publisher(topic("prior_rx").key(fleet=fleet_name, dst="host", src="cv1"))  # the attacker's
     epoch = time.time_ns()
     fused: list = []
     sub = session.declare_subscriber(topic("fused").key(fleet=fleet_name, hid="host"), lambda s: fused.append(s))
@@ -133,7 +142,7 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
             tick(k := k + 1)
             next_tick += 0.1
         for _ in range(10):
-            pubs["cv1"].put(b"\x92junk" + junk.to_bytes(4, "big"))
+            flood.put(b"\x92junk" + junk.to_bytes(4, "big"))
             junk += 1
         time.sleep(0.01)
 
@@ -141,7 +150,13 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
         return {(i[0], i[1]) for x in list(fused[n_before:]) for i in read_attachment(x).get("inputs", [])}
 
     flood_seqs = [s for s in sent if s >= first_flood_seq]
-    wait_for(lambda: all((v, k) in ingested() for v in vehicles), timeout=20, what="the last genuine priors fused")
+    last = k
+    deadline = time.monotonic() + 20.0  # the vehicles go on sending, without junk, until the flood's last frame is out
+    while not all((v, last) in ingested() for v in vehicles):
+        missing = sorted({(v, s) for v in vehicles for s in flood_seqs} - ingested())
+        assert time.monotonic() < deadline, f"the flood's last genuine priors not fused in 20 s; missing {missing}"
+        tick(k := k + 1)
+        time.sleep(0.1)
     sub.undeclare()
     states = [f for f in (decode(inner_payload(x.payload.to_bytes()), FusedState) for x in fused[n_before:]) if f]
     inputs = [{i[0] for i in read_attachment(x).get("inputs", [])} for x in fused[n_before:]]
