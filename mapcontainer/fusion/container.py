@@ -369,7 +369,7 @@ class Container:
         self._counts["cross_detections"] += len(items)
         self._cross = waiting
 
-    def _output(self, t: float, tolerance_s: float = 0.0) -> FusedState:
+    def _output(self, t: float, tolerance_s: float) -> FusedState:
         """The fused state at t: every vehicle's newest pose and every confirmed track's newest state,
         predicted to t with constant velocity (vehicles: the reported v_map and the motion factor's
         noise; tracks: the WNOA model), so that V2X latency does not leave them behind. A vehicle's frame

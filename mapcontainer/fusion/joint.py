@@ -231,7 +231,7 @@ class JointHost:
         t1 = time.process_time()
         self._sync_tracker()
         gone = self.tracker.expire(t) + self.tracker.merge_duplicates(t)
-        gone += self.tracker.vehicle_shadows(t, self._vehicle_candidates(t, ""))  # as the distributed host
+        gone += self.tracker.vehicle_shadows(t, self._vehicle_candidates(t))  # as the distributed host
         self._drop(*(("o", tid) for tid in gone))
         self._counts["fused_cycles"] += 1
         self._lap("upkeep", t1)
@@ -366,7 +366,8 @@ class JointHost:
         for k in keys:
             self._t[k] = t
 
-    def _vehicle_candidates(self, t: float, observer: str) -> list[VehicleCandidate]:
+    def _vehicle_candidates(self, t: float, observer: str | None = None) -> list[VehicleCandidate]:
+        """Every connected vehicle but ``observer`` (None: every one) as a candidate at t for association."""
         out = []
         for key in self._keys:
             if key[0] != "v" or key[1] == observer:
@@ -563,7 +564,7 @@ class JointHost:
                 sync(key[1], self._t[key], mu[o : o + _O], P[o : o + _O, o : o + _O])
 
     # ------------------------------------------------------------------ output
-    def _output(self, t: float, tolerance_s: float = 0.0) -> FusedState:
+    def _output(self, t: float, tolerance_s: float) -> FusedState:
         """Every vehicle and confirmed track at t (constant velocity from its newest state, as the
         distributed container); a vehicle whose localizer has not initialised: its GNSS-grade estimate. A
         vehicle's frame of the instant itself (within ``tolerance_s``: stamped by another clock) is not moved,
