@@ -23,12 +23,17 @@ covariance, and disagrees otherwise: a vehicle that says it is uncertain (on GNS
 accused of what its covariance admits, and the map and calibration errors of honest vehicles, which put
 their views a few decimetres to a metre off at range, are inside the detector's covariance. A disagreement says
 that O or V is wrong, not which: the two are *disputed*, and while they are, neither cross-localizes
-the other (one lying vehicle must not pull its honest neighbours). V is *flagged* as the wrong one
+the other (one lying vehicle must not pull its honest neighbours). A view that disagrees *accuses* V only
+when it sees V at one place: its sightings' median distance from their median below
+``misbehaviour_spread_m``, as a bias of V's would put them. In the live cold start (paper-urban, seed 0)
+cv0 saw an honest cv3 twice where it said it was and, in the frames between, the car in the next lane
+3.4 m beside it, 1.9 m apart along the road from one frame to the next: the median of the four, 1.9 m off
+at a sigma of 0.4 m, flagged cv3. V is *flagged* as the wrong one
 
-* when at least ``misbehaviour_min_observers`` unflagged observers disagree with it and their views
+* when at least ``misbehaviour_min_observers`` unflagged observers accuse it and their views
   agree with each other (each within ``misbehaviour_spread_m`` of their median): they independently see
   V somewhere else; or
-* when a single observer O disagrees with it, and O is *corroborated* while V is not: O's views agreed
+* when a single observer O accuses it, and O is *corroborated* while V is not: O's views agreed
   with some third vehicle now (O sees it, or is seen by it, where it says it is), V's do not. Only
   current views vouch, for the accuser as for the accused: a vehicle that agreed with a third one before
   its pose went wrong is not vouched for by that. With the agreements of the last
@@ -345,9 +350,8 @@ class MisbehaviourMonitor:
             if not q:
                 del self._reports[vid]
         views: dict[tuple[str, str], np.ndarray] = {}  # (observer, observed) -> median offset
-        covs: dict[
-            tuple[str, str], np.ndarray
-        ] = {}  # ... -> its covariance (the sightings' mean: their errors persist)
+        covs: dict[tuple[str, str], np.ndarray] = {}  # ... -> its covariance (the sightings' mean: errors persist)
+        spread: dict[tuple[str, str], float] = {}  # ... -> its sightings' median distance from their median
         for vid, q in list(self._sightings.items()):
             while q and q[0].t < t - pp.misbehaviour_window_s:
                 q.popleft()
@@ -363,10 +367,14 @@ class MisbehaviourMonitor:
                     by_observer.setdefault(s.observer, []).append(s)
             for o, ss in by_observer.items():
                 if len(ss) >= pp.misbehaviour_min_sightings:
-                    views[(o, vid)] = np.median([s.offset for s in ss], axis=0)
+                    offsets = np.array([s.offset for s in ss])
+                    views[(o, vid)] = m = np.median(offsets, axis=0)
                     covs[(o, vid)] = np.mean([s.cov for s in ss], axis=0)
+                    spread[(o, vid)] = float(np.median(np.hypot(*(offsets - m).T)))
         self.views = {k: (m, covs[k]) for k, m in views.items()}
         agrees = {k: self._agrees(m, covs[k]) for k, m in views.items()}
+        # a view that disagrees accuses only when it sees V at one place: its sightings about their median
+        coherent = {k: spread[k] < pp.misbehaviour_spread_m for k in views}
         self.disputed = {frozenset(k) for k, ok in agrees.items() if not ok}
         agreed_now = {frozenset(k) for k, ok in agrees.items() if ok}
 
@@ -378,7 +386,9 @@ class MisbehaviourMonitor:
             if all(agrees[(o, v)] for o in mine):
                 self._seen_off.pop(v, None)
                 continue
-            accusers = {o: m for o, m in mine.items() if not agrees[(o, v)] and o not in self.flagged}
+            accusers = {
+                o: m for o, m in mine.items() if not agrees[(o, v)] and coherent[(o, v)] and o not in self.flagged
+            }
             if not accusers:
                 continue
             centre = np.median(np.array(list(accusers.values())), axis=0)

@@ -173,7 +173,10 @@ class FusionParams(BaseModel):
         10.0, gt=0, description="unused (only current views corroborate a vehicle); kept so older settings load"
     )
     misbehaviour_spread_m: float = Field(
-        1.0, gt=0, description="... consistently: the sightings' median distance from their median below this"
+        1.0,
+        gt=0,
+        description="a view accuses when its sightings' median distance from their median is below this, and "
+        "observers agree on where they see a vehicle when their views are this near their median (m)",
     )
     ghost_range_m: float = Field(
         40.0, gt=0, description="an object this near a vehicle, in its view and not hidden, is one it should see (m)"
