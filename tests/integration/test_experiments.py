@@ -130,6 +130,10 @@ def test_bench_localization_prints_accuracy_consistency_and_speed():
     assert 0 < result["cpu_ms_per_frame_p50"] <= result["cpu_ms_per_frame_p99"]
     assert result["yardstick_ms_p50"] > 0 and result["ms_p99_over_yardstick"] > 0
     assert set(result["nees_axes_mean"]) == {"x", "y", "z", "roll", "pitch", "yaw"}
+    # the frames not map matched, scored apart (GNSS fallback and the search): their error and consistency
+    assert result["fallback_frames"] == 0 or all(
+        _finite(result[k]) for k in ("fallback_rmse_m", "fallback_nees_h_mean", "fallback_nees_h_p95")
+    )
     assert result["error_sources"] == list(ERROR_SOURCES)  # the scenario's realistic errors, all on
     assert result["startup_accept"] == "landmarks"  # the default start-up rule
     assert result["map_errors"] == "independent"  # the default tracker (opt-in: --map-errors consider)
