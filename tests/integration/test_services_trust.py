@@ -152,8 +152,8 @@ def test_a_flood_on_a_vehicles_receive_key_leaves_every_vehicle_fused(
     flood_seqs = [s for s in sent if s >= first_flood_seq]
     last = k
     deadline = time.monotonic() + 20.0  # the vehicles go on sending, without junk, until the flood's last frame is out
-    while not all((v, last) in ingested() for v in vehicles):
-        missing = sorted({(v, s) for v in vehicles for s in flood_seqs} - ingested())
+    while not {(v, last) for v in vehicles} <= (got := ingested()):
+        missing = sorted({(v, s) for v in vehicles for s in flood_seqs} - got)
         assert time.monotonic() < deadline, f"the flood's last genuine priors not fused in 20 s; missing {missing}"
         tick(k := k + 1)
         time.sleep(0.1)
